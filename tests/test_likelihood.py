@@ -1,0 +1,48 @@
+import numpy as np
+import pytest
+
+from workbench.errors import InputError
+from workbench.likelihood import LikelihoodConfig, pixel_loglik, predicted_depth, scene_loglik
+
+
+def _scene():
+    observed = np.full((20, 30), 1.0, np.float32)
+    observed[5:10, 5:10] = 0.9  # an object 10 cm in front of the table
+    observed[0, :] = 0.0  # a row of holes
+    background = np.full((20, 30), 1.0, np.float32)
+    right = np.zeros((20, 30), np.float32)
+    right[5:10, 5:10] = 0.9
+    wrong = np.zeros((20, 30), np.float32)
+    wrong[12:17, 20:25] = 0.9
+    return observed, background, np.stack([right, wrong])
+
+
+@pytest.mark.parametrize("model", ["robust", "ssd"])
+def test_the_true_scene_is_more_likely(model):
+    observed, background, rendered = _scene()
+    ll = scene_loglik(observed, predicted_depth(rendered, background), LikelihoodConfig(model=model))
+    assert ll[0] > ll[1]
+
+
+def test_pixels_without_a_reading_are_ignored():
+    observed, background, rendered = _scene()
+    pred = predicted_depth(rendered, background)
+    pred[:, 0, :] = 5.0  # whatever is predicted where the sensor saw nothing must not matter
+    ll = pixel_loglik(observed, pred, LikelihoodConfig())
+    assert np.all(ll[:, 0, :] == 0)
+
+
+def test_robust_model_bounds_the_cost_of_an_outlier_pixel():
+    cfg = LikelihoodConfig()
+    observed = np.array([[1.0, 1.0]], np.float32)
+    near = pixel_loglik(observed, np.array([[[1.0, 1.5]]], np.float32), cfg)
+    far = pixel_loglik(observed, np.array([[[1.0, 50.0]]], np.float32), cfg)
+    assert np.isclose(near[0, 0, 1], far[0, 0, 1])  # both are pure outliers
+    assert near[0, 0, 0] > near[0, 0, 1]
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(InputError, match="sigma"):
+        LikelihoodConfig(sigma=-1.0).validate()
+    with pytest.raises(InputError, match="model"):
+        LikelihoodConfig(model="l1").validate()

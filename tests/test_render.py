@@ -1,0 +1,184 @@
+"""Batched depth renderer against analytic depth and against itself (batch vs single, passes, backends)."""
+
+from __future__ import annotations
+
+import multiprocessing
+
+import numpy as np
+import pytest
+import trimesh
+
+from workbench.errors import InputError
+from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
+from workbench.render import BACKENDS, DepthRenderer, RenderConfig, render_depth
+from workbench.scene import Camera
+
+BOX = np.array([0.10, 0.06, 0.04])
+W, H = 160, 120
+
+
+def look_at(eye, target) -> np.ndarray:
+    """T_cam_world of an OpenCV camera at ``eye`` looking at ``target``, table z up. -> (4, 4)."""
+    z = np.asarray(target, float) - np.asarray(eye, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return invert_pose(make_pose(np.stack([x, np.cross(z, x), z], axis=1), np.asarray(eye, float)))
+
+
+# Principal point off the half-pixel grid so that a half-pixel convention error moves silhouettes.
+CAMERA = Camera(
+    K=np.array([[300.0, 0.0, 80.3], [0.0, 310.0, 58.7], [0.0, 0.0, 1.0]]),
+    width=W,
+    height=H,
+    T_cam_world=look_at([0.05, -0.55, 0.45], [0.0, 0.0, 0.03]),
+)
+
+
+def analytic_box_depth(camera: Camera, extents: np.ndarray, T_world_box: np.ndarray) -> np.ndarray:
+    """Camera-z depth of a box centred in its frame, ray through each pixel centre per K. -> (H, W), 0 = miss."""
+    u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(camera.K).T  # (H, W, 3), z = 1
+    T_box_cam = invert_pose(camera.T_cam_world @ T_world_box)
+    origin, direction = T_box_cam[:3, 3], rays @ T_box_cam[:3, :3].T
+    with np.errstate(divide="ignore"):
+        t1, t2 = (-extents / 2 - origin) / direction, (extents / 2 - origin) / direction
+    t_near, t_far = np.minimum(t1, t2).max(axis=-1), np.maximum(t1, t2).min(axis=-1)
+    hit = (t_near <= t_far) & (t_near > 0)
+    return np.where(hit, t_near, 0.0)  # ray z is 1, so the ray parameter is camera z
+
+
+def eroded(mask: np.ndarray) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood lies entirely in ``mask``. (H, W) -> (H, W)."""
+    padded = np.pad(mask, 1)
+    out = np.ones_like(mask)
+    for dy in range(3):
+        for dx in range(3):
+            out &= padded[dy : dy + mask.shape[0], dx : dx + mask.shape[1]]
+    return out
+
+
+def assert_same_depth(actual: np.ndarray, desired: np.ndarray) -> None:
+    """Equal to 1e-5 m except at a few pixels per image. A tile's window position changes float rounding before
+    the rasteriser snaps vertices to 1/256 px, which moves depth by that much along grazing surfaces and can flip a
+    pixel whose centre lies on an edge; a bleed or a mixed-up tile changes hundreds of pixels. (..., H, W)."""
+    differs = np.abs(actual - desired) > 1e-5
+    assert actual.shape == desired.shape
+    assert differs.reshape(-1, H * W).sum(axis=1).max() <= 10, f"{differs.sum()} pixels differ"
+
+
+def random_particles(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    """Objects scattered over and around the view, some crossing the image border. -> (n, k, 4, 4)."""
+    xyz = rng.uniform([-0.25, -0.15, 0.0], [0.25, 0.2, 0.1], size=(n, k, 3))
+    rpy = rng.uniform(-np.pi, np.pi, size=(n, k, 3))
+    return pose_from_xyz_rpy(np.concatenate([xyz, rpy], axis=-1))
+
+
+@pytest.fixture(scope="module")
+def meshes() -> list[trimesh.Trimesh]:
+    return [trimesh.creation.box(BOX), trimesh.creation.icosphere(subdivisions=2, radius=0.035)]
+
+
+@pytest.fixture(scope="module")
+def renderer(meshes):
+    with DepthRenderer(CAMERA, meshes) as r:
+        yield r
+
+
+def test_rotated_box_matches_analytic_depth():
+    T_world_box = pose_from_xyz_rpy([0.02, 0.01, 0.05, 0.4, -0.3, 0.7])
+    expected = analytic_box_depth(CAMERA, BOX, T_world_box)
+    depth = render_depth(CAMERA, [trimesh.creation.box(BOX)], T_world_box[None])
+
+    assert depth.dtype == np.float32 and depth.shape == (H, W)
+    inside = eroded(expected > 0)
+    assert inside.sum() > 500
+    assert np.abs(depth[inside] - expected[inside]).max() < 1e-3
+    # Silhouettes agree up to pixels whose centre grazes an edge; a half-pixel offset would flip whole rows.
+    assert np.count_nonzero((depth > 0) != (expected > 0)) <= 3
+    assert np.all(depth[eroded(expected == 0)] == 0.0)
+
+
+def test_batch_tiles_equal_single_renders(renderer):
+    particles = random_particles(np.random.default_rng(0), 9, 2)
+    batch = renderer.render(particles)
+
+    assert batch.shape == (9, H, W)
+    borders = [np.concatenate([d[0], d[-1], d[:, 0], d[:, -1]]) for d in batch]
+    assert sum(np.any(b > 0) for b in borders) >= 2, "some particle should reach past its tile"
+    for i, particle in enumerate(particles):
+        alone = renderer.render(particle[None])[0]
+        assert np.count_nonzero(alone) > 0
+        assert_same_depth(batch[i], alone)
+
+
+def test_batch_larger_than_one_pass(renderer, meshes):
+    particles = random_particles(np.random.default_rng(1), 13, 2)
+    with DepthRenderer(CAMERA, meshes, RenderConfig(max_framebuffer=400)) as small:
+        assert small.particles_per_pass == 6  # 2 columns x 3 rows of 160x120
+        split = small.render(particles)
+    assert_same_depth(split, renderer.render(particles))
+
+
+def test_no_bleed_into_neighbour_tiles(meshes):
+    nothing = invert_pose(CAMERA.T_cam_world) @ make_pose(np.eye(3), [0.0, 0.0, -1.0])  # behind the camera
+    filling = invert_pose(CAMERA.T_cam_world) @ make_pose(np.eye(3), [0.0, 0.0, 0.1])  # box overfills the view
+    particles = np.stack([[nothing, nothing]] * 12)
+    particles[5, 0] = filling  # column-major 3x4 tiles: tile 5 is surrounded by tiles 0-2, 4, 6, 8-10
+    with DepthRenderer(CAMERA, meshes, RenderConfig(max_framebuffer=480)) as small:
+        assert small.particles_per_pass == 12
+        depth = small.render(particles)
+    assert np.all(depth[5] > 0)
+    assert np.all(np.delete(depth, 5, axis=0) == 0.0)
+
+
+def test_two_objects_occlude(meshes):
+    front = pose_from_xyz_rpy([0.0, -0.05, 0.1, 0.0, 0.0, 0.3])  # floating: rendering ignores physics
+    back = pose_from_xyz_rpy([0.01, 0.12, 0.0, 0.0, 0.0, -0.2])
+    with DepthRenderer(CAMERA, [meshes[0], meshes[0]]) as both, DepthRenderer(CAMERA, meshes[:1]) as one:
+        together = both.render(np.stack([front, back])[None])[0]
+        d_front, d_back = one.render(np.stack([front[None], back[None]]))
+
+    overlap = (d_front > 0) & (d_back > 0)
+    assert overlap.sum() > 50
+    assert np.all(d_front[overlap] < d_back[overlap])
+    expected = np.where(overlap, np.minimum(d_front, d_back), d_front + d_back)
+    np.testing.assert_allclose(together, expected, atol=1e-5, rtol=0)
+
+
+def test_empty_pixels_are_exactly_zero(renderer):
+    behind_camera = invert_pose(CAMERA.T_cam_world) @ make_pose(np.eye(3), [0.0, 0.0, -1.0])
+    nothing = renderer.render(np.stack([behind_camera, behind_camera])[None])
+    assert np.all(nothing == 0.0)
+    assert renderer.render(np.zeros((0, 2, 4, 4))).shape == (0, H, W)
+
+
+def test_other_backend_in_same_process_is_refused(renderer, meshes):
+    other = next(b for b in BACKENDS if b != renderer.backend)
+    with pytest.raises(InputError, match="once per process"):
+        DepthRenderer(CAMERA, meshes, RenderConfig(backend=other))
+
+
+def _render_in_spawned_worker(meshes, particle, backend: str) -> np.ndarray:
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        return pool.apply_async(render_depth, (CAMERA, meshes, particle, RenderConfig(backend=backend))).get(120)
+
+
+def test_spawned_worker_renders_the_same(renderer, meshes):
+    particle = random_particles(np.random.default_rng(2), 1, 2)[0]
+    depth = _render_in_spawned_worker(meshes, particle, renderer.backend)
+    assert np.count_nonzero(depth) > 0
+    np.testing.assert_allclose(depth, renderer.render(particle[None])[0], atol=1e-5, rtol=0)
+
+
+def test_egl_matches_osmesa(renderer, meshes):
+    other = next(b for b in BACKENDS if b != renderer.backend)
+    particle = random_particles(np.random.default_rng(3), 1, 2)[0]
+    try:
+        depth = _render_in_spawned_worker(meshes, particle, other)
+    except RuntimeError as e:
+        if "could not create" in str(e):
+            pytest.skip(f"{other} unavailable: {e}")
+        raise
+    assert np.count_nonzero(depth) > 0
+    np.testing.assert_allclose(depth, renderer.render(particle[None])[0], atol=1e-5, rtol=0)

@@ -1,0 +1,631 @@
+"""Reading and writing datasets in the BOP format, and the BOP results CSV.
+
+Format (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md)::
+
+    DATASET/models/models_info.json        {"<obj_id>": {"diameter", "min_x".., "size_x".., "symmetries_discrete"}}
+    DATASET/models/obj_XXXXXX.ply          millimetres
+    DATASET/<split>/<scene_id:06d>/scene_camera.json   {"<im_id>": {"cam_K", "depth_scale", ["cam_R_w2c", "cam_t_w2c"]}}
+    DATASET/<split>/<scene_id:06d>/scene_gt.json       {"<im_id>": [{"obj_id", "cam_R_m2c", "cam_t_m2c"}, ...]}
+    DATASET/<split>/<scene_id:06d>/scene_gt_info.json  {"<im_id>": [{"bbox_obj", "visib_fract", ...}, ...]}
+    DATASET/<split>/<scene_id:06d>/depth/<im_id:06d>.png   uint16; value x depth_scale = millimetres
+    DATASET/<split>/<scene_id:06d>/rgb/<im_id:06d>.png|jpg optional
+
+Rotations are 9 numbers row-major, translations millimetres. In memory everything is metres (``scene.py``).
+``DATASET`` may be the dataset root or a split folder (then the models are in its parent). Every problem with
+the files raises ``InputError`` naming the file. The readers and checks (``read_json``, ``read_depth_png``,
+``read_mesh``, ``parse_K``, ``parse_pose``, ``parse_T``, ``check_*``) are shared with ``plainframe.py``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import trimesh
+from PIL import Image, UnidentifiedImageError
+
+from .errors import InputError
+from .geometry import make_pose
+from .scene import Camera, Frame, ObjectModel
+
+log = logging.getLogger(__name__)
+
+MM = 1e-3  # metres per millimetre
+# Folders that hold the meshes, in order of preference (T-LESS ships models_cad/models_reconst, no models/).
+MODEL_DIRS = ("models", "models_cad", "models_eval", "models_reconst")
+# A table scene seen by a depth sensor: the median valid depth must lie in this range (metres) or the units are off.
+PLAUSIBLE_MEDIAN_DEPTH = (0.15, 6.0)
+# Continuous symmetries (bowls, cans) become this many discrete rotations about their axis.
+CONTINUOUS_SYMMETRY_STEPS = 36
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Files
+
+
+def read_json(path: Path) -> dict | list:
+    """The parsed JSON file, or InputError naming it."""
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(path, f"corrupt JSON ({e}); re-export or re-download the file") from e
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write through a temporary file in the same folder so readers never see a half-written file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _write_json(path: Path, content: dict) -> None:
+    _atomic_write(path, (json.dumps(content, indent=2) + "\n").encode())
+
+
+def _merge_json(path: Path, im_id: int, value) -> None:
+    """Set key ``str(im_id)`` of the JSON object in ``path`` (created if missing), keys kept in numeric order."""
+    content = read_json(path) if path.exists() else {}
+    if not isinstance(content, dict):
+        raise InputError(path, "expected a JSON object keyed by image id")
+    content[str(im_id)] = value
+    _write_json(path, {k: content[k] for k in sorted(content, key=int)})
+
+
+def _png_bytes(image: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def read_depth_png(path: Path) -> np.ndarray:
+    """A 16-bit single-channel PNG -> (H, W) float64 raw sensor units."""
+    if not path.is_file():
+        raise InputError(path, "depth image not found")
+    try:
+        with Image.open(path) as im:
+            im.load()
+            mode = im.mode
+            raw = np.asarray(im)
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        raise InputError(path, f"corrupt or unreadable image ({e})") from e
+    if mode not in ("I;16", "I;16B", "I;16L", "I"):
+        raise InputError(
+            path, f"depth must be a 16-bit single-channel PNG, this one is mode {mode!r} (an 8-bit or colour image?)"
+        )
+    return raw.astype(np.float64)
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """(H, W, 3) uint8."""
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        raise InputError(path, f"corrupt or unreadable image ({e})") from e
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Validation shared with plainframe.py
+
+
+def parse_K(values, path: Path) -> np.ndarray:
+    """9 numbers (row-major) or a 3x3 nested list -> (3, 3) float64, checked."""
+    try:
+        K = np.asarray(values, dtype=np.float64).reshape(3, 3)
+    except (TypeError, ValueError) as e:
+        raise InputError(path, f"cam_K must be 9 numbers (3x3 row-major), got {values!r}") from e
+    if not np.all(np.isfinite(K)):
+        raise InputError(path, f"cam_K contains NaN or inf: {K.ravel().tolist()}")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(path, f"cam_K focal lengths must be positive pixels, got fx={K[0, 0]}, fy={K[1, 1]}")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise InputError(path, f"cam_K last row must be [0, 0, 1], got {K[2].tolist()} (transposed?)")
+    return K
+
+
+def parse_pose(R, t, path: Path, what: str, t_unit: float = MM) -> np.ndarray:
+    """Rotation (9 numbers row-major) and translation (3 numbers, in units of ``t_unit`` metres) -> (4, 4) metres.
+
+    The rotation is re-orthonormalised: JSON files store it with a few digits only."""
+    try:
+        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(t, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError) as e:
+        raise InputError(path, f"{what}: rotation must be 9 numbers and translation 3 numbers") from e
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise InputError(path, f"{what} contains NaN or inf")
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+        raise InputError(path, f"{what}: the rotation is not orthonormal with determinant +1 ({R.ravel().tolist()})")
+    U, _, Vt = np.linalg.svd(R)
+    return make_pose(U @ Vt, t * t_unit)
+
+
+def parse_T(values, path: Path, what: str, t_unit: float = 1.0) -> np.ndarray:
+    """A 4x4 rigid pose (nested list or 16 numbers, translation in units of ``t_unit`` metres) -> (4, 4) metres."""
+    try:
+        T = np.asarray(values, dtype=np.float64).reshape(4, 4)
+    except (TypeError, ValueError) as e:
+        raise InputError(path, f"{what} must be a 4x4 matrix") from e
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InputError(path, f"{what}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    return parse_pose(T[:3, :3], T[:3, 3], path, what, t_unit)
+
+
+def check_depth_units(depth: np.ndarray, path: Path, setting: str, fix: Callable[[float], str]) -> None:
+    """Raise when the median valid depth (metres, (H, W)) is implausible for a table scene. ``setting`` names what
+    set the units; ``fix(factor)`` says how to change it so that depths are ``factor`` times larger (a power of
+    ten that brings the median near 1 m)."""
+    median = float(np.median(depth[depth > 0]))
+    lo, hi = PLAUSIBLE_MEDIAN_DEPTH
+    if lo <= median <= hi:
+        return
+    factor = float(10.0 ** np.round(-np.log10(median)))
+    raise InputError(
+        path, f"with {setting} the median depth is {median:.4g} m, but a table scene is 0.2-5 m from the camera; "
+        f"{fix(factor)} would put it at {median * factor:.2f} m"
+    )
+
+
+def check_depth(depth: np.ndarray, path: Path, camera: Camera) -> None:
+    """Depth (H, W) metres against the camera: size, anything measured. Units are the caller's to check
+    (it knows which setting to suggest)."""
+    if depth.shape != (camera.height, camera.width):
+        raise InputError(
+            path,
+            f"depth image is {depth.shape[1]}x{depth.shape[0]} but the camera is {camera.width}x{camera.height}: "
+            "intrinsics for another resolution? Scale K with the image or use the matching intrinsics",
+        )
+    if not np.any(depth > 0):
+        raise InputError(path, "depth image has no valid pixel (all zero): wrong file or a failed capture")
+
+
+def check_principal_point(K: np.ndarray, width: int, height: int, path: Path) -> None:
+    """BOP cameras carry no image size: a principal point outside the image betrays K of another resolution."""
+    if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
+        raise InputError(
+            path,
+            f"cam_K principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) lies outside the {width}x{height} depth image: "
+            "intrinsics for another resolution?",
+        )
+
+
+def read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
+    """Any mesh trimesh reads, times ``scale`` -> metres, vertices merged by position, vertex colours kept.
+
+    Raises InputError when missing, unreadable, empty or degenerate; warns (naming the file) when not watertight,
+    because its mass then comes from the convex hull."""
+    if not path.is_file():
+        raise InputError(path, "mesh file not found")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh's loaders raise anything from IndexError to KeyError on corrupt files
+        raise InputError(path, f"corrupt or unreadable mesh ({type(e).__name__}: {e})") from e
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise InputError(path, "mesh has no triangles (a point cloud or an empty file?)")
+    vertices = np.asarray(loaded.vertices, dtype=np.float64) * scale
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(path, "mesh has NaN or inf vertices")
+    colors = None
+    if loaded.visual.kind == "vertex":
+        colors = loaded.visual.vertex_colors
+    elif loaded.visual.kind == "texture":
+        try:
+            colors = loaded.visual.to_color().vertex_colors
+        except Exception:  # a missing texture image only loses colour, which nothing but display uses
+            colors = None
+    # Textured meshes duplicate vertices along UV seams; merging by position makes closed meshes watertight.
+    mesh = trimesh.Trimesh(vertices, loaded.faces, vertex_colors=colors, process=True)
+    # Flat (zero-volume) meshes cannot be simulated; the test is relative so that unit mistakes reach the caller.
+    if len(mesh.faces) == 0 or mesh.extents.min() <= 1e-4 * mesh.extents.max():
+        extents = np.round(mesh.extents / scale, 6).tolist()
+        raise InputError(path, f"mesh is degenerate (extents {extents} in file units)")
+    if not mesh.is_watertight:
+        log.warning("%s: mesh is not watertight; its mass is taken from its convex hull", path)
+    return mesh
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Dataset layout
+
+
+def _is_scene_dir(p: Path) -> bool:
+    return p.is_dir() and p.name.isdigit() and (p / "scene_camera.json").is_file()
+
+
+def _has_scenes(p: Path) -> bool:
+    return p.is_dir() and any(_is_scene_dir(c) for c in p.iterdir())
+
+
+def _split_dir(dataset: Path, split: str | None) -> Path:
+    """The folder holding the scene folders."""
+    dataset = Path(dataset)
+    if not dataset.is_dir():
+        raise InputError(dataset, "dataset folder not found")
+    if split is not None:
+        d = dataset / split
+        if not d.is_dir():
+            raise InputError(d, f"split folder not found (folders here: {sorted(c.name for c in dataset.iterdir())})")
+        return d
+    if _has_scenes(dataset):
+        return dataset
+    if _has_scenes(dataset / "test"):
+        return dataset / "test"
+    for c in sorted(dataset.iterdir()):
+        if _has_scenes(c):
+            return c
+    raise InputError(dataset, "no scene folders (NNNNNN/scene_camera.json) here or in any split folder below")
+
+
+def _models_dir(dataset: Path) -> Path:
+    dataset = Path(dataset)
+    if (dataset / "models_info.json").is_file():
+        return dataset
+    roots = [dataset, dataset.parent] if _has_scenes(dataset) else [dataset]
+    for root in roots:
+        for name in MODEL_DIRS:
+            if (root / name / "models_info.json").is_file():
+                return root / name
+    raise InputError(dataset / "models" / "models_info.json", f"file not found (looked in {', '.join(MODEL_DIRS)})")
+
+
+def _scene_dir(split_dir: Path, scene_id: int) -> Path:
+    d = split_dir / f"{scene_id:06d}"
+    if not d.is_dir():
+        raise InputError(d, f"scene {scene_id} not found")
+    return d
+
+
+def _image_file(folder: Path, im_id: int, exts: tuple[str, ...]) -> Path | None:
+    for ext in exts:
+        p = folder / f"{im_id:06d}{ext}"
+        if p.is_file():
+            return p
+    return None
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Models
+
+
+def _symmetries(info: dict, path: Path, obj_id: int) -> np.ndarray:
+    """models_info entry -> (S, 4, 4) metres, identity first: discrete ones, each combined with the continuous
+    ones discretised into CONTINUOUS_SYMMETRY_STEPS rotations (as bop_toolkit's get_symmetry_transformations)."""
+    discrete = [np.eye(4)]
+    for values in info.get("symmetries_discrete", []):
+        discrete.append(parse_T(values, path, f"object {obj_id} symmetries_discrete", t_unit=MM))
+    continuous = [np.eye(4)]
+    for sym in info.get("symmetries_continuous", []):
+        axis = np.asarray(sym["axis"], dtype=np.float64)
+        offset = np.asarray(sym.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64) * MM
+        axis = axis / np.linalg.norm(axis)
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        for a in np.arange(1, CONTINUOUS_SYMMETRY_STEPS) * 2 * np.pi / CONTINUOUS_SYMMETRY_STEPS:
+            R = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+            continuous.append(make_pose(R, offset - R @ offset))
+    return np.stack([c @ d for d in discrete for c in continuous])
+
+
+def load_models(
+    dataset: Path, obj_ids: list[int] | None = None, density: float = 1000.0, friction: float = 0.75
+) -> dict[int, ObjectModel]:
+    """The object models (metres) of a BOP dataset, all or those in ``obj_ids``; keyed by obj_id."""
+    models_dir = _models_dir(Path(dataset))
+    info_path = models_dir / "models_info.json"
+    info = read_json(info_path)
+    if not isinstance(info, dict):
+        raise InputError(info_path, "expected a JSON object keyed by obj_id")
+    known = sorted(int(k) for k in info)
+    wanted = known if obj_ids is None else list(dict.fromkeys(int(i) for i in obj_ids))
+    models = {}
+    for obj_id in wanted:
+        if str(obj_id) not in info:
+            raise InputError(info_path, f"unknown obj_id {obj_id}; this dataset has objects {known}")
+        path = models_dir / f"obj_{obj_id:06d}.ply"
+        mesh = read_mesh(path, MM)
+        if not 0.003 <= mesh.extents.max() <= 3.0:
+            raise InputError(
+                path, f"object is {mesh.extents.max() * 1000:g} mm across; BOP models are in millimetres "
+                "(is this file in metres?)"
+            )
+        models[obj_id] = ObjectModel(
+            obj_id=obj_id,
+            mesh=mesh,
+            name=f"obj_{obj_id:06d}",
+            density=density,
+            friction=friction,
+            symmetries=_symmetries(info[str(obj_id)], info_path, obj_id),
+            source=path,
+        )
+    return models
+
+
+def save_models(
+    dataset: Path, meshes: dict[int, trimesh.Trimesh], symmetries: dict[int, np.ndarray] | None = None
+) -> None:
+    """Write meshes (metres) as DATASET/models/obj_XXXXXX.ply (mm) and models_info.json.
+
+    ``symmetries``: obj_id -> (S, 4, 4) metres; identity entries are not written (BOP lists only the others)."""
+    models_dir = Path(dataset) / "models"
+    info_path = models_dir / "models_info.json"
+    info = read_json(info_path) if info_path.exists() else {}
+    for obj_id, mesh in meshes.items():
+        mm = mesh.copy()
+        mm.apply_scale(1.0 / MM)
+        _atomic_write(models_dir / f"obj_{obj_id:06d}.ply", mm.export(file_type="ply"))
+        hull = mm.convex_hull.vertices
+        diameter = float(np.max(np.linalg.norm(hull[:, None] - hull[None], axis=-1)))
+        lo, size = mm.bounds[0], mm.extents
+        entry = {"diameter": diameter}
+        entry.update({f"min_{a}": float(lo[i]) for i, a in enumerate("xyz")})
+        entry.update({f"size_{a}": float(size[i]) for i, a in enumerate("xyz")})
+        syms = [] if symmetries is None else symmetries.get(obj_id, [])
+        disc = []
+        for S in np.asarray(syms, dtype=np.float64).reshape(-1, 4, 4):
+            if np.allclose(S, np.eye(4)):
+                continue
+            S = S.copy()
+            S[:3, 3] /= MM
+            disc.append(S.ravel().tolist())
+        if disc:
+            entry["symmetries_discrete"] = disc
+        info[str(obj_id)] = entry
+    _write_json(info_path, {k: info[k] for k in sorted(info, key=int)})
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Frames
+
+
+def list_frames(dataset: Path, split: str | None = None) -> list[tuple[int, int]]:
+    """All (scene_id, im_id) of a split, sorted."""
+    split_dir = _split_dir(Path(dataset), split)
+    frames = []
+    for scene in sorted(c for c in split_dir.iterdir() if _is_scene_dir(c)):
+        cams = read_json(scene / "scene_camera.json")
+        frames.extend((int(scene.name), int(k)) for k in cams)
+    return sorted(frames)
+
+
+def _targets(dataset_root: Path, scene_id: int, im_id: int) -> list[int] | None:
+    """Object ids from a BOP test_targets_*.json (test splits whose ground truth is withheld)."""
+    for path in sorted(dataset_root.glob("test_targets_*.json")):
+        rows = read_json(path)
+        ids = []
+        for row in rows:
+            if row.get("scene_id") == scene_id and row.get("im_id") == im_id:
+                ids.extend([int(row["obj_id"])] * int(row.get("inst_count", 1)))
+        if ids:
+            return ids
+    return None
+
+
+def _camera_json_size(split_dir: Path) -> tuple[Path, int, int] | None:
+    """(file, width, height) of the dataset-level camera file for this split, if there is one."""
+    suffix = split_dir.name.split("_", 1)[1] if "_" in split_dir.name else ""
+    path = split_dir.parent / (f"camera_{suffix}.json" if suffix else "camera.json")
+    if not path.is_file():
+        return None
+    cam = read_json(path)
+    if "width" not in cam or "height" not in cam:
+        return None
+    return path, int(cam["width"]), int(cam["height"])
+
+
+def load_frame(
+    dataset: Path, scene_id: int, im_id: int, split: str | None = None, object_ids: list[int] | None = None
+) -> Frame:
+    """One frame. ``object_ids`` (repeats for several instances) default to those of scene_gt.json, else of the
+    dataset's test_targets_*.json. ``gt_T_cam_obj`` (K, 4, 4) follows ``object_ids`` (instances of one object in
+    the order of scene_gt.json); rows of objects without ground truth are NaN; None when there is no scene_gt.json."""
+    dataset = Path(dataset)
+    split_dir = _split_dir(dataset, split)
+    scene_dir = _scene_dir(split_dir, scene_id)
+    cam_path = scene_dir / "scene_camera.json"
+    cams = read_json(cam_path)
+    if str(im_id) not in cams:
+        ids = sorted(int(k) for k in cams)
+        span = f"{ids[0]}..{ids[-1]}" if ids else "none"
+        raise InputError(cam_path, f"image {im_id} is not in scene {scene_id} (image ids {span}, {len(ids)} images)")
+    cam = cams[str(im_id)]
+    if "cam_K" not in cam:
+        raise InputError(cam_path, f"image {im_id} has no cam_K (the 3x3 intrinsics, 9 numbers row-major)")
+    K = parse_K(cam["cam_K"], cam_path)
+    depth_scale = float(cam.get("depth_scale", 1.0))
+    if not np.isfinite(depth_scale) or depth_scale <= 0:
+        raise InputError(cam_path, f"image {im_id}: depth_scale must be a positive number, got {depth_scale}")
+    T_cam_world = None
+    if "cam_R_w2c" in cam and "cam_t_w2c" in cam:
+        T_cam_world = parse_pose(cam["cam_R_w2c"], cam["cam_t_w2c"], cam_path, f"image {im_id} cam_R_w2c/cam_t_w2c")
+
+    depth_path = scene_dir / "depth" / f"{im_id:06d}.png"
+    depth = read_depth_png(depth_path) * depth_scale * MM
+    height, width = depth.shape
+    sized = _camera_json_size(split_dir)
+    if sized is not None and (sized[1], sized[2]) != (width, height):
+        raise InputError(
+            depth_path, f"depth image is {width}x{height} but {sized[0].name} says {sized[1]}x{sized[2]}"
+        )
+    check_principal_point(K, width, height, cam_path)
+    camera = Camera(K, width, height, T_cam_world)
+    check_depth(depth, depth_path, camera)
+    check_depth_units(
+        depth, cam_path, f"image {im_id} depth_scale {depth_scale:g} (PNG value x depth_scale = mm)",
+        lambda factor: f"depth_scale {depth_scale * factor:g}",
+    )
+
+    gt_path = scene_dir / "scene_gt.json"
+    gt_entries = None
+    if gt_path.is_file():
+        gt_all = read_json(gt_path)
+        if str(im_id) not in gt_all:
+            raise InputError(gt_path, f"image {im_id} has no ground-truth entry")
+        gt_entries = gt_all[str(im_id)]
+    if object_ids is None:
+        if gt_entries is not None:
+            object_ids = [int(g["obj_id"]) for g in gt_entries]
+        else:
+            object_ids = _targets(split_dir.parent, scene_id, im_id)
+            if object_ids is None:
+                raise InputError(
+                    scene_dir, f"image {im_id}: no scene_gt.json or test_targets_*.json says which objects are "
+                    "present; pass object_ids"
+                )
+    object_ids = [int(i) for i in object_ids]
+    try:
+        info_path = _models_dir(dataset) / "models_info.json"
+    except InputError:
+        info_path = None  # a dataset without models may still be read for its frames
+    if info_path is not None:
+        known = {int(k) for k in read_json(info_path)}
+        unknown = sorted(set(object_ids) - known)
+        if unknown:
+            raise InputError(info_path, f"unknown obj_id {unknown}; this dataset has objects {sorted(known)}")
+
+    gt = None
+    if gt_entries is not None:
+        gt = np.full((len(object_ids), 4, 4), np.nan)
+        used = [False] * len(gt_entries)
+        for k, obj_id in enumerate(object_ids):
+            for j, g in enumerate(gt_entries):
+                if not used[j] and int(g["obj_id"]) == obj_id:
+                    gt[k] = parse_pose(g["cam_R_m2c"], g["cam_t_m2c"], gt_path, f"image {im_id} object {obj_id}")
+                    used[j] = True
+                    break
+
+    rgb = None
+    rgb_path = _image_file(scene_dir / "rgb", im_id, (".png", ".jpg", ".jpeg"))
+    if rgb_path is not None:
+        rgb = read_rgb(rgb_path)
+        if rgb.shape[:2] != depth.shape:
+            raise InputError(rgb_path, f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, depth is {width}x{height}")
+    return Frame(
+        depth=depth.astype(np.float32),
+        camera=camera,
+        object_ids=object_ids,
+        scene_id=scene_id,
+        im_id=im_id,
+        gt_T_cam_obj=gt,
+        rgb=rgb,
+        source=depth_path,
+    )
+
+
+def _R_t_mm(T: np.ndarray) -> tuple[list[float], list[float]]:
+    T = np.asarray(T, dtype=np.float64)
+    return T[:3, :3].ravel().tolist(), (T[:3, 3] / MM).tolist()
+
+
+def save_frame(
+    dataset: Path,
+    scene_id: int,
+    im_id: int,
+    depth: np.ndarray,
+    K: np.ndarray,
+    T_cam_world: np.ndarray | None = None,
+    gt: list[tuple[int, np.ndarray]] | None = None,
+    gt_info: list[dict] | None = None,
+    depth_scale: float = 0.1,
+    split: str = "test",
+    rgb: np.ndarray | None = None,
+) -> None:
+    """Write one frame, merged into the scene's JSON files. ``depth``: (H, W) metres, 0 = no reading; stored as
+    round(depth_mm / depth_scale) in uint16, so ``depth_scale`` 0.1 reaches 6.5 m. ``gt``: (obj_id, T_cam_obj
+    metres) per instance. ``rgb``: (H, W, 3) uint8."""
+    scene_dir = Path(dataset) / split / f"{scene_id:06d}"
+    depth = np.asarray(depth, dtype=np.float64)
+    if not np.all(np.isfinite(depth)) or depth.min() < 0:
+        raise InputError(scene_dir, "depth must be finite metres >= 0 (0 = no reading)")
+    units = np.round(depth / MM / depth_scale)
+    if units.max() > np.iinfo(np.uint16).max:
+        raise InputError(
+            scene_dir, f"depth up to {depth.max():.2f} m does not fit 16 bits at depth_scale {depth_scale}; "
+            f"use depth_scale >= {depth.max() / MM / 65535:.3g}"
+        )
+    _atomic_write(scene_dir / "depth" / f"{im_id:06d}.png", _png_bytes(units.astype(np.uint16)))
+    if rgb is not None:
+        _atomic_write(scene_dir / "rgb" / f"{im_id:06d}.png", _png_bytes(np.asarray(rgb, dtype=np.uint8)))
+    cam = {"cam_K": np.asarray(K, dtype=np.float64).ravel().tolist(), "depth_scale": float(depth_scale)}
+    if T_cam_world is not None:
+        cam["cam_R_w2c"], cam["cam_t_w2c"] = _R_t_mm(T_cam_world)
+    _merge_json(scene_dir / "scene_camera.json", im_id, cam)
+    if gt is not None:
+        entries = []
+        for obj_id, T in gt:
+            R, t = _R_t_mm(T)
+            entries.append({"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": int(obj_id)})
+        _merge_json(scene_dir / "scene_gt.json", im_id, entries)
+    if gt_info is not None:
+        _merge_json(scene_dir / "scene_gt_info.json", im_id, gt_info)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Results
+
+
+@dataclass
+class ResultRow:
+    """One estimate in the BOP results format. ``T_cam_obj``: (4, 4) metres; ``time``: seconds for the whole
+    image (-1 when unknown)."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    T_cam_obj: np.ndarray
+    time: float
+
+
+RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+
+
+def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
+    """BOP results CSV: R 9 numbers row-major, t 3 numbers in mm, space-separated."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(RESULTS_HEADER)
+    for r in rows:
+        R, t = _R_t_mm(r.T_cam_obj)
+        w.writerow(
+            [r.scene_id, r.im_id, r.obj_id, f"{r.score:.12g}", " ".join(f"{v:.12g}" for v in R),
+             " ".join(f"{v:.12g}" for v in t), f"{r.time:.12g}"]
+        )
+    _atomic_write(Path(path), buf.getvalue().encode())
+
+
+def read_results_csv(path: Path) -> list[ResultRow]:
+    """Inverse of ``write_results_csv``."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "results file not found")
+    lines = list(csv.reader(path.read_text().splitlines()))
+    if not lines or [c.strip() for c in lines[0]] != RESULTS_HEADER:
+        raise InputError(path, f"first line must be the header {','.join(RESULTS_HEADER)}")
+    rows = []
+    for n, cells in enumerate(lines[1:], start=2):
+        if not cells:
+            continue
+        try:
+            scene_id, im_id, obj_id, score, R, t, time = cells
+            ids = (int(scene_id), int(im_id), int(obj_id))
+            R, t = [float(v) for v in R.split()], [float(v) for v in t.split()]
+            score, time = float(score), float(time)
+        except ValueError as e:
+            raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: {cells}") from e
+        rows.append(ResultRow(*ids, score, parse_pose(R, t, path, f"line {n}"), time))
+    return rows

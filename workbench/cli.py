@@ -1,0 +1,165 @@
+"""The `workbench` command line: estimate, serve, make-scenes, bench."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from workbench.errors import InputError
+from workbench.estimators import METHODS, EstimatorConfig
+from workbench.likelihood import LikelihoodConfig
+from workbench.particles import STATES, Sigma
+from workbench.problem import ProblemConfig
+
+DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
+
+
+def _add_estimator_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", choices=METHODS, default="pipf", help="PI-PF or PI-MCPF (default: pipf)")
+    p.add_argument("--particles", type=int, default=400, help="particles N (paper: 1444; default 400)")
+    p.add_argument("--iterations", type=int, default=60, help="maximum iterations (default 60)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--state", choices=STATES, default="6dof", help="6dof, or the paper's reduced x,y,z,yaw")
+    p.add_argument("--likelihood", choices=("robust", "ssd"), default="robust")
+    p.add_argument("--sigma-pos", type=float, default=0.01, help="diffusion of x and y, metres")
+    p.add_argument("--sigma-z", type=float, default=0.01, help="diffusion of elevation, metres")
+    p.add_argument("--sigma-deg", type=float, default=5.0, help="diffusion of roll, pitch, yaw, degrees")
+    p.add_argument("--workers", type=int, default=2, help="evaluation worker processes (default 2)")
+    p.add_argument("--max-render-pixels", type=int, default=160 * 120, help="pixels per rendered hypothesis")
+    p.add_argument("--no-early-stop", action="store_true", help="run all iterations even after convergence")
+
+
+def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
+    a = np.radians(args.sigma_deg)
+    return EstimatorConfig(
+        method=args.method,
+        particles=args.particles,
+        iterations=args.iterations,
+        sigma=Sigma(args.sigma_pos, args.sigma_pos, args.sigma_z, a, a, a),
+        state=args.state,
+        seed=args.seed,
+    )
+
+
+def problem_config(args: argparse.Namespace) -> ProblemConfig:
+    return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=LikelihoodConfig(model=args.likelihood))
+
+
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    from workbench import bop
+    from workbench.runner import estimate_frames
+
+    if args.dataset is None:
+        raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
+    frames = bop.list_frames(args.dataset, split=args.split)
+    if args.scene is not None:
+        frames = [f for f in frames if f[0] == args.scene]
+    if args.frame is not None:
+        frames = [f for f in frames if f[1] == args.frame]
+    if not frames:
+        raise InputError(args.dataset, f"no frame matches --scene {args.scene} --frame {args.frame}")
+    rows = estimate_frames(
+        args.dataset, frames, estimator_config(args), problem_config(args), args.workers,
+        split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop,
+    )
+    bop.write_results_csv(args.out, rows)
+    print(f"wrote {len(rows)} result rows for {len(frames)} frame(s) to {args.out}", file=sys.stderr)
+    return 0
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from workbench.app.server import serve
+
+    dataset = DEMO_DATASET if args.demo or args.dataset is None else args.dataset
+    serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port)
+    return 0
+
+
+def _cmd_make_scenes(args: argparse.Namespace) -> int:
+    from workbench.synth import make_scenes
+
+    t0 = time.perf_counter()
+    scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed)
+    print(f"wrote {len(scenes)} scenes to {args.out} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    if args.speed:
+        from workbench.speed import run_speed_benchmark
+
+        run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats)
+        return 0
+    from workbench.tables import run_benchmark
+
+    if args.dataset is None:
+        raise InputError(None, "name a dataset made by `workbench make-scenes`, or pass --speed")
+    run_benchmark(args.dataset, args.out, quick=args.quick, methods=args.methods.split(","),
+                  particles=args.particles, iterations=args.iterations, workers=args.workers)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="workbench", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("estimate", help="estimate object poses in BOP frames, write a BOP results CSV")
+    p.add_argument("dataset", type=Path, nargs="?", help="BOP dataset folder (root or split folder)")
+    p.add_argument("--split", default=None, help="split folder (default: test, or the only one)")
+    p.add_argument("--scene", type=int, default=None, help="scene id (default: all)")
+    p.add_argument("--frame", type=int, default=None, help="image id (default: all)")
+    p.add_argument("--objects", type=int, nargs="+", default=None, help="object ids present (default: scene_gt.json)")
+    p.add_argument("--out", type=Path, default=Path("results.csv"))
+    _add_estimator_args(p)
+    p.set_defaults(func=_cmd_estimate)
+
+    p = sub.add_parser("serve", help="the browser workbench")
+    p.add_argument("dataset", type=Path, nargs="?")
+    p.add_argument("--demo", action="store_true", help="serve the bundled demo scene")
+    p.add_argument("--scene", type=int, default=None)
+    p.add_argument("--frame", type=int, default=None)
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8080)
+    p.set_defaults(func=_cmd_serve)
+
+    p = sub.add_parser("make-scenes", help="generate a BOP dataset of the paper's scene categories")
+    p.add_argument("out", type=Path)
+    p.add_argument("--categories", default="touching,stacked,slant,occluded,three,four")
+    p.add_argument("--per-category", type=int, default=7)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_make_scenes)
+
+    p = sub.add_parser("bench", help="Tables I and II (accuracy, convergence) or --speed")
+    p.add_argument("dataset", type=Path, nargs="?")
+    p.add_argument("--speed", action="store_true", help="particle evaluations per second and peak memory")
+    p.add_argument("--quick", action="store_true", help="few scenes, small budget (CI)")
+    p.add_argument("--methods", default="icp,pipf,mcpf")
+    p.add_argument("--particles", type=int, default=None)
+    p.add_argument("--iterations", type=int, default=None)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--out", type=Path, default=Path("bench-out"))
+    p.set_defaults(func=_cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+    try:
+        return args.func(args)
+    except InputError as err:
+        print(f"workbench: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,162 @@
+"""Particle evaluation behind one small interface: a batch of hypotheses in, projected poses and log-likelihoods
+out. The estimators see only ``Evaluator``; where the work runs (this process, a pool of local workers, or later a
+cluster engine such as Ray) is the evaluator's business.
+
+Each evaluation is independent of every other (physics rebuilds its world per particle), so splitting a batch
+across workers never changes a result.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from workbench.likelihood import pixel_loglik, predicted_depth
+from workbench.physics import STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
+from workbench.problem import Problem
+from workbench.render import DepthRenderer
+
+STAGES = ("projection", "render", "likelihood")
+
+
+@dataclass
+class Evaluation:
+    """Results for B hypotheses: ``projected`` (B, K, 4, 4) resting poses, ``loglik`` (B,) (-inf where physics
+    failed), ``status`` (B,) physics status codes, ``timings`` seconds spent per stage (summed over workers)."""
+
+    projected: np.ndarray
+    loglik: np.ndarray
+    status: np.ndarray
+    timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+
+    @staticmethod
+    def concatenate(parts: list["Evaluation"]) -> "Evaluation":
+        return Evaluation(
+            projected=np.concatenate([p.projected for p in parts]),
+            loglik=np.concatenate([p.loglik for p in parts]),
+            status=np.concatenate([p.status for p in parts]),
+            timings={s: sum(p.timings[s] for p in parts) for s in STAGES},
+        )
+
+
+class Evaluator(Protocol):
+    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+        """(B, K, 4, 4) hypotheses in the table frame -> their evaluation."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class LocalEvaluator:
+    """Evaluates in this process with its own physics client and renderer."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self.projector = PhysicsProjector(problem.models, problem.table, problem.config.physics)
+        self.renderer = DepthRenderer(
+            problem.render_camera, [m.mesh for m in problem.models], problem.config.render
+        )
+
+    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+        t0 = time.perf_counter()
+        projected, status, _ = self.projector.project_batch(hypotheses)
+        t1 = time.perf_counter()
+        ok = (status == STATUS_REST) | (status == STATUS_STEP_CAP)
+        loglik = np.full(len(hypotheses), -np.inf)
+        rendered = self.renderer.render(projected[ok]) if ok.any() else None
+        t2 = time.perf_counter()
+        if rendered is not None:
+            pixels = pixel_loglik(
+                self.problem.observed, predicted_depth(rendered, self.problem.background), self.problem.config.likelihood
+            )
+            loglik[ok] = pixels.sum(axis=(1, 2), dtype=np.float64)
+        t3 = time.perf_counter()
+        return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
+
+    def explain(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
+        log-likelihood (h, w)) on the problem's grid."""
+        rendered = self.renderer.render(T_world_obj[None])
+        pixels = pixel_loglik(
+            self.problem.observed, predicted_depth(rendered, self.problem.background), self.problem.config.likelihood
+        )
+        return rendered[0], pixels[0]
+
+    def close(self) -> None:
+        self.projector.close()
+        self.renderer.close()
+
+
+def _worker(problem: Problem, conn) -> None:
+    # One llvmpipe thread per worker: the pool already keeps every core busy, extra render threads only contend.
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+    evaluator = LocalEvaluator(problem)
+    try:
+        while True:
+            hypotheses = conn.recv()
+            if hypotheses is None:
+                break
+            conn.send(evaluator.evaluate(hypotheses))
+    except (EOFError, KeyboardInterrupt):
+        pass
+    finally:
+        evaluator.close()
+        conn.close()
+
+
+class WorkerCrashed(RuntimeError):
+    """A worker process died mid-evaluation; the pool must be rebuilt."""
+
+
+class PoolEvaluator:
+    """Splits each batch into contiguous chunks over ``workers`` spawned processes, each holding its own physics
+    client and renderer, created once. ``spawn`` because forking after any OpenGL context exists hangs the child."""
+
+    def __init__(self, problem: Problem, workers: int = 2):
+        if workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        ctx = mp.get_context("spawn")
+        self._conns = []
+        self._procs = []
+        for _ in range(workers):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_worker, args=(problem, child), daemon=True)
+            proc.start()
+            child.close()
+            self._conns.append(parent)
+            self._procs.append(proc)
+
+    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+        chunks = np.array_split(hypotheses, len(self._conns))
+        busy = []
+        for conn, chunk in zip(self._conns, chunks):
+            if len(chunk):
+                conn.send(chunk)
+                busy.append(conn)
+        try:
+            return Evaluation.concatenate([conn.recv() for conn in busy])
+        except (EOFError, ConnectionError, OSError) as err:
+            raise WorkerCrashed(f"an evaluation worker died: {err!r}") from err
+
+    def close(self) -> None:
+        for conn in self._conns:
+            try:
+                conn.send(None)
+            except (OSError, ValueError):
+                pass
+        for proc in self._procs:
+            proc.join(timeout=5)
+            if proc.is_alive():
+                proc.kill()
+        for conn in self._conns:
+            conn.close()
+
+
+def make_evaluator(problem: Problem, workers: int) -> Evaluator:
+    """A local evaluator for ``workers`` <= 1, else a process pool."""
+    return LocalEvaluator(problem) if workers <= 1 else PoolEvaluator(problem, workers)

@@ -1,0 +1,119 @@
+"""The estimation problem: everything a particle evaluation needs, built once per frame and picklable, so worker
+processes can be started from it.
+
+The observation is cropped to a region of interest around the objects and reduced to at most
+``ProblemConfig.max_render_pixels``; hypotheses are rendered on exactly that pixel grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workbench.errors import InputError
+from workbench.geometry import invert_pose, transform_points
+from workbench.likelihood import LikelihoodConfig
+from workbench.physics import PhysicsConfig
+from workbench.render import RenderConfig
+from workbench.scene import Camera, Frame, ObjectModel, Table
+
+
+@dataclass(frozen=True)
+class ProblemConfig:
+    max_render_pixels: int = 160 * 120
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+
+
+@dataclass
+class Problem:
+    """``camera``: full-resolution camera with ``T_cam_world``; ``roi``: (x0, y0, w, h) of the full image;
+    ``render_camera``: the cropped, scaled camera hypotheses are rendered with; ``observed`` and ``background``:
+    (h, w) float32 observed depth and table-plane depth on that grid (0 = none)."""
+
+    camera: Camera
+    table: Table
+    models: list[ObjectModel]
+    roi: tuple[int, int, int, int]
+    render_camera: Camera
+    observed: np.ndarray
+    background: np.ndarray
+    config: ProblemConfig
+
+    @property
+    def n_objects(self) -> int:
+        return len(self.models)
+
+
+def region_of_interest(camera: Camera, table: Table, models: list[ObjectModel]) -> tuple[int, int, int, int]:
+    """(x0, y0, w, h): the image rectangle in which any object resting in the table's object region can appear."""
+    reach = max(float(np.max(m.mesh.extents)) for m in models)
+    (x_lo, y_lo), (x_hi, y_hi) = table.region_min, table.region_max
+    xs = [x_lo - reach, x_hi + reach]
+    ys = [y_lo - reach, y_hi + reach]
+    corners = np.array([[x, y, z] for x in xs for y in ys for z in (0.0, reach)])
+    p = transform_points(camera.T_cam_world, corners)
+    p = p[p[:, 2] > 1e-3]
+    if len(p) == 0:
+        raise InputError(None, "the objects' region lies behind the camera: check the camera pose")
+    uv = p[:, :2] / p[:, 2:3] @ camera.K[:2, :2].T + camera.K[:2, 2]
+    x0 = int(np.clip(np.floor(uv[:, 0].min()), 0, camera.width - 1))
+    y0 = int(np.clip(np.floor(uv[:, 1].min()), 0, camera.height - 1))
+    x1 = int(np.clip(np.ceil(uv[:, 0].max()) + 1, x0 + 1, camera.width))
+    y1 = int(np.clip(np.ceil(uv[:, 1].max()) + 1, y0 + 1, camera.height))
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def sample_grid(image: np.ndarray, roi: tuple[int, int, int, int], scale: float) -> np.ndarray:
+    """Nearest-pixel sample of ``image`` (H, W) on the grid of ``Camera.cropped(*roi).scaled(scale)`` -> (h, w).
+
+    Nearest (not averaging) keeps holes holes and never invents depths between an object and the table."""
+    x0, y0, w, h = roi
+    out_w, out_h = int(round(w * scale)), int(round(h * scale))
+    u = np.clip(np.round((np.arange(out_w) + 0.5) / scale - 0.5).astype(int), 0, w - 1) + x0
+    v = np.clip(np.round((np.arange(out_h) + 0.5) / scale - 0.5).astype(int), 0, h - 1) + y0
+    return image[np.ix_(v, u)]
+
+
+def table_depth(camera: Camera, table: Table) -> np.ndarray:
+    """Camera-z depth of the table top at every pixel of ``camera`` -> (H, W) float32, 0 off the table."""
+    u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(camera.K).T  # (H, W, 3), z = 1
+    T_world_cam = invert_pose(camera.T_cam_world)
+    origin = T_world_cam[:3, 3]
+    dirs = rays @ T_world_cam[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -origin[2] / dirs[..., 2]  # ray parameter where world z = 0; equals camera depth since ray z = 1
+    hit = origin[None, None, :2] + s[..., None] * dirs[..., :2]
+    on_table = (
+        (s > 0)
+        & (hit[..., 0] >= table.x_min) & (hit[..., 0] <= table.x_max)
+        & (hit[..., 1] >= table.y_min) & (hit[..., 1] <= table.y_max)
+    )
+    return np.where(on_table, s, 0.0).astype(np.float32)
+
+
+def build_problem(
+    frame: Frame, models: list[ObjectModel], camera: Camera, table: Table, config: ProblemConfig = ProblemConfig()
+) -> Problem:
+    """Assemble the problem from a frame whose support surface is known (``camera.T_cam_world`` set)."""
+    config.likelihood.validate()
+    if camera.T_cam_world is None:
+        raise InputError(frame.source, "the table pose is unknown: estimate the support surface first")
+    if config.max_render_pixels < 64:
+        raise InputError("max_render_pixels", f"at least 64 pixels are needed, got {config.max_render_pixels}")
+    roi = region_of_interest(camera, table, models)
+    scale = min(1.0, float(np.sqrt(config.max_render_pixels / (roi[2] * roi[3]))))
+    render_camera = camera.cropped(*roi).scaled(scale)
+    return Problem(
+        camera=camera,
+        table=table,
+        models=models,
+        roi=roi,
+        render_camera=render_camera,
+        observed=sample_grid(frame.depth, roi, scale).astype(np.float32),
+        background=table_depth(render_camera, table),
+        config=config,
+    )

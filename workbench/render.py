@@ -1,0 +1,386 @@
+"""Batched offscreen depth rendering of particle scenes.
+
+Many particles (one scene each: the same K object meshes in different poses) are drawn as tiles of one large
+framebuffer with instanced drawing, one ``glDrawElementsInstanced`` per mesh per pass, and read back straight
+into the output array, one ``glReadPixels`` per column of tiles. That shares the fixed per-draw cost (context
+switch, readback round trip) of a software renderer among hundreds of particles.
+
+Output: float32 camera-z depth in metres (OpenCV camera frame), 0 where no object is seen. Only the objects are
+drawn: no table, no background. Pixel (u, v) holds the depth along the ray through image point (u, v) of K
+(OpenCV: K maps a 3-D point to integer coordinates at pixel centres); no multisampling.
+
+The OpenGL backend is chosen **once per process**: PyOpenGL binds its GL library when ``OpenGL.GL`` is first
+imported, so whatever imports it first (the first ``DepthRenderer``, or pyrender) fixes it. Importing this module
+sets ``PYOPENGL_PLATFORM`` (unless already set) from ``WORKBENCH_GL=osmesa|egl`` or, without it, to ``egl`` when
+an NVIDIA GPU is present and ``osmesa`` otherwise. ``RenderConfig.backend`` may pick another backend only while
+no OpenGL has been loaded in the process. Never fork after a renderer exists (the child hangs): use ``spawn``
+workers, each creating its own ``DepthRenderer``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import os
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from workbench.errors import InputError
+from workbench.scene import Camera
+
+BACKENDS = ("osmesa", "egl")
+
+# Clip planes of the z-test only; the depth written is linear camera z, so they bound range, not precision.
+# A 32-bit float depth buffer separates surfaces 0.1 mm apart at 3 m with these.
+Z_NEAR = 0.05
+Z_FAR = 20.0
+
+
+def default_backend() -> str:
+    """The backend for a process that does not ask for one: ``WORKBENCH_GL``, else ``egl`` if an NVIDIA GPU
+    is present, else ``osmesa``."""
+    name = os.environ.get("WORKBENCH_GL", "").strip().lower()
+    if name:
+        if name not in BACKENDS:
+            raise InputError("WORKBENCH_GL", f"must be one of {', '.join(BACKENDS)}, not {name!r}")
+        return name
+    return "egl" if os.path.exists("/dev/nvidia0") else "osmesa"
+
+
+# Set before anything imports OpenGL so that a later `import pyrender` elsewhere agrees with the renderer.
+os.environ.setdefault("PYOPENGL_PLATFORM", default_backend())
+
+
+@dataclass
+class RenderConfig:
+    """``backend``: "auto" (the process's backend, see the module docstring) | "osmesa" | "egl".
+    ``max_framebuffer``: pixels per side of the tiled framebuffer; larger batches take several passes."""
+
+    backend: str = "auto"
+    max_framebuffer: int = 4096
+
+
+_VERTEX_SHADER = """
+#version 330 core
+layout(location = 0) in vec3 position;
+layout(location = 1) in mat4 T_cam_obj;  // per instance, locations 1-4
+uniform mat4 projection;                 // OpenCV camera frame -> clip space of tile 0
+uniform ivec2 tile_size;                 // (W, H) pixels
+uniform int rows;                        // tiles per framebuffer column
+uniform vec2 framebuffer_size;           // pixels
+out float z_cam;
+void main() {
+    vec4 p = T_cam_obj * vec4(position, 1.0);
+    // Column-major tiles: each column of tiles reads back as consecutive (H, W) images.
+    ivec2 cell = ivec2(gl_InstanceID / rows, gl_InstanceID % rows);
+    vec2 offset = 2.0 * vec2(cell * tile_size) / framebuffer_size;  // NDC shift from tile 0 to this tile
+    vec2 lo = offset - 1.0;                                          // this tile's rectangle in NDC
+    vec2 hi = lo + 2.0 * vec2(tile_size) / framebuffer_size;
+    gl_Position = projection * p;
+    // clip w == camera z, so adding offset * z shifts the projected image by offset in NDC.
+    gl_Position.xy += offset * p.z;
+    // Clip each particle to its own tile so that it never reaches a neighbour's. Clipping planes, not a
+    // fragment discard: llvmpipe renders the batch ~20 % faster (0.11 vs 0.14 ms/particle, 4 boxes).
+    gl_ClipDistance[0] = gl_Position.x - lo.x * gl_Position.w;
+    gl_ClipDistance[1] = hi.x * gl_Position.w - gl_Position.x;
+    gl_ClipDistance[2] = gl_Position.y - lo.y * gl_Position.w;
+    gl_ClipDistance[3] = hi.y * gl_Position.w - gl_Position.y;
+    z_cam = p.z;
+}
+"""
+
+_FRAGMENT_SHADER = """
+#version 330 core
+in float z_cam;
+layout(location = 0) out float depth;
+void main() {
+    depth = z_cam;
+}
+"""
+
+
+def projection_matrix(K: np.ndarray, fb_width: int, fb_height: int) -> np.ndarray:
+    """OpenCV camera frame -> GL clip space for the tile at the framebuffer's origin. -> (4, 4) float32.
+
+    GL rasterises pixel column i at window x = i + 0.5, so window x = u + 0.5 where u = K's image x; likewise
+    for y. The image is drawn with v increasing along GL's window y, so framebuffer memory rows come out in
+    image row order without a flip. Clip w = camera z.
+    """
+    fx, s, cx = K[0]
+    fy, cy = K[1, 1], K[1, 2]
+    a = (Z_FAR + Z_NEAR) / (Z_FAR - Z_NEAR)
+    b = -2.0 * Z_FAR * Z_NEAR / (Z_FAR - Z_NEAR)
+    return np.array(
+        [
+            [2 * fx / fb_width, 2 * s / fb_width, 2 * (cx + 0.5) / fb_width - 1, 0],
+            [0, 2 * fy / fb_height, 2 * (cy + 0.5) / fb_height - 1, 0],
+            [0, 0, a, b],
+            [0, 0, 1, 0],
+        ],
+        dtype=np.float32,
+    )
+
+
+def _bound_backend() -> str | None:
+    """The backend PyOpenGL has already bound in this process, or None if it has bound none yet."""
+    platform = sys.modules.get("OpenGL.platform")
+    if platform is None:
+        return None
+    name = type(platform.PLATFORM).__name__
+    return {"OSMesaPlatform": "osmesa", "EGLPlatform": "egl"}.get(name, name)
+
+
+def _bind_backend(requested: str) -> str:
+    """Fix this process's backend (see module docstring) and return it."""
+    if requested not in ("auto",) + BACKENDS:
+        raise InputError("RenderConfig.backend", f"must be auto, {', '.join(BACKENDS)}; not {requested!r}")
+    bound = _bound_backend()
+    if bound is None:
+        env = os.environ.get("PYOPENGL_PLATFORM", "")
+        chosen = requested if requested != "auto" else env if env in BACKENDS else default_backend()
+        os.environ["PYOPENGL_PLATFORM"] = chosen
+        return chosen
+    if bound not in BACKENDS:
+        raise InputError(
+            "PYOPENGL_PLATFORM",
+            f"OpenGL was loaded for {bound}, the renderer needs osmesa or egl: set WORKBENCH_GL before starting",
+        )
+    if requested not in ("auto", bound):
+        raise InputError(
+            "RenderConfig.backend",
+            f"this process already loaded OpenGL for {bound}; the backend is chosen once per process: "
+            f"set WORKBENCH_GL={requested} before starting it, or render in a spawned worker",
+        )
+    return bound
+
+
+def _create_platform(backend: str):
+    """A pyrender platform with a current GL 3.3+ core context. Its own window-system buffer is unused (1x1)."""
+    try:
+        if backend == "egl":
+            from pyrender.platforms.egl import EGLPlatform
+
+            platform = EGLPlatform(1, 1)
+        else:
+            from pyrender.platforms.osmesa import OSMesaPlatform
+
+            platform = OSMesaPlatform(1, 1)
+        platform.init_context()
+        platform.make_current()
+    except Exception as e:  # the libraries raise a variety of types for "no such device/driver"
+        raise RuntimeError(f"could not create an {backend} OpenGL context: {e!r}") from e
+    return platform
+
+
+def _compile_program(GL, vertex_source: str, fragment_source: str) -> int:
+    program = GL.glCreateProgram()
+    shaders = []
+    for kind, source in ((GL.GL_VERTEX_SHADER, vertex_source), (GL.GL_FRAGMENT_SHADER, fragment_source)):
+        shader = GL.glCreateShader(kind)
+        GL.glShaderSource(shader, source)
+        GL.glCompileShader(shader)
+        if not GL.glGetShaderiv(shader, GL.GL_COMPILE_STATUS):
+            raise RuntimeError(f"shader compilation failed: {GL.glGetShaderInfoLog(shader).decode()}")
+        GL.glAttachShader(program, shader)
+        shaders.append(shader)
+    GL.glLinkProgram(program)
+    if not GL.glGetProgramiv(program, GL.GL_LINK_STATUS):
+        raise RuntimeError(f"shader link failed: {GL.glGetProgramInfoLog(program).decode()}")
+    for shader in shaders:
+        GL.glDeleteShader(shader)
+    return program
+
+
+class DepthRenderer:
+    """Renders batches of particle scenes of fixed meshes from one camera.
+
+    ``camera``: K, width, height and ``T_cam_world`` (table frame -> camera), usually a region of interest
+    (``Camera.cropped`` / ``Camera.scaled``). ``meshes``: the K objects in metres, each in its own frame.
+    Holds a GL context: call ``close()`` (or use as a context manager). Not thread-safe.
+    """
+
+    def __init__(self, camera: Camera, meshes: list[trimesh.Trimesh], config: RenderConfig = RenderConfig()):
+        if camera.T_cam_world is None:
+            raise InputError("camera", "the camera pose T_cam_world is unknown; estimate the table first")
+        if not meshes:
+            raise ValueError("DepthRenderer needs at least one mesh")
+        self.camera = camera
+        self.n_objects = len(meshes)
+        self._T_cam_world = np.asarray(camera.T_cam_world, dtype=np.float64)
+        self._width, self._height = int(camera.width), int(camera.height)
+
+        if config.max_framebuffer < max(self._width, self._height):
+            raise InputError(
+                "RenderConfig.max_framebuffer",
+                f"{config.max_framebuffer} px is smaller than the {self._width}x{self._height} camera",
+            )
+
+        self.backend = _bind_backend(config.backend)
+        self._platform = _create_platform(self.backend)
+        from OpenGL import GL
+
+        # llvmpipe allows 16384; no real ROI camera comes near the limit, so clamping is all that is needed.
+        viewport_limit = GL.glGetIntegerv(GL.GL_MAX_VIEWPORT_DIMS)
+        limit = int(min(GL.glGetIntegerv(GL.GL_MAX_RENDERBUFFER_SIZE), *viewport_limit))
+        side = min(config.max_framebuffer, limit)
+        self._max_columns = side // self._width
+        self._max_rows = side // self._height
+        self._fb_size = (0, 0)  # pixels (w, h); grown on demand
+
+        self._program = _compile_program(GL, _VERTEX_SHADER, _FRAGMENT_SHADER)
+        self._uniforms = {
+            name: GL.glGetUniformLocation(self._program, name)
+            for name in ("projection", "tile_size", "rows", "framebuffer_size")
+        }
+        self._instance_vbo = GL.glGenBuffers(1)
+        self._meshes = [self._upload_mesh(GL, mesh) for mesh in meshes]
+        self._fbo = GL.glGenFramebuffers(1)
+        self._colour_rb, self._depth_rb = GL.glGenRenderbuffers(2)
+
+    @property
+    def particles_per_pass(self) -> int:
+        """Particles drawn per framebuffer pass (column-major grid of max_framebuffer // (W, H) tiles)."""
+        return self._max_columns * self._max_rows
+
+    def _upload_mesh(self, GL, mesh: trimesh.Trimesh) -> tuple[int, int, int, int]:
+        """-> (vao, vertex vbo, index buffer, index count)."""
+        vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+        indices = np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel()
+        vao = GL.glGenVertexArrays(1)
+        vbo, ebo = GL.glGenBuffers(2)
+        GL.glBindVertexArray(vao)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, vertices.nbytes, vertices, GL.GL_STATIC_DRAW)
+        GL.glEnableVertexAttribArray(0)
+        GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, 12, None)
+        GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
+        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, indices.nbytes, indices, GL.GL_STATIC_DRAW)
+        # Per-instance T_cam_obj columns; pointed into the instance buffer at each pass (offsets depend on B).
+        for column in range(4):
+            GL.glEnableVertexAttribArray(1 + column)
+            GL.glVertexAttribDivisor(1 + column, 1)
+        GL.glBindVertexArray(0)
+        return vao, vbo, ebo, indices.size
+
+    def _ensure_framebuffer(self, GL, width: int, height: int) -> None:
+        """Grow the framebuffer (R32F linear depth + float z-buffer) to at least ``width`` x ``height`` px."""
+        if width <= self._fb_size[0] and height <= self._fb_size[1]:
+            return
+        w, h = max(width, self._fb_size[0]), max(height, self._fb_size[1])
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._colour_rb)
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_R32F, w, h)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._depth_rb)
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, w, h)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
+        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, self._colour_rb)
+        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, self._depth_rb)
+        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+        if status != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise RuntimeError(f"framebuffer {w}x{h} incomplete (status {status:#x})")
+        self._fb_size = (w, h)
+
+    def render(self, T_world_obj: np.ndarray) -> np.ndarray:
+        """Object poses in the table frame (B, K, 4, 4) -> camera-z depth (B, H, W) float32, 0 = no object."""
+        T_world_obj = np.asarray(T_world_obj, dtype=np.float64)
+        if T_world_obj.ndim != 4 or T_world_obj.shape[1:] != (self.n_objects, 4, 4):
+            raise ValueError(f"poses must be (B, {self.n_objects}, 4, 4), got {T_world_obj.shape}")
+        B = T_world_obj.shape[0]
+        out = np.empty((B, self._height, self._width), dtype=np.float32)
+        if B == 0:
+            return out
+        from OpenGL import GL
+
+        self._platform.make_current()
+        # (K, B, 4, 4) column-major float32: the layout a mat4 attribute reads, one contiguous block per object.
+        T_cam_obj = (self._T_cam_world @ T_world_obj).transpose(1, 0, 3, 2).astype(np.float32)
+        per_pass = self.particles_per_pass
+        for start in range(0, B, per_pass):
+            stop = min(start + per_pass, B)
+            self._render_pass(GL, np.ascontiguousarray(T_cam_obj[:, start:stop]), out[start:stop])
+        return out
+
+    def _render_pass(self, GL, T_cam_obj: np.ndarray, out: np.ndarray) -> None:
+        """One framebuffer pass. ``T_cam_obj``: (K, n, 4, 4) transposed float32; ``out``: (n, H, W) contiguous,
+        filled in place."""
+        n = T_cam_obj.shape[1]
+        rows = min(n, self._max_rows)
+        columns = math.ceil(n / rows)
+        used_w, used_h = columns * self._width, rows * self._height
+        self._ensure_framebuffer(GL, used_w, used_h)
+        fb_w, fb_h = self._fb_size
+
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
+        GL.glViewport(0, 0, fb_w, fb_h)
+        GL.glEnable(GL.GL_SCISSOR_TEST)  # clear only the tiles in use
+        GL.glScissor(0, 0, used_w, used_h)
+        GL.glClearColor(0.0, 0.0, 0.0, 0.0)
+        GL.glClearDepth(1.0)
+        GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthFunc(GL.GL_LESS)
+        for plane in range(4):
+            GL.glEnable(GL.GL_CLIP_DISTANCE0 + plane)
+
+        GL.glUseProgram(self._program)
+        P = projection_matrix(self.camera.K, fb_w, fb_h)
+        GL.glUniformMatrix4fv(self._uniforms["projection"], 1, GL.GL_TRUE, P)
+        GL.glUniform2i(self._uniforms["tile_size"], self._width, self._height)
+        GL.glUniform1i(self._uniforms["rows"], rows)
+        GL.glUniform2f(self._uniforms["framebuffer_size"], fb_w, fb_h)
+
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._instance_vbo)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, T_cam_obj.nbytes, T_cam_obj, GL.GL_STREAM_DRAW)
+        block = n * 64  # bytes of one object's matrices
+        for k, (vao, _, _, count) in enumerate(self._meshes):
+            GL.glBindVertexArray(vao)
+            for column in range(4):
+                offset = k * block + column * 16
+                GL.glVertexAttribPointer(1 + column, 4, GL.GL_FLOAT, GL.GL_FALSE, 64, ctypes.c_void_p(offset))
+            GL.glDrawElementsInstanced(GL.GL_TRIANGLES, count, GL.GL_UNSIGNED_INT, None, n)
+        GL.glBindVertexArray(0)
+
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 4)
+        # A column of tiles is (count * H, W) contiguous rows: read each straight into its slots of `out`,
+        # which saves a re-tiling copy as costly as the read itself.
+        for column, first in enumerate(range(0, n, rows)):
+            count = min(rows, n - first)
+            GL.glReadPixels(
+                column * self._width, 0, self._width, count * self._height, GL.GL_RED, GL.GL_FLOAT,
+                out[first].ctypes.data,
+            )
+        GL.glDisable(GL.GL_SCISSOR_TEST)
+
+    def close(self) -> None:
+        """Free the GL objects and the context. Idempotent."""
+        if self._platform is None:
+            return
+        from OpenGL import GL
+
+        self._platform.make_current()
+        for vao, vbo, ebo, _ in self._meshes:
+            GL.glDeleteVertexArrays(1, [vao])
+            GL.glDeleteBuffers(2, [vbo, ebo])
+        GL.glDeleteFramebuffers(1, [self._fbo])
+        GL.glDeleteRenderbuffers(2, [self._colour_rb, self._depth_rb])
+        GL.glDeleteBuffers(1, [self._instance_vbo])
+        GL.glDeleteProgram(self._program)
+        self._platform.delete_context()
+        self._platform = None
+
+    def __enter__(self) -> "DepthRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def render_depth(
+    camera: Camera, meshes: list[trimesh.Trimesh], T_world_obj: np.ndarray, config: RenderConfig = RenderConfig()
+) -> np.ndarray:
+    """One-off render of one scene: poses (K, 4, 4) in the table frame -> (H, W) float32 camera-z depth."""
+    with DepthRenderer(camera, meshes, config) as renderer:
+        return renderer.render(np.asarray(T_world_obj)[None])[0]

@@ -1,0 +1,266 @@
+"""The support surface: the table frame of a depth frame, the table's extent and where the objects stand.
+
+With no extrinsics the table is the dominant plane under the objects: several RANSAC planes are fitted to a
+subsampled cloud, walls and monitors are rejected because their normals point down in the image (the camera is
+roughly upright), and of the planes that face up the one covering most of the image centre wins (the floor and
+box tops cover less of it than the table the objects stand on). The winner is refit by weighted least squares with
+a sensor noise model, so that far, noisy points count less.
+
+Table frame: z = plane normal towards the camera; origin = the object region's centre on the plane; x = the
+camera's x axis projected onto the plane.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from .errors import InputError
+from .geometry import invert_pose, make_pose, transform_points
+from .scene import Camera, Frame, Table
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SupportConfig:
+    """Settings of ``estimate_support``; lengths in metres."""
+
+    max_points: int = 30000  # the depth image is subsampled on a regular grid to about this many points
+    max_planes: int = 6  # RANSAC planes extracted, largest first
+    min_plane_fraction: float = 0.03  # smaller planes (share of the valid points) are not support candidates
+    ransac_threshold: float = 0.01  # at least this; raised to 2.5 sigma of the sensor noise at the median depth
+    ransac_iterations: int = 1000
+    max_up_y: float = 0.2  # a support normal's camera-y component is below this (camera roughly upright)
+    refine_sigmas: float = 3.0  # table points lie within this many noise sigmas of the plane, or within:
+    min_height: float = 0.005  # higher points are above the table
+    max_height: float = 0.40  # clusters of points above the table that reach higher are walls, monitors, people
+    edge_margin: float = 0.03  # object points lie this far inside the table's outline
+    min_object_height: float = 0.015  # a cluster whose top is lower is table unevenness, not an object
+    cluster_voxel: float = 0.01  # the points above the table are clustered on this voxel grid
+    cluster_eps: float = 0.025  # DBSCAN neighbourhood
+    extent_percentiles: tuple[float, float] = (1.0, 99.0)  # of the table inliers, against stray points
+    seed: int = 0
+
+
+def depth_noise_sigma(z: np.ndarray) -> np.ndarray:
+    """Axial noise (metres) of a structured-light sensor at depth ``z`` (metres), (...) -> (...).
+
+    Kinect v1 model of Nguyen, Izadi and Lovell (2012); Xtion and PrimeSense sensors are alike, and for
+    time-of-flight sensors and renderers it is merely conservative."""
+    return 0.0012 + 0.0019 * (np.asarray(z) - 0.4) ** 2
+
+
+def _grid_points(depth: np.ndarray, K: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Valid pixels of a regular subsampling grid -> camera-frame points (N, 3) and their pixels (N, 2) (u, v)."""
+    n_valid = int(np.count_nonzero(depth > 0))
+    stride = max(1, int(np.ceil(np.sqrt(n_valid / max_points))))
+    v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
+    z = depth[v, u].astype(np.float64)
+    ok = z > 0
+    u, v, z = u[ok], v[ok], z[ok]
+    # OpenCV convention: pixel (u, v) is centred on the integer coordinates K maps to.
+    x = (u - K[0, 2]) * z / K[0, 0]
+    y = (v - K[1, 2]) * z / K[1, 1]
+    return np.stack([x, y, z], axis=-1), np.stack([u, v], axis=-1)
+
+
+def _ransac_planes(points: np.ndarray, cfg: SupportConfig) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """Largest planes first: (normal (3,) towards the camera, offset d > 0 with n.p + d = 0, inlier indices)."""
+    threshold = max(cfg.ransac_threshold, 2.5 * float(depth_noise_sigma(np.median(points[:, 2]))))
+    o3d.utility.random.seed(cfg.seed)
+    remaining = np.arange(len(points))
+    planes = []
+    min_inliers = max(3, int(cfg.min_plane_fraction * len(points)))
+    for _ in range(cfg.max_planes):
+        if len(remaining) < min_inliers:
+            break
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[remaining]))
+        model, idx = cloud.segment_plane(threshold, 3, cfg.ransac_iterations)
+        if len(idx) < min_inliers:
+            break
+        n, d = np.asarray(model[:3], dtype=np.float64), float(model[3])
+        scale = np.linalg.norm(n)
+        n, d = n / scale, d / scale
+        if d < 0:  # the camera (origin) must be on the positive side
+            n, d = -n, -d
+        planes.append((n, d, remaining[idx]))
+        remaining = np.delete(remaining, idx)
+    return planes
+
+
+def _central_weight(pix: np.ndarray, camera: Camera) -> np.ndarray:
+    """1 at the image centre falling to 0 at the inscribed ellipse. (N, 2) -> (N,)."""
+    r2 = ((pix[:, 0] - camera.width / 2) / (camera.width / 2)) ** 2
+    r2 += ((pix[:, 1] - camera.height / 2) / (camera.height / 2)) ** 2
+    return np.clip(1.0 - r2, 0.0, None)
+
+
+def _choose_support(planes, pix: np.ndarray, camera: Camera, cfg: SupportConfig) -> int:
+    """Index of the support plane among ``planes``: facing up, covering most of the image centre."""
+    scores = np.array([_central_weight(pix[idx], camera).sum() for _, _, idx in planes])
+    up = np.array([n[1] < cfg.max_up_y for n, _, _ in planes])
+    if not up.any():
+        log.warning("no plane faces up in the image (is the camera upside down?); taking the most central plane")
+        up[:] = True
+    return int(np.argmax(np.where(up, scores, -1.0)))
+
+
+def _refine_plane(points: np.ndarray, n: np.ndarray, d: float, cfg: SupportConfig) -> tuple[np.ndarray, float]:
+    """Weighted least-squares refit on the points near the plane, weights 1/sigma(z)^2. (N, 3) -> (n, d)."""
+    sigma = depth_noise_sigma(points[:, 2])
+    for widen in (2.0, 1.0, 1.0):  # RANSAC's plane is only roughly right: start wide
+        near = np.abs(points @ n + d) < widen * cfg.refine_sigmas * sigma
+        if near.sum() < 3:
+            break
+        p, w = points[near], 1.0 / sigma[near] ** 2
+        c = (w[:, None] * p).sum(0) / w.sum()
+        cov = ((p - c) * w[:, None]).T @ (p - c)
+        n_new = np.linalg.eigh(cov)[1][:, 0]
+        n = n_new if n_new @ n > 0 else -n_new
+        d = float(-n @ c)
+    return n, d
+
+
+def _plane_frame(n: np.ndarray, d: float) -> np.ndarray:
+    """T_cam_world of a frame with z = n, origin at the camera's foot on the plane, x = camera x projected."""
+    x = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(x) < 0.1:  # camera x nearly along the normal (camera rolled 90 degrees onto its side)
+        x = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    x /= np.linalg.norm(x)
+    return make_pose(np.stack([x, np.cross(n, x), n], axis=-1), -d * n)
+
+
+def _on_table(world: np.ndarray, z_cam: np.ndarray, cfg: SupportConfig) -> np.ndarray:
+    """Which points (N, 3) in the table frame lie on z = 0, within sensor noise. ``z_cam``: (N,) -> mask (N,)."""
+    return np.abs(world[:, 2]) < np.maximum(cfg.min_height, cfg.refine_sigmas * depth_noise_sigma(z_cam))
+
+
+def _cross_2d(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def _convex_hull_2d(p: np.ndarray, resolution: float) -> np.ndarray:
+    """Counter-clockwise hull vertices (V, 2) of points (N, 2) (Andrew's monotone chain), to ``resolution``."""
+    # Only the lowest and highest point of each column of width ``resolution`` can be a vertex (to within it):
+    # this keeps the Python loop below short.
+    p = p[np.lexsort((p[:, 1], np.floor(p[:, 0] / resolution)))]
+    first = np.unique(np.floor(p[:, 0] / resolution), return_index=True)[1]
+    p = np.unique(p[np.r_[first, first[1:] - 1, len(p) - 1]], axis=0)
+    if len(p) < 3:
+        return p
+
+    def half(points):
+        chain = []
+        for q in points:
+            while len(chain) >= 2 and _cross_2d(chain[-1] - chain[-2], q - chain[-2]) <= 0:
+                chain.pop()
+            chain.append(q)
+        return chain[:-1]
+
+    return np.array(half(p) + half(p[::-1]))
+
+
+def _inside_hull(p: np.ndarray, hull: np.ndarray, margin: float) -> np.ndarray:
+    """Which points (N, 2) lie at least ``margin`` inside the counter-clockwise convex polygon (V, 2) -> (N,)."""
+    edges = np.roll(hull, -1, axis=0) - hull
+    outward = np.stack([edges[:, 1], -edges[:, 0]], axis=-1) / np.linalg.norm(edges, axis=-1, keepdims=True)
+    return np.all(np.einsum("nvk,vk->nv", p[:, None, :] - hull[None], outward) <= -margin, axis=1)
+
+
+def _table_outline(
+    on_table: np.ndarray, cfg: SupportConfig, path
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Convex outline (V, 2) and robust extent (x_min, x_max, y_min, y_max) of the table, from its points (M, 3).
+
+    Only the large connected pieces count: coplanar bits elsewhere (another desk, a shelf) would inflate both."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(on_table)).voxel_down_sample(cfg.cluster_voxel)
+    pts = np.asarray(cloud.points)[:, :2]  # voxels weigh area evenly, unlike pixels that crowd near the camera
+    labels = np.asarray(cloud.cluster_dbscan(cfg.cluster_eps, min_points=5))
+    sizes = np.bincount(labels[labels >= 0]) if np.any(labels >= 0) else np.zeros(0, dtype=int)
+    if len(sizes) == 0:
+        raise InputError(path, "the table plane has too few points in the depth image")
+    # Objects may cut the visible table in pieces: keep every large one.
+    pts = pts[np.isin(labels, np.flatnonzero(sizes >= 0.2 * sizes.max()))]
+    hull = _convex_hull_2d(pts, cfg.cluster_voxel)
+    if len(hull) < 3:
+        raise InputError(path, "the table plane's points in the depth image lie on a line")
+    lo, hi = np.percentile(pts, cfg.extent_percentiles, axis=0)
+    return hull, (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+
+
+def _object_region(
+    world: np.ndarray, z_cam: np.ndarray, outline: np.ndarray, cfg: SupportConfig, path
+) -> tuple[np.ndarray, np.ndarray]:
+    """xy bounding box (min (2,), max (2,)) of the object clusters standing on the table. Clutter on the table that
+    the image border cuts below ``max_height`` (a monitor's lower half, say) stays in: nothing tells it apart.
+
+    ``world``: (N, 3) points in the table frame; ``z_cam``: (N,) their depths (noise model); ``outline``: (V, 2)."""
+    above = world[:, 2] > np.maximum(cfg.min_height, cfg.refine_sigmas * depth_noise_sigma(z_cam))
+    # The margin drops the foot of a wall behind the desk, which noise spreads over the table's far edge.
+    above[above] = _inside_hull(world[above, :2], outline, cfg.edge_margin)
+    if not above.any():
+        raise InputError(path, "nothing stands on the table: no depth point lies above the support plane")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world[above])).voxel_down_sample(cfg.cluster_voxel)
+    pts = np.asarray(cloud.points)
+    labels = np.asarray(cloud.cluster_dbscan(cfg.cluster_eps, min_points=5))
+    keep = np.zeros(len(pts), dtype=bool)
+    for label in range(labels.max() + 1):
+        member = labels == label
+        if cfg.min_object_height <= pts[member, 2].max() <= cfg.max_height:
+            keep |= member
+    if not keep.any():
+        raise InputError(
+            path, f"nothing stands on the table: no cluster of points {cfg.min_object_height * 100:g}-"
+            f"{cfg.max_height * 100:g} cm above the support plane"
+        )
+    half = cfg.cluster_voxel / 2  # voxel centres sit up to half a voxel inside the surface
+    return pts[keep, :2].min(0) - half, pts[keep, :2].max(0) + half
+
+
+def _given_frame_fits(T_cam_world: np.ndarray, points: np.ndarray, cfg: SupportConfig) -> bool:
+    """Whether the given table frame looks like one: the camera above z = 0 and enough points on it."""
+    T_world_cam = invert_pose(T_cam_world)
+    on = _on_table(transform_points(T_world_cam, points), points[:, 2], cfg)
+    return T_world_cam[2, 3] > 0 and on.mean() >= cfg.min_plane_fraction
+
+
+def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig()) -> tuple[Camera, Table]:
+    """The camera with ``T_cam_world`` set and the ``Table`` (extent and object region) of ``frame``.
+
+    A given ``frame.camera.T_cam_world`` is kept (only extent and region are measured) unless the depth
+    contradicts it (camera below the table, almost no point on z = 0); then a warning is logged and the table is
+    estimated from the depth. Raises ``InputError`` when there is no depth, no support plane or nothing on it."""
+    camera, path = frame.camera, frame.source
+    depth = np.asarray(frame.depth, dtype=np.float64)
+    depth[~np.isfinite(depth)] = 0.0
+    if not np.any(depth > 0):
+        raise InputError(path, "depth image has no valid pixel")
+    points, pix = _grid_points(depth, camera.K, cfg.max_points)
+
+    T = camera.T_cam_world
+    if T is not None and not _given_frame_fits(T, points, cfg):
+        log.warning("%s: the given T_cam_world does not match the depth (no table at z = 0); estimating it", path)
+        T = None
+    estimated = T is None
+    if estimated:
+        planes = _ransac_planes(points, cfg)
+        if not planes:
+            raise InputError(path, "no planar support surface found in the depth image")
+        n, d, _ = planes[_choose_support(planes, pix, camera, cfg)]
+        T = _plane_frame(*_refine_plane(points, n, d, cfg))
+
+    world = transform_points(invert_pose(T), points)
+    outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
+    lo, hi = _object_region(world, points[:, 2], outline, cfg, path)
+    if estimated:
+        # Put the origin at the centre of the objects: where the estimator's attention is.
+        c = (lo + hi) / 2
+        T = T @ make_pose(np.eye(3), np.array([c[0], c[1], 0.0]))
+        extent = (extent[0] - c[0], extent[1] - c[0], extent[2] - c[1], extent[3] - c[1])
+        lo, hi = lo - c, hi - c
+    table = Table(*map(float, extent), region_min=(float(lo[0]), float(lo[1])), region_max=(float(hi[0]), float(hi[1])))
+    return camera.with_pose(T), table
