@@ -123,10 +123,10 @@ class Estimator:
         t0 = time.perf_counter()
         accept_rate = float("nan")
         if self.iteration < 0:
-            self.hypotheses = initial_particles(self.rng, cfg.particles, self.problem.models, self.problem.table, cfg.state)
+            start = initial_particles(self.rng, cfg.particles, self.problem.models, self.problem.table, cfg.state)
             t_resample = time.perf_counter() - t0
-            ev = self._evaluate(self.hypotheses)
-            self._adopt(self.hypotheses, ev, np.ones(cfg.particles, bool))
+            ev = self._evaluate(start)
+            self._adopt(start, ev, np.ones(cfg.particles, bool))
         else:
             idx = systematic_resample(self._beta * self.loglik, self.rng, cfg.particles)
             parents = self.projected[idx]

@@ -49,11 +49,14 @@ class Problem:
 
 def region_of_interest(camera: Camera, table: Table, models: list[ObjectModel]) -> tuple[int, int, int, int]:
     """(x0, y0, w, h): the image rectangle in which any object resting in the table's object region can appear."""
-    reach = max(float(np.max(m.mesh.extents)) for m in models)
+    # The region bounds the points seen above the table; an object may reach beyond it by part of its size
+    # (unseen sides, hidden objects), and stand up to its largest extent tall.
+    size = max(float(np.max(m.mesh.extents)) for m in models)
+    margin = 0.5 * size
     (x_lo, y_lo), (x_hi, y_hi) = table.region_min, table.region_max
-    xs = [x_lo - reach, x_hi + reach]
-    ys = [y_lo - reach, y_hi + reach]
-    corners = np.array([[x, y, z] for x in xs for y in ys for z in (0.0, reach)])
+    xs = [x_lo - margin, x_hi + margin]
+    ys = [y_lo - margin, y_hi + margin]
+    corners = np.array([[x, y, z] for x in xs for y in ys for z in (0.0, size)])
     p = transform_points(camera.T_cam_world, corners)
     p = p[p[:, 2] > 1e-3]
     if len(p) == 0:
