@@ -81,9 +81,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_make_scenes(args: argparse.Namespace) -> int:
-    from workbench.synth import make_scenes
+    from workbench.synth import make_demo, make_scenes
 
     t0 = time.perf_counter()
+    if args.demo:
+        make_demo(args.out, seed=args.seed)
+        print(f"wrote the demo scene to {args.out}", file=sys.stderr)
+        return 0
     scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed)
     print(f"wrote {len(scenes)} scenes to {args.out} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0
@@ -133,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--categories", default="touching,stacked,slant,occluded,three,four")
     p.add_argument("--per-category", type=int, default=7)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--demo", action="store_true", help="write the small bundled demo (assets/demo) instead")
     p.set_defaults(func=_cmd_make_scenes)
 
     p = sub.add_parser("bench", help="Tables I and II (accuracy, convergence) or --speed")

@@ -18,7 +18,7 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation import STAGES, Evaluation, Evaluator
 from workbench.geometry import rotation_angle
-from workbench.particles import STATES, Sigma, diffuse, initial_particles
+from workbench.particles import STATES, Sigma, diffuse, initial_particles, random_turns
 from workbench.problem import Problem
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 
@@ -34,6 +34,7 @@ class EstimatorConfig:
     state: str = "6dof"
     seed: int = 0
     target_ess: float = 0.25  # fraction of N kept by the tempered weights each iteration
+    turn_prob: float = 0.05  # per object and iteration: a random new heading / face (particles.random_turns)
     converge_position: float = 0.01  # m; the paper's "best particle moves < 1 cm"
     converge_degrees: float = 3.0  # and "< 3 degrees"
     converge_patience: int = 3  # consecutive iterations the rule must hold
@@ -47,6 +48,8 @@ class EstimatorConfig:
             raise InputError("particles", f"particle count must be between 1 and 100000, got {self.particles}")
         if self.iterations < 0:
             raise InputError("iterations", f"iterations must be >= 0, got {self.iterations}")
+        if not 0.0 <= self.turn_prob <= 1.0:
+            raise InputError("turn_prob", f"must lie in [0, 1], got {self.turn_prob}")
         if not 0.0 < self.target_ess <= 1.0:
             raise InputError("target_ess", f"must lie in (0, 1], got {self.target_ess}")
         self.sigma.validate()
@@ -130,7 +133,7 @@ class Estimator:
         else:
             idx = systematic_resample(self._beta * self.loglik, self.rng, cfg.particles)
             parents = self.projected[idx]
-            proposals = diffuse(self.rng, parents, cfg.sigma, cfg.state)
+            proposals = random_turns(self.rng, diffuse(self.rng, parents, cfg.sigma, cfg.state), cfg.turn_prob, cfg.state)
             t_resample = time.perf_counter() - t0
             ev = self._evaluate(proposals)
             if cfg.method == "pipf":

@@ -73,3 +73,25 @@ def diffuse(rng: np.random.Generator, particles: np.ndarray, sigma: Sigma, state
     out[..., :3, 3] += noise[..., :3]
     out[..., :3, :3] = euler_to_matrix(noise[..., 3:]) @ particles[..., :3, :3]
     return out
+
+
+def random_turns(rng: np.random.Generator, particles: np.ndarray, prob: float, state: str) -> np.ndarray:
+    """With probability ``prob`` per object, turn it to a uniformly random heading on the table, and in 6-DoF
+    also (half the time) roll it by 90 degrees about one of its own axes, onto another face. (N, K, 4, 4) ->
+    (N, K, 4, 4).
+
+    Small Gaussian steps cannot leave a wrong but locally good orientation (a box turned by 90 degrees, lying on
+    the wrong face); these occasional large moves can, and physics and the weights judge them like any other."""
+    n, k = particles.shape[:2]
+    out = particles.copy()
+    turn = rng.random((n, k)) < prob
+    yaw = rng.uniform(-np.pi, np.pi, (n, k))
+    R = np.where(turn[..., None, None], rot_z(yaw) @ particles[..., :3, :3], particles[..., :3, :3])
+    if state == "6dof":
+        roll = turn & (rng.random((n, k)) < 0.5)
+        axis = rng.integers(0, 3, (n, k))
+        sign = rng.choice([-1.0, 1.0], (n, k))
+        quarter = euler_to_matrix(np.eye(3)[axis] * (sign * np.pi / 2)[..., None])  # about x, y or z
+        R = np.where(roll[..., None, None], R @ quarter, R)
+    out[..., :3, :3] = R
+    return out

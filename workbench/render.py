@@ -60,7 +60,7 @@ class RenderConfig:
     ``max_framebuffer``: pixels per side of the tiled framebuffer; larger batches take several passes."""
 
     backend: str = "auto"
-    max_framebuffer: int = 4096
+    max_framebuffer: int = 2048
 
 
 _VERTEX_SHADER = """
@@ -228,7 +228,7 @@ class DepthRenderer:
         side = min(config.max_framebuffer, limit)
         self._max_columns = side // self._width
         self._max_rows = side // self._height
-        self._fb_size = (0, 0)  # pixels (w, h); grown on demand
+        self._fb_size = (0, 0)  # pixels (w, h)
 
         self._program = _compile_program(GL, _VERTEX_SHADER, _FRAGMENT_SHADER)
         self._uniforms = {
@@ -239,6 +239,9 @@ class DepthRenderer:
         self._meshes = [self._upload_mesh(GL, mesh) for mesh in meshes]
         self._fbo = GL.glGenFramebuffers(1)
         self._colour_rb, self._depth_rb = GL.glGenRenderbuffers(2)
+        # One fixed tile layout: a particle's pixels then depend only on its place in the batch, never on the batch
+        # size (the projection's rounding changes with the framebuffer size), so reruns are bit-identical.
+        self._ensure_framebuffer(GL, self._max_columns * self._width, self._max_rows * self._height)
 
     @property
     def particles_per_pass(self) -> int:
@@ -306,7 +309,7 @@ class DepthRenderer:
         """One framebuffer pass. ``T_cam_obj``: (K, n, 4, 4) transposed float32; ``out``: (n, H, W) contiguous,
         filled in place."""
         n = T_cam_obj.shape[1]
-        rows = min(n, self._max_rows)
+        rows = self._max_rows
         columns = math.ceil(n / rows)
         used_w, used_h = columns * self._width, rows * self._height
         self._ensure_framebuffer(GL, used_w, used_h)

@@ -27,6 +27,7 @@ def estimate_frames(
 ) -> list[ResultRow]:
     """Estimate every (scene_id, im_id) frame -> BOP result rows. One worker pool per frame (the problem, hence
     the renderer's camera and the physics table, differs per frame)."""
+    config.validate()  # before any file is read or worker started
     rows: list[ResultRow] = []
     for scene_id, im_id in frames:
         t0 = time.perf_counter()

@@ -1,0 +1,62 @@
+"""The `workbench` command as a user runs it: a real subprocess."""
+
+import subprocess
+import sys
+
+import numpy as np
+
+from workbench.bop import read_results_csv
+
+
+def _workbench(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600, cwd=cwd)
+
+
+def test_estimate_writes_a_bop_results_csv(touching_dataset, tmp_path):
+    out = tmp_path / "results.csv"
+    run = _workbench("estimate", touching_dataset, "--particles", 32, "--iterations", 2, "--out", out)
+    assert run.returncode == 0, run.stderr
+    header = out.read_text().splitlines()[0]
+    assert header == "scene_id,im_id,obj_id,score,R,t,time"
+    rows = read_results_csv(out)
+    assert sorted(r.obj_id for r in rows) == sorted(int(i) for i in _gt_ids(touching_dataset))
+    for r in rows:
+        R = r.T_cam_obj[:3, :3]
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-5)
+        assert 0.2 < r.T_cam_obj[2, 3] < 3.0  # in front of the camera, metres after reading mm
+        assert 0.0 <= r.score <= 1.0 and r.time > 0
+
+
+def _gt_ids(dataset):
+    import json
+
+    gt = json.loads((dataset / "test" / "000000" / "scene_gt.json").read_text())
+    return [o["obj_id"] for o in gt["0"]]
+
+
+def test_missing_dataset_is_named(tmp_path):
+    run = _workbench("estimate", tmp_path / "nowhere", "--out", tmp_path / "r.csv")
+    assert run.returncode == 2
+    assert "nowhere" in run.stderr and "Traceback" not in run.stderr
+    assert not (tmp_path / "r.csv").exists()
+
+
+def test_depth_scale_that_puts_the_table_100_m_away_is_caught(touching_dataset, tmp_path):
+    import json
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(touching_dataset, bad)
+    cam_path = bad / "test" / "000000" / "scene_camera.json"
+    cam = json.loads(cam_path.read_text())
+    cam["0"]["depth_scale"] *= 1000.0
+    cam_path.write_text(json.dumps(cam))
+    run = _workbench("estimate", bad, "--particles", 8, "--iterations", 1, "--out", tmp_path / "r.csv")
+    assert run.returncode == 2
+    assert "scene_camera.json" in run.stderr and "depth_scale" in run.stderr
+
+
+def test_impossible_parameters_are_refused(touching_dataset, tmp_path):
+    run = _workbench("estimate", touching_dataset, "--particles", 0, "--out", tmp_path / "r.csv")
+    assert run.returncode == 2 and "particle" in run.stderr
