@@ -20,8 +20,20 @@ def _scene():
 @pytest.mark.parametrize("model", ["robust", "ssd"])
 def test_the_true_scene_is_more_likely(model):
     observed, background, rendered = _scene()
-    ll = scene_loglik(observed, predicted_depth(rendered, background), LikelihoodConfig(model=model))
+    ll = scene_loglik(observed, background, rendered, LikelihoodConfig(model=model))
     assert ll[0] > ll[1]
+
+
+@pytest.mark.parametrize("model", ["robust", "ssd"])
+def test_sparse_scene_loglik_equals_the_dense_sum(model):
+    rng = np.random.default_rng(0)
+    observed = rng.uniform(0.5, 1.0, (20, 30)).astype(np.float32)
+    observed[rng.random((20, 30)) < 0.1] = 0.0
+    background = np.where(rng.random((20, 30)) < 0.8, 1.0, 0.0).astype(np.float32)
+    rendered = np.where(rng.random((5, 20, 30)) < 0.3, rng.uniform(0.5, 1.0, (5, 20, 30)), 0.0).astype(np.float32)
+    cfg = LikelihoodConfig(model=model)
+    dense = pixel_loglik(observed, predicted_depth(rendered, background), cfg).sum(axis=(1, 2), dtype=np.float64)
+    assert np.allclose(scene_loglik(observed, background, rendered, cfg), dense, rtol=1e-5)
 
 
 def test_pixels_without_a_reading_are_ignored():

@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from workbench.likelihood import pixel_loglik, predicted_depth
+from workbench.likelihood import pixel_loglik, predicted_depth, scene_loglik
 from workbench.physics import STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
 from workbench.render import DepthRenderer
@@ -71,10 +71,9 @@ class LocalEvaluator:
         rendered = self.renderer.render(projected[ok]) if ok.any() else None
         t2 = time.perf_counter()
         if rendered is not None:
-            pixels = pixel_loglik(
-                self.problem.observed, predicted_depth(rendered, self.problem.background), self.problem.config.likelihood
+            loglik[ok] = scene_loglik(
+                self.problem.observed, self.problem.background, rendered, self.problem.config.likelihood
             )
-            loglik[ok] = pixels.sum(axis=(1, 2), dtype=np.float64)
         t3 = time.perf_counter()
         return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
 

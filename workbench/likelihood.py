@@ -41,25 +41,40 @@ def predicted_depth(rendered: np.ndarray, background: np.ndarray) -> np.ndarray:
     return np.where(rendered > 0, rendered, background[None])
 
 
+def _loglik(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
+    """Log-likelihood of observed depths ``obs`` given predictions ``pred`` (same shape, 0 = no prediction), both
+    with a reading. float32 in, float32 out."""
+    r = obs - pred
+    if config.model == "ssd":
+        r = np.where(pred > 0, np.minimum(np.abs(r), config.max_residual), config.max_residual)
+        return (-0.5 / config.sigma**2) * r * r
+    scale = np.float32((1.0 - config.outlier_prob) / (config.sigma * np.sqrt(2.0 * np.pi)))
+    inlier = scale * np.exp(np.float32(-0.5 / config.sigma**2) * r * r)
+    return np.log(np.where(pred > 0, inlier, 0.0) + np.float32(config.outlier_prob / config.depth_range))
+
+
 def pixel_loglik(observed: np.ndarray, predicted: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
     """Per-pixel log-likelihood. ``observed``: (H, W); ``predicted``: (B, H, W) -> (B, H, W) float32, 0 where the
     observation has no reading."""
-    obs = observed[None].astype(np.float32)
+    obs = np.broadcast_to(observed.astype(np.float32)[None], predicted.shape)
+    ll = _loglik(obs, predicted.astype(np.float32), config)
+    return np.where(obs > 0, ll, 0.0).astype(np.float32)
+
+
+def scene_loglik(
+    observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig
+) -> np.ndarray:
+    """Log-likelihood of each rendered hypothesis: the sum of ``pixel_loglik`` over the image, computed only
+    where objects were drawn. ``observed``, ``background``: (H, W); ``rendered``: (B, H, W), 0 = no object
+    -> (B,) float64.
+
+    Every hypothesis shares the empty-table term; only pixels covered by an object (a tenth of the region,
+    typically) change it, so the cost follows the objects' area, not the image's."""
+    obs = observed.astype(np.float32).ravel()
+    bg = background.astype(np.float32).ravel()
     valid = obs > 0
-    r = obs - predicted
-    if config.model == "ssd":
-        r = np.minimum(np.abs(r), config.max_residual)
-        r = np.where(predicted > 0, r, config.max_residual)
-        ll = -0.5 * (r / config.sigma) ** 2
-    else:
-        inlier = (1.0 - config.outlier_prob) * np.exp(-0.5 * (r / config.sigma) ** 2) / (
-            config.sigma * np.sqrt(2.0 * np.pi)
-        )
-        outlier = config.outlier_prob / config.depth_range
-        ll = np.log(np.where(predicted > 0, inlier, 0.0) + outlier)
-    return np.where(valid, ll, 0.0).astype(np.float32)
-
-
-def scene_loglik(observed: np.ndarray, predicted: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
-    """Log-likelihood of each hypothesis. (H, W), (B, H, W) -> (B,) float64."""
-    return pixel_loglik(observed, predicted, config).sum(axis=(1, 2), dtype=np.float64)
+    table_ll = np.where(valid, _loglik(obs, bg, config), 0.0)  # (P,)
+    flat = rendered.reshape(len(rendered), -1)
+    b, p = np.nonzero((flat > 0) & valid[None])
+    delta = _loglik(obs[p], flat[b, p], config) - table_ll[p]
+    return float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=delta, minlength=len(rendered))
