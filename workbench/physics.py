@@ -53,9 +53,11 @@ class PhysicsConfig:
     friction is the product of the two.
     """
 
-    timestep: float = 1.0 / 240.0
-    solver_iterations: int = 60
-    max_steps: int = 500
+    # 1/120 s with 30 solver iterations settles a 4-box particle in half the time of 1/240 s with 60, with
+    # rest poses within ~1 mm (median; 3.5 mm p90) of those: well inside the filter's 1 cm diffusion.
+    timestep: float = 1.0 / 120.0
+    solver_iterations: int = 30
+    max_steps: int = 300
     rest_linear: float = 0.01
     rest_angular: float = 0.1
     check_every: int = 4
