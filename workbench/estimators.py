@@ -162,6 +162,36 @@ class Estimator:
                 break
         return self.best
 
+    def state_dict(self) -> dict:
+        """Everything ``step`` continues from besides the problem, config and evaluator, as copies: loaded with
+        ``load_state`` into a new Estimator of the same problem and config, the next steps equal this one's bit
+        for bit. ``rng`` is numpy's ``bit_generator.state`` (plain strings and ints, JSON-serialisable); the
+        particle arrays are None before the first step."""
+        return {
+            "iteration": self.iteration,
+            "rng": self.rng.bit_generator.state,
+            "hypotheses": None if self.hypotheses is None else self.hypotheses.copy(),
+            "projected": None if self.projected is None else self.projected.copy(),
+            "loglik": None if self.loglik is None else self.loglik.copy(),
+            "status": None if self.status is None else self.status.copy(),
+            "history": [replace(r, timings=dict(r.timings)) for r in self.history],
+            "best_history": [b.copy() for b in self.best_history],
+            "beta": self._beta,
+            "calm": self._calm,
+        }
+
+    def load_state(self, state: dict) -> None:
+        """Continue from a ``state_dict()``. The caller vouches that it belongs to this problem and config
+        (``sessions.load_session`` checks a saved one)."""
+        self.rng.bit_generator.state = state["rng"]  # raises ValueError for another kind of generator
+        self.iteration = int(state["iteration"])
+        for name in ("hypotheses", "projected", "loglik", "status"):
+            setattr(self, name, None if state[name] is None else np.array(state[name]))
+        self.history = [replace(r, timings=dict(r.timings)) for r in state["history"]]
+        self.best_history = [np.array(b) for b in state["best_history"]]
+        self._beta = float(state["beta"])
+        self._calm = int(state["calm"])
+
     def _evaluate(self, hypotheses: np.ndarray) -> Evaluation:
         return self.evaluator.evaluate(hypotheses)
 

@@ -1,0 +1,281 @@
+"""Sessions: a saved run continues bit for bit, and every damaged or unsafe session is refused cleanly."""
+
+import hashlib
+import json
+import re
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from workbench.errors import InputError
+from workbench.estimators import Estimator, EstimatorConfig
+from workbench.evaluation import LocalEvaluator, PoolEvaluator
+from workbench.likelihood import LikelihoodConfig
+from workbench.particles import Sigma
+from workbench.physics import PhysicsConfig
+from workbench.pipeline import load_bop_problem
+from workbench.problem import ProblemConfig
+from workbench.render import RenderConfig
+from workbench.sessions import (check_dataset, check_name, frame_ref_for, list_sessions, load_session,
+                                restore_estimator, save_session, session_problem, session_state_from, suggest_name)
+
+CONFIG = EstimatorConfig(particles=24, seed=11)
+
+
+@pytest.fixture(scope="module")
+def loaded(touching_dataset):
+    frame, problem = load_bop_problem(touching_dataset, 0, 0)
+    return frame, problem, frame_ref_for(touching_dataset, frame, problem)
+
+
+def _make_evaluator(kind, problem):
+    return LocalEvaluator(problem) if kind == "local" else PoolEvaluator(problem, workers=2)
+
+
+def _labels(problem):
+    return [np.eye(4), None][: problem.n_objects]
+
+
+def _comparable(history) -> str:
+    """The reports without their timings, as text (NaN equals NaN there, and floats show every bit)."""
+    return json.dumps([{k: v for k, v in r.as_dict().items() if k != "timings"} for r in history])
+
+
+@pytest.mark.parametrize("kind,method", [("local", "pipf"), ("local", "mcpf"), ("pool", "pipf")])
+def test_resumed_session_steps_bit_identically(loaded, tmp_path, kind, method):
+    """Save after iteration 3 (settings changed on the way), restore into a fresh estimator over a problem rebuilt
+    from the files and a fresh evaluator, step 3 more: the same as 6 steps without interruption."""
+    _, problem, ref = loaded
+    evaluator = _make_evaluator(kind, problem)
+    try:
+        run = Estimator(problem, replace(CONFIG, method=method), evaluator)
+        run.step()
+        run.set_config(replace(run.config, particles=30, sigma=Sigma(x=0.02, yaw=0.2), turn_prob=0.2))
+        run.step(), run.step(), run.step()
+        path = save_session(tmp_path, "run", session_state_from(run, ref, _labels(problem)))
+        for _ in range(3):
+            run.step()
+    finally:
+        evaluator.close()
+
+    state = load_session(path)
+    assert check_dataset(state) == []
+    _, rebuilt = session_problem(state)
+    assert check_dataset(state, rebuilt) == []
+    evaluator = _make_evaluator(kind, rebuilt)
+    try:
+        resumed = restore_estimator(state, rebuilt, evaluator)
+        assert resumed.iteration == 3 and resumed.config == run.config
+        for _ in range(3):
+            resumed.step()
+    finally:
+        evaluator.close()
+    for name in ("hypotheses", "projected", "loglik", "status"):
+        assert np.array_equal(getattr(resumed, name), getattr(run, name)), name
+    assert resumed.rng.bit_generator.state == run.rng.bit_generator.state
+    assert (resumed._beta, resumed._calm) == (run._beta, run._calm)
+    assert np.array_equal(np.stack(resumed.best_history), np.stack(run.best_history))
+    assert _comparable(resumed.history) == _comparable(run.history)
+    assert len(state.labels) == 2 and np.array_equal(state.labels[0], np.eye(4)) and state.labels[1] is None
+
+
+def test_session_before_the_first_step_and_every_setting_roundtrip(loaded, tmp_path):
+    _, problem, ref = loaded
+    problem_config = ProblemConfig(
+        max_render_pixels=4000, physics=PhysicsConfig(timestep=1 / 500, max_steps=321),
+        likelihood=LikelihoodConfig(model="ssd", sigma=0.007), render=RenderConfig(max_framebuffer=1024))
+    config = EstimatorConfig(method="mcpf", particles=24, iterations=9, sigma=Sigma(roll=0.1), state="xyzyaw",
+                             seed=3, target_ess=0.5, converge_patience=5)
+    fresh = Estimator(replace(problem, config=problem_config), config, evaluator=None)  # never stepped here
+    path = save_session(tmp_path, "fresh", session_state_from(fresh, ref, None))
+    state = load_session(path)
+    assert state.problem_config == problem_config and state.estimator_config == config
+    assert state.labels == [None, None] and state.estimator["iteration"] == -1
+    assert np.array_equal(state.T_cam_world, problem.camera.T_cam_world) and state.table == problem.table
+
+    _, rebuilt = session_problem(state)
+    evaluator = LocalEvaluator(rebuilt)
+    try:
+        resumed = restore_estimator(state, rebuilt, evaluator)
+        direct = Estimator(rebuilt, config, evaluator)
+        for _ in range(2):
+            resumed.step(), direct.step()
+    finally:
+        evaluator.close()
+    assert np.array_equal(resumed.projected, direct.projected) and np.array_equal(resumed.loglik, direct.loglik)
+
+
+# ------------------------------------------------------------------------------------------- damaged sessions
+
+
+@pytest.fixture(scope="module")
+def saved(loaded, tmp_path_factory):
+    """A valid session of two iterations: folder, JSON file."""
+    _, problem, ref = loaded
+    folder = tmp_path_factory.mktemp("saved")
+    evaluator = LocalEvaluator(problem)
+    try:
+        estimator = Estimator(problem, CONFIG, evaluator)
+        estimator.step(), estimator.step()
+    finally:
+        evaluator.close()
+    return folder, save_session(folder, "base", session_state_from(estimator, ref, _labels(problem)))
+
+
+def _edit_json(edit):
+    def mutate(json_path, npz_path):
+        doc = json.loads(json_path.read_text())
+        edit(doc)
+        json_path.write_text(json.dumps(doc))
+    return mutate
+
+
+def _write_npz_recorded(json_path, npz_path, **arrays):
+    """Replace the arrays and record their true size and checksum, as a careful forger would."""
+    np.savez(npz_path, **arrays)
+    data = npz_path.read_bytes()
+    doc = json.loads(json_path.read_text())
+    doc["arrays"].update(bytes=len(data), sha256=hashlib.sha256(data).hexdigest())
+    json_path.write_text(json.dumps(doc))
+
+
+def _tamper_npz(json_path, npz_path):
+    with np.load(npz_path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["loglik"][0] += 1.0
+    np.savez(npz_path, **arrays)
+
+
+def _pickled_object_array(json_path, npz_path):
+    with np.load(npz_path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["loglik"] = np.array([{"payload": 1}] * len(arrays["loglik"]), dtype=object)
+    _write_npz_recorded(json_path, npz_path, **arrays)
+
+
+def _set(keys, value):
+    def edit(doc):
+        d = doc
+        for k in keys[:-1]:
+            d = d[k]
+        d[keys[-1]] = value
+    return _edit_json(edit)
+
+
+def _add_object(doc):
+    doc["frame"]["object_ids"].append(doc["frame"]["object_ids"][0])
+    doc["labels"].append(None)
+
+
+BAD = {
+    "corrupt JSON": (lambda j, n: j.write_text('{"format_version": 1, "kind": '), "json", "not JSON"),
+    "not a session": (lambda j, n: j.write_text("[1, 2]"), "json", "not a workbench session"),
+    "future version": (_set(["format_version"], 99), "json", "newer workbench"),
+    "missing entry": (_edit_json(lambda d: d.pop("estimator_config")), "json", "missing entry"),
+    "truncated NPZ": (lambda j, n: n.write_bytes(n.read_bytes()[:200]), "npz", "truncated"),
+    "tampered NPZ": (_tamper_npz, "npz", "checksum|changed"),
+    "missing NPZ": (lambda j, n: n.unlink(), "npz", "not found"),
+    "pickled NPZ": (_pickled_object_array, "npz", "unreadable"),
+    "object count edited": (_edit_json(_add_object), "json", "array"),
+    "history edited": (_edit_json(lambda d: d["estimator"]["history"].pop()), "json", "history"),
+    "recorded shape edited": (_set(["arrays", "shapes", "loglik", "shape"], [25]), "json", "records"),
+    "labels edited": (_edit_json(lambda d: d["labels"].pop()), "json", "labels"),
+    "arrays path escape": (_set(["arrays", "file"], "../base.0123456789abcdef.npz"), "json", "plain file name"),
+    "setting type": (_set(["estimator_config", "particles"], "many"), "json", "particles"),
+    "setting value": (_set(["problem_config", "physics", "timestep"], -1.0), "json", "timestep"),
+    "rng state": (_set(["estimator", "rng", "bit_generator"], "MT19937"), "json", "rng"),
+}
+
+
+LISTED_AS_BROKEN = ("corrupt JSON", "not a session", "future version", "missing entry", "setting type",
+                    "setting value", "rng state", "labels edited", "missing NPZ", "arrays path escape")
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_damaged_session_is_refused_and_nothing_changes(saved, tmp_path, case):
+    folder, original = saved
+    work = tmp_path / "sessions"
+    shutil.copytree(folder, work)
+    json_path = work / original.name
+    npz_path = work / json.loads(json_path.read_text())["arrays"]["file"]
+    mutate, blamed, message = BAD[case]
+    mutate(json_path, npz_path)
+    before = _snapshot(work)
+    with pytest.raises(InputError) as err:
+        load_session(json_path)
+    assert err.value.path == str(json_path if blamed == "json" else npz_path)
+    assert re.search(message, err.value.problem), err.value.problem
+    assert _snapshot(work) == before
+    # The listing reads only the JSON: it flags what the JSON alone shows, and still lists the session.
+    listed = {s.name: s for s in list_sessions(work)}
+    assert set(listed) == {"base"}
+    if case in LISTED_AS_BROKEN:
+        assert listed["base"].problem
+
+
+@pytest.mark.parametrize("name", ["../../etc/x", "a/b", "..", ".hidden", "-x", "", "x" * 65, "naïve", "a b"])
+def test_unsafe_names_are_refused_and_nothing_is_written(saved, tmp_path, name):
+    folder, original = saved
+    state = load_session(original)
+    target = tmp_path / "deep" / "er" / "sessions"
+    with pytest.raises(InputError, match="not a valid session name"):
+        save_session(target, name, state)
+    assert not (tmp_path / "deep").exists()
+    assert check_name(suggest_name(name)) == suggest_name(name)
+
+
+def test_suggested_names():
+    assert suggest_name("../../etc/x") == "etc-x"
+    assert suggest_name("my run #2") == "my-run-2"
+    assert suggest_name("...") == "session"
+    assert check_name("run-1_v2.final") == "run-1_v2.final"
+
+
+def test_existing_session_is_replaced_only_when_asked(saved, tmp_path, loaded):
+    folder, original = saved
+    work = tmp_path / "sessions"
+    shutil.copytree(folder, work)
+    state = load_session(work / original.name)
+    changed = replace(state, labels=[np.eye(4), np.eye(4)])
+    before = _snapshot(work)
+    with pytest.raises(InputError, match="exists") as err:
+        save_session(work, "base", changed)
+    assert err.value.path == str(work / "base.json")
+    assert _snapshot(work) == before
+
+    save_session(work, "base", changed, overwrite=True)
+    assert [p.name for p in work.glob("*.npz")] == [json.loads((work / "base.json").read_text())["arrays"]["file"]]
+    assert all(T is not None for T in load_session(work / "base.json").labels)
+
+    save_session(work, "other", state)
+    infos = list_sessions(work)
+    assert sorted(s.name for s in infos) == ["base", "other"]
+    assert all(s.problem is None and s.iteration == 1 and s.particles == 24 for s in infos)
+
+
+def test_changed_or_missing_dataset_files_are_reported(touching_dataset, tmp_path):
+    dataset = tmp_path / "dataset"
+    shutil.copytree(touching_dataset, dataset)
+    frame, problem = load_bop_problem(dataset, 0, 0)
+    state = session_state_from(Estimator(problem, CONFIG, evaluator=None), frame_ref_for(dataset, frame, problem),
+                               None)
+    assert check_dataset(state) == []
+
+    depth_path = dataset / "test" / "000000" / "depth" / "000000.png"
+    depth = np.asarray(Image.open(depth_path))
+    Image.fromarray((depth + (depth > 0) * 3).astype(np.uint16)).save(depth_path)  # 0.3 mm further everywhere
+    mesh = dataset / "models" / f"obj_{frame.object_ids[1]:06d}.ply"
+    mesh.unlink()
+    problems = check_dataset(state)
+    assert problems == [f"{depth_path}: changed since the session was saved", f"{mesh}: missing"]
+
+    mesh.write_bytes((touching_dataset / "models" / mesh.name).read_bytes())
+    _, rebuilt = session_problem(state)
+    assert check_dataset(state, rebuilt)[-1].startswith("the rebuilt problem differs")

@@ -1,0 +1,237 @@
+"""Ground-truth labelling: put a labelled scene at rest, fit it to the depth, show where it disagrees, compare an
+estimate with it, and save it in BOP's scene_gt.json form.
+
+Labels are (K, 4, 4) T_world_obj in the table frame, one per object of the problem (NaN rows, or None entries,
+for objects not labelled yet). The functions that render or simulate accept the caller's ``LocalEvaluator`` so
+that an app reuses its renderer and physics client instead of creating new ones per click.
+
+Files: labels go to ``scene_gt_labels.json`` beside the scene's scene_gt.json by default (same format: per image a
+list of {"cam_R_m2c": 9 numbers row-major, "cam_t_m2c": 3 numbers in mm, "obj_id"}), so that the dataset's own
+ground truth is never touched unless asked for; then a timestamped backup is kept.
+"""
+
+from __future__ import annotations
+
+import itertools
+from contextlib import contextmanager
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from workbench import bop
+from workbench.errors import InputError
+from workbench.evaluation import LocalEvaluator
+from workbench.geometry import euler_to_matrix, invert_pose
+from workbench.likelihood import scene_loglik
+from workbench.metrics import add_s, model_points, position_error, rotation_error
+from workbench.problem import Problem
+
+LABELS_FILE = "scene_gt_labels.json"
+ORIGINAL_FILE = "scene_gt.json"
+MM = bop.MM
+
+
+def _scene(problem: Problem, T_world_obj) -> np.ndarray:
+    T = np.array(T_world_obj, dtype=np.float64)
+    if T.shape != (problem.n_objects, 4, 4) or not np.all(np.isfinite(T)):
+        raise InputError("labels", f"expected finite poses of shape ({problem.n_objects}, 4, 4), got {T.shape}")
+    return T
+
+
+@contextmanager
+def _evaluator(problem: Problem, evaluator: LocalEvaluator | None):
+    """The caller's LocalEvaluator, or a new one closed on exit."""
+    if evaluator is not None:
+        yield evaluator
+        return
+    own = LocalEvaluator(problem)
+    try:
+        yield own
+    finally:
+        own.close()
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Plausibility, fitting, residuals
+
+
+def snap_to_plausible(problem: Problem, T_world_obj: np.ndarray, evaluator: LocalEvaluator | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Let physics put the labelled scene (K, 4, 4) at rest -> (resting poses (K, 4, 4), how far each object's
+    origin moved (K,) metres, physics status code; see ``physics.STATUS_NAMES``). A scene the simulation cannot
+    settle (status unstable) comes back unchanged."""
+    T = _scene(problem, T_world_obj)
+    with _evaluator(problem, evaluator) as ev:
+        projected, status, _ = ev.projector.project(T)
+    moved = np.linalg.norm(projected[:, :3, 3] - T[:, :3, 3], axis=-1)
+    return projected, moved, int(status)
+
+
+def scene_logliks(problem: Problem, evaluator: LocalEvaluator, scenes: np.ndarray) -> np.ndarray:
+    """Log-likelihood of scenes (B, K, 4, 4) exactly as given, without physics -> (B,)."""
+    rendered = evaluator.renderer.render(scenes)
+    return scene_loglik(problem.observed, problem.background, rendered, problem.config.likelihood)
+
+
+def _moves(T: np.ndarray, step_m: float, step_rad: float) -> np.ndarray:
+    """Every single-coordinate move of one object: +-step along the table's x, y, z, and +-step rotations about
+    table axes through the object's origin (as ``particles.diffuse``). (K, 4, 4) -> (K, 12, K, 4, 4)."""
+    K = len(T)
+    out = np.broadcast_to(T, (K, 12, K, 4, 4)).copy()
+    for k in range(K):
+        for j, (axis, sign) in enumerate(itertools.product(range(3), (1.0, -1.0))):
+            out[k, j, k, axis, 3] += sign * step_m
+            out[k, 6 + j, k, :3, :3] = euler_to_matrix(np.eye(3)[axis] * sign * step_rad) @ T[k, :3, :3]
+    return out
+
+
+def fit_label(problem: Problem, T_world_obj: np.ndarray, evaluator: LocalEvaluator | None = None,
+              step_m: float = 0.01, step_deg: float = 4.0, min_step_m: float = 5e-4, max_rounds: int = 80,
+              snap: bool = True) -> np.ndarray:
+    """Refine a labelled scene (K, 4, 4) against the observed depth, then (``snap``) let physics put it at rest
+    -> (K, 4, 4).
+
+    A pattern search on the likelihood of the scene as given (no physics while fitting, so every small move
+    counts): each round tries every object's +-step moves along and about the table axes, keeps the best move of
+    each object when together they beat the best single move (else that one), and halves the steps when nothing
+    improves, down to ``min_step_m`` (angles shrink alike). Local: it refines a label within about two steps of
+    the truth, it does not find one."""
+    T = _scene(problem, T_world_obj)
+    K = len(T)
+    scale = 1.0
+    with _evaluator(problem, evaluator) as ev:
+        best = scene_logliks(problem, ev, T[None])[0]
+        for _ in range(max_rounds):
+            if step_m * scale < min_step_m:
+                break
+            moves = _moves(T, step_m * scale, np.radians(step_deg) * scale)  # (K, 12, K, 4, 4)
+            ll = scene_logliks(problem, ev, moves.reshape(-1, K, 4, 4)).reshape(K, 12)
+            own = ll.argmax(axis=1)  # each object's best move
+            combined = T.copy()
+            for k in np.flatnonzero(ll[np.arange(K), own] > best):
+                combined[k] = moves[k, own[k], k]
+            combined_ll = scene_logliks(problem, ev, combined[None])[0]
+            k, j = np.unravel_index(np.argmax(ll), ll.shape)
+            if combined_ll >= ll[k, j] and combined_ll > best:
+                T, best = combined, combined_ll
+            elif ll[k, j] > best:
+                T, best = moves[k, j], ll[k, j]
+            else:
+                scale /= 2.0
+        if snap:
+            T, _, _ = snap_to_plausible(problem, T, ev)
+    return T
+
+
+def residual_map(problem: Problem, evaluator: LocalEvaluator, T_world_obj: np.ndarray) -> np.ndarray:
+    """Per-pixel log-likelihood (h, w) float32 of the scene (K, 4, 4) as given, on the problem's render grid
+    (``problem.render_camera``, the crop ``problem.roi`` of the image); 0 where the sensor gave no reading. Low
+    values mark where the label disagrees with the depth."""
+    _, pixels = evaluator.explain(_scene(problem, T_world_obj))
+    return pixels
+
+
+def label_errors(problem: Problem, estimate: np.ndarray, label) -> list[dict]:
+    """Per object, how far ``estimate`` (K, 4, 4) is from ``label`` ((K, 4, 4) with NaN rows, or a list with None,
+    for unlabelled objects): {"obj_id", "position_error_m", "rotation_error_deg" (symmetry-aware), "add_s_m"},
+    the errors None where there is no label."""
+    out = []
+    for k, model in enumerate(problem.models):
+        L = None if label[k] is None else np.asarray(label[k], dtype=np.float64)
+        row = {"obj_id": model.obj_id, "position_error_m": None, "rotation_error_deg": None, "add_s_m": None}
+        if L is not None and np.all(np.isfinite(L)):
+            E = np.asarray(estimate[k], dtype=np.float64)
+            row.update(position_error_m=position_error(L, E),
+                       rotation_error_deg=rotation_error(L, E, model.symmetries),
+                       add_s_m=add_s(L, E, model_points(model.mesh)))
+        out.append(row)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Files
+
+
+def _scene_dir(dataset: Path, scene_id: int, split: str | None) -> Path:
+    return bop._scene_dir(bop._split_dir(Path(dataset), split), scene_id)
+
+
+def labels_path(dataset: Path, scene_id: int, split: str | None = None) -> Path:
+    """Where ``save_labels`` writes by default: scene_gt_labels.json in the scene's folder."""
+    return _scene_dir(dataset, scene_id, split) / LABELS_FILE
+
+
+def save_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarray, labels, obj_ids: list[int],
+                path: Path | None = None, overwrite_original: bool = False, split: str | None = None) -> Path:
+    """Write the labels (per object a (4, 4) T_world_obj, or None to leave it out) of image ``im_id`` in BOP
+    scene_gt.json form (camera frame, R row-major, t in mm), replacing that image's entry and keeping the others
+    -> the file written. By default ``scene_gt_labels.json`` beside the scene's scene_gt.json, or ``path``.
+
+    A file named scene_gt.json is written only with ``overwrite_original`` (then the scene's own, after copying it
+    to scene_gt.json.bak-<timestamp>); scene_gt_info.json is not updated and may no longer match."""
+    scene_dir = _scene_dir(dataset, scene_id, split)
+    original = scene_dir / ORIGINAL_FILE
+    if overwrite_original:
+        if path is not None and Path(path).resolve() != original.resolve():
+            raise InputError(path, f"overwrite_original writes the scene's own {original}, not another file")
+        target = original
+    else:
+        target = scene_dir / LABELS_FILE if path is None else Path(path)
+        if target.name == ORIGINAL_FILE or target.resolve() == original.resolve():
+            raise InputError(target, "this is a dataset's original ground truth; pass overwrite_original=True to "
+                                     "replace it (a backup is kept) or write the labels elsewhere")
+    if len(labels) != len(obj_ids):
+        raise InputError("labels", f"{len(labels)} labels for {len(obj_ids)} objects")
+    T_cam_world = np.asarray(T_cam_world, dtype=np.float64)
+    entries = []
+    for obj_id, T in zip(obj_ids, labels):
+        if T is None or not np.all(np.isfinite(T)):
+            continue
+        T_cam_obj = T_cam_world @ np.asarray(T, dtype=np.float64)
+        entries.append({"cam_R_m2c": T_cam_obj[:3, :3].ravel().tolist(), "cam_t_m2c": (T_cam_obj[:3, 3] / MM).tolist(),
+                        "obj_id": int(obj_id)})
+    if overwrite_original and original.exists():
+        _backup(original)
+    bop._merge_json(target, im_id, entries)
+    return target
+
+
+def _backup(path: Path) -> Path:
+    """Copy ``path`` to <name>.bak-<timestamp>, never replacing an earlier backup."""
+    stamp = datetime.now().strftime("%Y%m%dT%H%M%S%f")
+    backup = path.with_name(f"{path.name}.bak-{stamp}")
+    with open(backup, "xb") as f:
+        f.write(path.read_bytes())
+    return backup
+
+
+def load_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarray, obj_ids: list[int],
+                path: Path | None = None, split: str | None = None) -> list[np.ndarray | None]:
+    """The labels of image ``im_id`` as saved by ``save_labels`` (default file, or ``path``) -> per entry of
+    ``obj_ids`` a (4, 4) T_world_obj, or None when the file, the image or that object has no label. Instances of
+    one object take that object's entries in file order (an unlabelled first instance lets the second's label move
+    up). Raises InputError for a malformed file."""
+    path = labels_path(dataset, scene_id, split) if path is None else Path(path)
+    if not path.is_file():
+        return [None] * len(obj_ids)
+    content = bop.read_json(path)
+    if not isinstance(content, dict):
+        raise InputError(path, "expected a JSON object keyed by image id")
+    entries = content.get(str(im_id), [])
+    if not isinstance(entries, list):
+        raise InputError(path, f"image {im_id}: expected a list of objects")
+    T_world_cam = invert_pose(np.asarray(T_cam_world, dtype=np.float64))
+    used = [False] * len(entries)
+    out: list[np.ndarray | None] = []
+    for obj_id in obj_ids:
+        found = None
+        for j, e in enumerate(entries):
+            if not used[j] and isinstance(e, dict) and e.get("obj_id") == obj_id:
+                if "cam_R_m2c" not in e or "cam_t_m2c" not in e:
+                    raise InputError(path, f"image {im_id} object {obj_id}: needs cam_R_m2c and cam_t_m2c")
+                T_cam_obj = bop.parse_pose(e["cam_R_m2c"], e["cam_t_m2c"], path, f"image {im_id} object {obj_id}")
+                found, used[j] = T_world_cam @ T_cam_obj, True
+                break
+        out.append(found)
+    return out
