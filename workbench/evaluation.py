@@ -130,6 +130,11 @@ class PoolEvaluator:
             self._conns.append(parent)
             self._procs.append(proc)
 
+    @property
+    def pids(self) -> list[int]:
+        """Process ids of the workers (for monitoring and crash tests)."""
+        return [proc.pid for proc in self._procs]
+
     def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
         chunks = np.array_split(hypotheses, len(self._conns))
         busy = []

@@ -1,0 +1,166 @@
+"""The browser workbench in real headless Chromium: one demo server and one browser for the whole module."""
+
+from __future__ import annotations
+
+import re
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from workbench.app.headless import canvas_png, chromium_path, gui_input, image_stats, open_workbench
+
+pytest.importorskip("playwright.sync_api")
+from playwright.sync_api import expect  # noqa: E402
+pytestmark = pytest.mark.skipif(chromium_path() is None, reason="no system Chromium (Debian package `chromium`)")
+
+TIMEOUT_MS = 60_000
+# Software WebGL redraws the whole canvas on every change: a smaller page keeps two tabs responsive on 2 cores.
+VIEWPORT = {"width": 1000, "height": 700}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def workbench():
+    from workbench.app.server import serve
+    from workbench.estimators import EstimatorConfig
+
+    # One worker: the machine running the tests also runs Chromium's software WebGL.
+    handle = serve(demo=True, block=False, port=free_port(), workers=1,
+                   config=EstimatorConfig(particles=48, iterations=500))
+    try:
+        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the demo did not load"
+        assert handle.app.state.view is not None, handle.app.state.failures
+        yield handle
+        assert not handle.app.state.display_errors
+    finally:
+        handle.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from workbench.app.headless import chromium
+
+    with chromium() as b:
+        yield b
+
+
+@pytest.fixture(scope="module")
+def page(browser, workbench):
+    p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT)
+    yield p
+    p.close()
+
+
+def iteration_text(i: int) -> re.Pattern:
+    return re.compile(rf"Iteration {i} of \d+")
+
+
+def step(page, app) -> int:
+    """Click Step and wait until this page shows the next iteration -> that iteration."""
+    nxt = app.state.iteration + 1
+    page.get_by_role("button", name="Step").click()
+    page.get_by_text(iteration_text(nxt)).wait_for(timeout=TIMEOUT_MS)
+    return nxt
+
+
+def test_page_shows_the_demo_scene(page, workbench):
+    page.get_by_text(re.compile(r"demo · scene \d+ · frame \d+")).wait_for(timeout=TIMEOUT_MS)
+    time.sleep(1.0)  # let SwiftShader draw a few frames
+    std, drawn = image_stats(canvas_png(page))
+    # A blank canvas is one colour; the point cloud, table and camera cover a good part of the view.
+    assert std > 5.0 and drawn > 0.05, (std, drawn)
+
+
+def test_step_advances_the_iteration_and_moves_the_particles(page, workbench):
+    app = workbench.app
+    step(page, app)
+    before = np.array(app.particles.batches[0].batched_positions)
+    step(page, app)
+    after = np.array(app.particles.batches[0].batched_positions)
+    assert before.shape == after.shape == (48, 3)
+    assert not np.allclose(before, after)
+    # The chosen particle's panel and heatmap followed.
+    assert app.state.chosen is not None and app.state.chosen.iteration == app.state.iteration
+
+
+def test_inspecting_a_particle_shows_its_heatmap_and_what_physics_changed(page, workbench):
+    app = workbench.app
+    if app.state.iteration < 0:
+        step(page, app)
+    page.get_by_role("tab", name="Inspect").click()
+    # Shared GUI state: set on the server (as another tab would), followed by this page.
+    app.panel.heatmap_mode.value = "log-likelihood"
+    page.get_by_text(re.compile(r"log-likelihood \(per pixel\), particle rank 0")).wait_for(timeout=TIMEOUT_MS)
+    assert not app.panel.show_observation.value  # the heatmap replaces the observed points
+    app.panel.rank.value = 3
+    page.get_by_text(re.compile(r"Rank 3 \(particle \d+\)")).wait_for(timeout=TIMEOUT_MS)
+    app.panel.heatmap_mode.value = "residual"
+    app.panel.scene_mode.value = "side by side"
+    page.get_by_text(re.compile(r"residual \(cm\), particle rank 3")).wait_for(timeout=TIMEOUT_MS)
+    assert app.chosen.before[0].visible and app.chosen.after[0].visible
+    app.pick(2)  # what clicking the third most likely particle in the 3D view does
+    page.get_by_text(re.compile(r"Rank 2 \(particle \d+\)")).wait_for(timeout=TIMEOUT_MS)
+    app.panel.heatmap_mode.value = "off"
+    app.panel.scene_mode.value = "before + after"
+    app.pick(0)
+    assert app.panel.show_observation.value
+    page.get_by_role("tab", name="Estimator").click()
+
+
+def test_run_then_pause_stops_within_one_iteration(page, workbench):
+    app = workbench.app
+    start = app.state.iteration
+    page.get_by_role("button", name="Run").click()
+    assert app.wait_for(lambda s: s.iteration >= start + 3, 120), "Run did not iterate"
+    page.get_by_role("button", name="Pause").click()
+    assert app.wait_for(lambda s: s.last_state is not None and s.last_state.reason == "paused", 60)
+    stopped = app.state.last_state.iteration
+    assert stopped <= app.state.pause_requested_at + 1, (stopped, app.state.pause_requested_at)
+    page.get_by_text(re.compile(rf"Iteration {stopped} of \d+ · paused")).wait_for(timeout=TIMEOUT_MS)
+    time.sleep(1.5)
+    assert app.state.iteration == stopped  # nothing ran after the pause
+
+
+def test_bad_dataset_path_shows_an_error_and_the_page_keeps_working(page, workbench):
+    app = workbench.app
+    bad = "/nonexistent/bop_dataset_xyz"
+    page.get_by_role("tab", name="Data").click()
+    field = gui_input(page, "Dataset")
+    field.fill(bad)
+    field.press("Enter")
+    page.get_by_role("button", name="Load dataset").click()
+    page.get_by_text(re.compile(re.escape(bad) + r".*no such file")).first.wait_for(timeout=TIMEOUT_MS)
+    assert any(f.path == bad for f in app.state.failures)
+    assert app.state.view is not None and "demo" in app.state.view.title  # the demo is still loaded
+    page.get_by_role("tab", name="Estimator").click()
+    step(page, app)
+
+
+def test_two_tabs_see_the_same_run(browser, page, workbench):
+    app = workbench.app
+    if app.state.iteration < 0:
+        step(page, app)
+    other = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT)
+    try:
+        shown = app.state.iteration
+        other.get_by_text(iteration_text(shown)).wait_for(timeout=TIMEOUT_MS)
+        nxt = step(other, app)  # driven from the second tab ...
+        page.get_by_text(iteration_text(nxt)).wait_for(timeout=TIMEOUT_MS)  # ... seen in the first
+        # Settings are shared too: a particle count typed in one tab shows in the other and drives the run.
+        field = gui_input(other, "Particles")
+        field.fill("40")
+        field.press("Enter")
+        assert app.wait_for(lambda s: app.config.particles == 40, 30)
+        expect(gui_input(page, "Particles")).to_have_value("40", timeout=TIMEOUT_MS)
+        nxt = step(page, app)
+        assert app.wait_for(lambda s: s.cloud is not None and s.cloud.n_total == 40, 30)
+        other.get_by_text(iteration_text(nxt)).wait_for(timeout=TIMEOUT_MS)
+    finally:
+        other.close()

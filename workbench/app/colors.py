@@ -1,0 +1,68 @@
+"""Colour maps for depth, height, weights and heatmaps, and the HTML legends that name their ranges.
+
+No matplotlib: a colour map is a few control points interpolated linearly, which is all a legend needs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Control points sampled from matplotlib's viridis (perceptually uniform, readable in greyscale).
+VIRIDIS = np.array(
+    [[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142], [38, 130, 142],
+     [31, 158, 137], [53, 183, 121], [110, 206, 88], [181, 222, 43], [253, 231, 37]],
+    dtype=np.float64,
+)
+# Diverging blue-white-red for signed residuals: white means "explained".
+DIVERGING = np.array([[33, 102, 172], [103, 169, 207], [247, 247, 247], [239, 138, 98], [178, 24, 43]], np.float64)
+# Particle weights: pale grey (negligible) to saturated orange (heavy), so the solid best scene stands out.
+WEIGHT = np.array([[190, 190, 200], [255, 190, 110], [240, 100, 20]], dtype=np.float64)
+# Per-pixel fit: black-red where the scene explains the pixel badly, fading to the table's quiet grey where it
+# explains it well, so the errors stand out and the scene still reads like the observation.
+MISFIT = np.array([[25, 10, 45], [125, 30, 95], [215, 65, 50], [240, 160, 70], [205, 205, 210]], dtype=np.float64)
+MISSING = np.array([60, 60, 60], dtype=np.uint8)
+
+
+def apply_map(values: np.ndarray, lo: float, hi: float, stops: np.ndarray = VIRIDIS) -> np.ndarray:
+    """(...) values -> (..., 3) uint8, ``lo`` at the first stop and ``hi`` at the last; NaN gets MISSING grey."""
+    v = np.asarray(values, dtype=np.float64)
+    span = hi - lo if hi > lo else 1.0
+    t = np.clip((v - lo) / span, 0.0, 1.0) * (len(stops) - 1)
+    t = np.nan_to_num(t, nan=0.0)
+    i = np.minimum(t.astype(int), len(stops) - 2)
+    f = (t - i)[..., None]
+    rgb = stops[i] * (1.0 - f) + stops[i + 1] * f
+    out = np.round(rgb).astype(np.uint8)
+    out[np.isnan(v)] = MISSING
+    return out
+
+
+def robust_range(values: np.ndarray, low_pct: float = 2.0, high_pct: float = 98.0) -> tuple[float, float]:
+    """Percentile range of the finite values, so one outlier pixel does not wash the whole map out."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return 0.0, 1.0
+    lo, hi = np.percentile(v, [low_pct, high_pct])
+    return float(lo), float(hi if hi > lo else lo + 1e-6)
+
+
+def legend_html(title: str, lo: str, hi: str, stops: np.ndarray = VIRIDIS, note: str = "") -> str:
+    """A horizontal colour bar with its end labels, for ``gui.add_html``."""
+    gradient = ", ".join(f"rgb({int(r)},{int(g)},{int(b)})" for r, g, b in stops)
+    extra = f'<div style="opacity:0.7">{note}</div>' if note else ""
+    return (
+        f'<div style="font-size:0.8em;padding:0 0.5em">'
+        f"<div><b>{title}</b></div>"
+        f'<div style="height:10px;border-radius:3px;background:linear-gradient(to right, {gradient})"></div>'
+        f'<div style="display:flex;justify-content:space-between"><span>{lo}</span><span>{hi}</span></div>'
+        f"{extra}</div>"
+    )
+
+
+# Distinct solid colours for objects 0, 1, 2, ... (the best scene, the chosen particle).
+OBJECT_COLORS = [(66, 135, 245), (46, 184, 92), (232, 170, 20), (200, 80, 200), (40, 190, 200), (230, 90, 70)]
+
+
+def object_color(k: int) -> tuple[int, int, int]:
+    return OBJECT_COLORS[k % len(OBJECT_COLORS)]

@@ -1,0 +1,217 @@
+"""What the browser server and the estimator process say to each other over their two queues.
+
+Commands go one way (server -> engine), messages the other (engine -> server). Everything is a small picklable
+dataclass of numpy arrays and numbers: the engine downsamples before it sends (the top particles, one chosen
+particle's heatmap), so a message costs at most a few hundred kilobytes whatever the particle count.
+Poses are 4x4 float arrays in the table frame; conversion to viser's (wxyz, position) happens in the views.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from workbench.estimators import EstimatorConfig
+
+
+@dataclass(frozen=True)
+class Source:
+    """Which frame to estimate: a BOP dataset (root or split folder) and a frame, or the bundled demo.
+    ``scene_id``/``im_id`` None mean the dataset's first frame."""
+
+    dataset: Path | None = None
+    scene_id: int | None = None
+    im_id: int | None = None
+    demo: bool = False
+
+    def describe(self) -> str:
+        if self.demo:
+            return "demo"
+        return f"{self.dataset} scene {self.scene_id} frame {self.im_id}"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Commands: server -> engine
+
+
+@dataclass(frozen=True)
+class Load:
+    """Load a frame and start a fresh run on it; on failure the current problem and run are kept."""
+
+    source: Source
+    config: EstimatorConfig
+    likelihood: str
+
+
+@dataclass(frozen=True)
+class Step:
+    """One iteration (also while paused)."""
+
+
+@dataclass(frozen=True)
+class Run:
+    """Step until the iteration budget, convergence (if ``stop_on_convergence``) or a Pause."""
+
+    stop_on_convergence: bool = True
+
+
+@dataclass(frozen=True)
+class Pause:
+    """Stop running after the iteration in progress."""
+
+
+@dataclass(frozen=True)
+class Reset:
+    """Throw the particles away and start again (seed and likelihood model take effect here)."""
+
+    config: EstimatorConfig
+    likelihood: str
+
+
+@dataclass(frozen=True)
+class SetConfig:
+    """New particle count, Sigma, method or iteration budget, from the next step on; the run is kept."""
+
+    config: EstimatorConfig
+
+
+@dataclass(frozen=True)
+class Select:
+    """Explain the particle at ``rank`` (0 = most likely) of the last published ordering."""
+
+    rank: int
+
+
+@dataclass(frozen=True)
+class SetDisplay:
+    """How many particles (most likely first) each snapshot carries."""
+
+    max_particles: int
+
+
+@dataclass(frozen=True)
+class Shutdown:
+    pass
+
+
+Command = Load | Step | Run | Pause | Reset | SetConfig | Select | SetDisplay | Shutdown
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Messages: engine -> server
+
+
+@dataclass
+class MeshData:
+    name: str
+    vertices: np.ndarray  # (V, 3) float32, object frame, metres
+    faces: np.ndarray  # (F, 3) int32
+
+
+@dataclass
+class ObservationView:
+    """Everything static about the loaded frame, in the table frame.
+
+    ``points``/``colors``: the whole depth frame as a (downsampled) cloud; ``grid_points``: the observed points of
+    the problem's pixel grid where ``grid_mask`` (h, w) is true, in row-major order, onto which heatmaps go."""
+
+    title: str
+    points: np.ndarray  # (P, 3) float32
+    colors: np.ndarray  # (P, 3) uint8
+    color_legend: str  # what the cloud's colours mean
+    depth_image: np.ndarray  # (H', W', 3) uint8, coloured depth for the panel
+    depth_range: tuple[float, float]  # metres, the depth image's colour scale
+    table: tuple[float, float, float, float]  # x_min, x_max, y_min, y_max
+    region: tuple[float, float, float, float]  # the object region: x_min, x_max, y_min, y_max
+    meshes: list[MeshData]
+    T_world_cam: np.ndarray  # (4, 4)
+    K: np.ndarray  # (3, 3)
+    image_size: tuple[int, int]  # width, height
+    grid_points: np.ndarray  # (G, 3) float32
+    grid_mask: np.ndarray  # (h, w) bool
+    gt_T_world_obj: np.ndarray | None  # (K, 4, 4), NaN rows where unknown; None without ground truth
+
+
+@dataclass
+class ParticleCloud:
+    """The ``M`` most likely particles after an iteration, ordered by weight (rank 0 first)."""
+
+    iteration: int
+    n_total: int
+    poses: np.ndarray  # (M, K, 4, 4) float32, projected (after physics)
+    weights: np.ndarray  # (M,) normalised over all N particles
+    loglik: np.ndarray  # (M,)
+    status: np.ndarray  # (M,) physics status codes
+
+
+@dataclass
+class Snapshot:
+    """Published after every iteration: the report, the particle cloud and whether the engine keeps running."""
+
+    report: dict  # IterationReport.as_dict()
+    cloud: ParticleCloud
+    running: bool
+    n_particles: int  # the config's N for the next step
+
+
+@dataclass
+class Chosen:
+    """One particle explained: its scene before and after physics and its per-pixel fit on the problem grid."""
+
+    iteration: int
+    rank: int
+    index: int
+    loglik: float
+    weight: float
+    status: int
+    before: np.ndarray  # (K, 4, 4) as proposed
+    after: np.ndarray  # (K, 4, 4) as projected by physics (what was rendered and weighed)
+    pixel_loglik: np.ndarray  # (h, w) float32, 0 where the observation has no reading
+    residual: np.ndarray  # (h, w) float32 observed - predicted (m), NaN where either is missing
+
+
+@dataclass
+class Loaded:
+    source: Source
+    view: ObservationView
+
+
+@dataclass
+class RunState:
+    """Sent whenever running starts or stops, and after a reset (iteration -1: no particles yet)."""
+
+    running: bool
+    iteration: int
+    reason: str = ""
+
+
+@dataclass
+class Failure:
+    """Something the user must hear about. ``path``/``problem`` mirror ``InputError``."""
+
+    title: str
+    problem: str
+    path: str | None = None
+    fatal: bool = False  # the estimator is gone for good: only a server restart helps
+
+
+@dataclass
+class Workers:
+    """A worker pool was started: ``pids`` of its processes (empty for in-process evaluation); ``restarted`` with
+    the ``reason`` when it replaced a crashed one."""
+
+    pids: list[int]
+    restarted: bool = False
+    reason: str = ""
+
+
+@dataclass
+class Ready:
+    """The engine process started."""
+
+    pid: int
+
+
+Message = Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready

@@ -1,0 +1,397 @@
+"""The browser workbench: a viser server showing one estimation run, driven from its control panel.
+
+    workbench serve [DATASET --scene ID --frame ID | --demo] [--host 127.0.0.1] [--port 8080]
+
+The estimator lives in a separate process (``engine.py``); this process only draws. GUI and scene are viser's
+server-wide ones, so every open tab sees and drives the same run. Messages from the engine arrive on a reader
+thread and GUI callbacks on viser's threads: ``App`` serialises both with one lock.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import viser
+
+from workbench.app import protocol as p
+from workbench.app.colors import VIRIDIS, legend_html
+from workbench.app.engine import DEMO_DIR, EngineClient
+from workbench.app.panel import Panel, build_panel
+from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer
+from workbench.errors import InputError
+from workbench.estimators import EstimatorConfig
+from workbench.geometry import rotation_angle
+
+log = logging.getLogger(__name__)
+
+# Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
+DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
+STATUS_NAMES = {0: "rest", 1: "step cap", 2: "unstable", 3: "off the table"}  # physics.STATUS_*
+
+
+@dataclass
+class RunView:
+    """What the server knows about the run, for the status line and the tests."""
+
+    iteration: int = -1
+    running: bool = False
+    reports: list[dict] = field(default_factory=list)
+    cloud: p.ParticleCloud | None = None
+    chosen: p.Chosen | None = None
+    view: p.ObservationView | None = None
+    last_state: p.RunState | None = None
+    failures: list[p.Failure] = field(default_factory=list)
+    worker_pids: list[int] = field(default_factory=list)
+    engine_pid: int | None = None
+    restarts: int = 0
+    pause_requested_at: int | None = None  # the iteration on display when Pause was pressed
+    display_errors: list[str] = field(default_factory=list)  # bugs in drawing a message (logged, kept for tests)
+
+
+class App:
+    def __init__(self, server: viser.ViserServer, source: p.Source | None, workers: int,
+                 config: EstimatorConfig = DEFAULT_CONFIG, likelihood: str = "robust"):
+        self.server = server
+        self.lock = threading.RLock()
+        self.config = config
+        self.source: p.Source | None = None  # the last frame the engine loaded
+        self.state = RunView()
+        self.changed = threading.Condition(self.lock)  # notified on every engine message (tests wait on it)
+        self.panel: Panel = build_panel(server.gui, config, likelihood)
+        self.observation = ObservationLayer(server)
+        self.particles = ParticleLayer(server, on_pick=self.pick)
+        self.chosen = ChosenLayer(server)
+        self.heatmap = HeatmapLayer(server)
+        self._wire()
+        self.engine = EngineClient(workers, self.on_message, self.on_engine_died)
+        if source is not None:
+            self.load(source)
+
+    # -- commands from the panel
+
+    def _wire(self) -> None:
+        P = self.panel
+        P.step.on_click(lambda _: self.send(p.Step()))
+        P.run.on_click(lambda _: self.send(p.Run(P.stop_on_convergence.value)))
+        P.pause.on_click(lambda _: self.pause())
+        P.reset.on_click(lambda _: self.reset())
+        for h in (P.method, P.particles, P.iterations, P.sigma_xy, P.sigma_z, P.sigma_angles):
+            h.on_update(lambda _: self.config_changed())
+        P.rank.on_update(lambda _: self.send(p.Select(int(P.rank.value))))
+        P.best.on_click(lambda _: self.pick(0))
+        P.scene_mode.on_update(lambda _: self.redraw_chosen())
+        P.heatmap_mode.on_update(lambda _: self.heatmap_mode_changed())
+        for h in (P.show_observation, P.show_gt):
+            h.on_update(lambda _: self.observation.set_visible(P.show_observation.value, P.show_gt.value))
+        for h in (P.show_particles, P.show_best):
+            h.on_update(lambda _: self.particles.set_visible(P.show_particles.value, P.show_best.value))
+        P.max_particles.on_update(lambda _: self.send(p.SetDisplay(int(P.max_particles.value))))
+        P.load.on_click(lambda _: self.load_typed())
+        P.demo.on_click(lambda _: self.load(p.Source(demo=True)))
+
+    def send(self, cmd) -> None:
+        self.engine.send(cmd)
+
+    def guarded(self, action) -> None:
+        """Run a panel action; bad input becomes a message in the panel, never a dead callback."""
+        try:
+            action()
+        except InputError as err:
+            self.report(p.Failure("Input error", err.problem, err.path))
+
+    def config_changed(self) -> None:
+        def apply():
+            self.config = self.panel.estimator_config(self.config)
+            self.send(p.SetConfig(self.config))
+
+        self.guarded(apply)
+
+    def pause(self) -> None:
+        with self.lock:
+            self.state.pause_requested_at = self.state.iteration
+        self.send(p.Pause())
+
+    def reset(self) -> None:
+        def apply():
+            self.config = self.panel.estimator_config(self.config)
+            self.send(p.Reset(self.config, self.panel.likelihood.value))
+
+        self.guarded(apply)
+
+    def load(self, source: p.Source) -> None:
+        self.panel.title.content = f"**workbench** · loading {source.describe()} …"
+        self.send(p.Load(source, self.config, self.panel.likelihood.value))
+
+    def load_typed(self) -> None:
+        def apply():
+            text = self.panel.dataset.value.strip()
+            if not text:
+                raise InputError("Dataset", "type the path of a BOP dataset folder")
+            scene_id, im_id = self.panel.frame_ids()
+            self.load(p.Source(dataset=Path(text).expanduser(), scene_id=scene_id, im_id=im_id))
+
+        self.guarded(apply)
+
+    def pick(self, rank: int) -> None:
+        """Choose the particle at ``rank``: moving the shared slider sends the Select (and shows every tab)."""
+        rank = int(np.clip(rank, 0, self.panel.rank.max))
+        if self.panel.rank.value == rank:
+            self.send(p.Select(rank))
+        else:
+            self.panel.rank.value = rank
+
+    # -- messages from the engine
+
+    def on_message(self, msg) -> None:
+        with self.lock:
+            handler = {
+                p.Ready: self.on_ready,
+                p.Loaded: self.on_loaded,
+                p.Snapshot: self.on_snapshot,
+                p.Chosen: self.on_chosen,
+                p.RunState: self.on_run_state,
+                p.Failure: self.report,
+                p.Workers: self.on_workers,
+            }[type(msg)]
+            try:
+                handler(msg)
+            except Exception as err:  # a drawing bug must not stop the messages that follow
+                log.exception("drawing %s", type(msg).__name__)
+                self.state.display_errors.append(f"{type(msg).__name__}: {err!r}")
+            finally:
+                self.changed.notify_all()
+
+    def on_ready(self, msg: p.Ready) -> None:
+        self.state.engine_pid = msg.pid
+
+    def on_loaded(self, msg: p.Loaded) -> None:
+        view, P = msg.view, self.panel
+        self.source = msg.source  # what a restarted engine reloads
+        old = self.state
+        self.state = replace(RunView(), view=view, engine_pid=old.engine_pid, restarts=old.restarts,
+                             failures=old.failures, display_errors=old.display_errors)
+        with self.server.atomic():
+            P.title.content = f"**workbench** · {view.title}"
+            P.error.visible = False
+            self.observation.draw(view, P.show_observation.value, P.show_gt.value)
+            self.particles.set_frame(view.meshes)
+            self.chosen.set_frame(view)
+            self.heatmap.set_frame(view)
+            P.depth_image.image = view.depth_image
+            P.depth_image.visible = True
+            lo, hi = view.depth_range
+            P.depth_legend.content = legend_html("depth (m)", f"{lo:.2f}", f"{hi:.2f}", VIRIDIS,
+                                                 f"3D points: {view.color_legend}")
+            P.heat_image.visible = False
+            P.legend.content = ""
+            P.physics_change.content = ""
+            P.plots.clear()
+        self.point_cameras(view)
+
+    def point_cameras(self, view: p.ObservationView, zoom: float = 1.0) -> None:
+        """Start every viewer on the sensor's side, looking at the objects' region, which it places left of centre
+        (the panel covers the right of the page). Not too close by default: software WebGL pays for every pixel a
+        point covers."""
+        rx0, rx1, ry0, ry1 = view.region
+        target = np.array([(rx0 + rx1) / 2, (ry0 + ry1) / 2, 0.0])
+        toward_sensor = view.T_world_cam[:3, 3] - target
+        distance = max(0.3, 3.0 * max(rx1 - rx0, ry1 - ry0)) / zoom
+        right = view.T_world_cam[:3, 0] * np.array([1.0, 1.0, 0.0])
+        aim = target + 0.25 * distance * right / max(np.linalg.norm(right), 1e-9)
+        eye = aim + toward_sensor / np.linalg.norm(toward_sensor) * distance
+        self.server.initial_camera.position = tuple(eye)
+        self.server.initial_camera.look_at = tuple(aim)
+        for client in self.server.get_clients().values():
+            client.camera.position = tuple(eye)
+            client.camera.look_at = tuple(aim)
+
+    def on_snapshot(self, msg: p.Snapshot) -> None:
+        s, P = self.state, self.panel
+        if s.reports and s.reports[-1]["iteration"] == msg.report["iteration"]:
+            s.reports.pop()  # a republished iteration (e.g. more particles drawn), not a new one
+        s.reports.append(msg.report)
+        s.cloud, s.iteration, s.running = msg.cloud, msg.report["iteration"], msg.running
+        self.particles.update(msg.cloud)
+        P.rank.max = max(1, msg.cloud.n_total - 1)
+        P.plots.add(msg.report, msg.cloud.n_total, self.config.converge_position, self.config.converge_degrees)
+        P.timings.content = timings_markdown(msg.report)
+        P.status.content = self.status_markdown()
+
+    def on_chosen(self, msg: p.Chosen) -> None:
+        self.state.chosen = msg
+        self.redraw_chosen()
+
+    def redraw_chosen(self) -> None:
+        with self.lock:
+            c, P = self.state.chosen, self.panel
+            self.chosen.update(c, P.scene_mode.value)
+            legend, image = self.heatmap.update(c, P.heatmap_mode.value)
+            P.legend.content = legend
+            if image is not None:
+                P.heat_image.image = image
+            P.heat_image.visible = image is not None
+            P.physics_change.content = physics_markdown(c) if c is not None else ""
+
+    def heatmap_mode_changed(self) -> None:
+        # The heatmap is drawn on the observed points: showing both would bury one under the other.
+        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off"
+        self.redraw_chosen()
+
+    def on_run_state(self, msg: p.RunState) -> None:
+        s, P = self.state, self.panel
+        s.last_state, s.running = msg, msg.running
+        if msg.reason == "reset":
+            s.reports, s.cloud, s.chosen, s.iteration = [], None, None, -1
+            P.plots.clear()
+            self.particles.set_frame(self.particles.meshes)
+            self.redraw_chosen()
+        P.run.disabled = msg.running
+        P.pause.disabled = not msg.running
+        P.step.disabled = msg.running
+        P.status.content = self.status_markdown()
+
+    def on_workers(self, msg: p.Workers) -> None:
+        self.state.worker_pids = msg.pids
+        if msg.restarted:
+            self.state.restarts += 1
+            self.notify("Evaluation worker restarted", f"A worker process died ({msg.reason}); a fresh pool took "
+                        "over and the iteration was retried. The run goes on.", color="yellow")
+        where = f"{len(msg.pids)} worker processes" if msg.pids else "in the estimator process"
+        restarts = f" · restarted {self.state.restarts}×" if self.state.restarts else ""
+        self.panel.workers.content = f"Evaluation: {where}{restarts}"
+
+    def on_engine_died(self, exitcode: int | None, gave_up: bool) -> None:
+        with self.lock:
+            self.state.restarts += 1
+            source = self.source
+        if gave_up:
+            self.report(p.Failure("Estimator process keeps dying", f"it exited with code {exitcode} again and was "
+                                  "not restarted; see the server's log, then restart the server", fatal=True))
+            return
+        self.notify("Estimator process restarted",
+                    f"The estimator process died (exit code {exitcode}); it was restarted"
+                    + (" and the frame reloaded: the run starts again." if source else "."), color="yellow")
+        if source is not None:
+            self.send(p.Load(source, self.config, self.panel.likelihood.value))
+
+    def report(self, failure: p.Failure) -> None:
+        with self.lock:
+            self.state.failures.append(failure)
+            where = f"`{failure.path}`: " if failure.path else ""
+            self.panel.error.content = f"**⚠ {failure.title}** — {where}{failure.problem}"
+            self.panel.error.visible = True
+            view = self.state.view  # a failed load leaves the loaded frame in place
+            self.panel.title.content = f"**workbench** · {view.title if view else 'nothing loaded'}"
+        self.notify(failure.title, f"{failure.path + ': ' if failure.path else ''}{failure.problem}", color="red")
+
+    def notify(self, title: str, body: str, color: str) -> None:
+        for client in self.server.get_clients().values():
+            client.add_notification(title, body, color=color, auto_close_seconds=15.0)
+
+    def status_markdown(self) -> str:
+        s, cfg = self.state, self.config
+        state = "running" if s.running else "paused"
+        if not s.reports:
+            return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."
+        r = s.reports[-1]
+        calm = 0
+        for row in reversed(s.reports):
+            if row["best_move_m"] < cfg.converge_position and row["best_move_deg"] < cfg.converge_degrees:
+                calm += 1
+            else:
+                break
+        conv = "**converged**" if r["converged"] else f"calm {min(calm, cfg.converge_patience)} of {cfg.converge_patience}"
+        accept = "" if np.isnan(r["accept_rate"]) else f" · accepted {r['accept_rate'] * 100:.0f} %"
+        n = s.cloud.n_total if s.cloud is not None else cfg.particles
+        return (
+            f"**Iteration {r['iteration']} of {cfg.iterations}** · {state}  \n"
+            f"{conv} (best moves < {cfg.converge_position * 100:g} cm and < {cfg.converge_degrees:g}°)  \n"
+            f"best log-lik {r['best_loglik']:.1f} · ESS {r['ess']:.1f} of {n} · failed physics {r['n_failed']}{accept}"
+        )
+
+    # -- lifetime
+
+    def stop(self) -> None:
+        self.engine.stop()
+
+    def wait_for(self, predicate, timeout: float) -> bool:
+        """Block until ``predicate(self.state)`` holds (checked on every engine message), or the timeout."""
+        deadline = time.monotonic() + timeout
+        with self.changed:
+            while not predicate(self.state):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self.changed.wait(min(left, 0.5))
+        return True
+
+
+def timings_markdown(report: dict) -> str:
+    t = report["timings"]
+    rows = "\n".join(f"| {stage} | {t.get(stage, 0.0) * 1000:.1f} |"
+                     for stage in ("projection", "render", "likelihood", "resampling", "total"))
+    return ("| stage | ms |\n|---|---:|\n" + rows +
+            "\n\n<small>projection, render and likelihood are summed over the workers; total is wall time</small>")
+
+
+def physics_markdown(c: p.Chosen) -> str:
+    """How far physics moved each object of the chosen particle."""
+    moved = np.linalg.norm(c.after[:, :3, 3] - c.before[:, :3, 3], axis=-1)
+    turned = np.degrees(rotation_angle(np.swapaxes(c.before[:, :3, :3], -1, -2) @ c.after[:, :3, :3]))
+    rows = "\n".join(f"| {k} | {m * 100:.1f} | {a:.1f} |" for k, (m, a) in enumerate(zip(moved, turned)))
+    return (
+        f"Rank **{c.rank}** (particle {c.index}) · log-lik {c.loglik:.1f} · weight {c.weight:.3g} · "
+        f"physics: {STATUS_NAMES.get(c.status, c.status)}\n\n"
+        f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}"
+    )
+
+
+@dataclass
+class AppHandle:
+    """A running workbench; ``stop()`` ends the engine process and the web server."""
+
+    server: viser.ViserServer
+    app: App
+    url: str
+
+    def stop(self) -> None:
+        self.app.stop()
+        self.server.stop()
+
+
+def serve(
+    dataset: Path | None = None,
+    scene_id: int | None = None,
+    im_id: int | None = None,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    demo: bool = False,
+    block: bool = True,
+    workers: int = 2,
+    config: EstimatorConfig = DEFAULT_CONFIG,
+    likelihood: str = "robust",
+) -> AppHandle:
+    """Start the workbench on ``host:port`` (localhost unless told otherwise) with ``dataset``'s frame, or the demo
+    (``demo``, or no dataset). ``block``: serve until Ctrl-C and then stop; else return the handle at once."""
+    # The CLI names the bundled demo folder, which a checkout may not hold yet: the engine writes it on demand.
+    demo = demo or dataset is None or Path(dataset).resolve() == DEMO_DIR
+    source = p.Source(demo=True) if demo else p.Source(Path(dataset), scene_id, im_id)
+    server = viser.ViserServer(host=host, port=port, label="workbench")
+    app = App(server, source, workers, config, likelihood)
+    handle = AppHandle(server, app, f"http://{host}:{server.get_port()}")
+    if not block:
+        return handle
+    print(f"workbench: serving {source.describe()} at {handle.url} (Ctrl-C stops)", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        handle.stop()
+    return handle

@@ -1,0 +1,296 @@
+"""The 3D scene: the observation, the particle cloud, the chosen particle before/after physics, the heatmap.
+
+This module is the viser edge: poses arrive as 4x4 table-frame matrices and leave as viser's (wxyz, position).
+Each layer creates its nodes once per loaded frame and afterwards only moves, recolours or hides them, so an
+iteration costs a few small messages, not a re-upload of the meshes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import viser
+
+from workbench.app import colors
+from workbench.app.protocol import Chosen, MeshData, ObservationView, ParticleCloud
+
+SCENE_MODES = ("after physics", "before physics", "before + after", "side by side", "hidden")
+HEATMAP_MODES = ("log-likelihood", "residual", "off")
+BEFORE_COLOR = (235, 90, 60)
+
+
+def wxyz_from_matrices(R: np.ndarray) -> np.ndarray:
+    """Rotations (..., 3, 3) -> unit quaternions (..., 4) wxyz with w >= 0, vectorised (thousands per update)."""
+    R = np.asarray(R, dtype=np.float64)
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    q = np.stack(
+        [
+            np.sqrt(np.maximum(0.0, 1.0 + m00 + m11 + m22)),
+            np.sqrt(np.maximum(0.0, 1.0 + m00 - m11 - m22)),
+            np.sqrt(np.maximum(0.0, 1.0 - m00 + m11 - m22)),
+            np.sqrt(np.maximum(0.0, 1.0 - m00 - m11 + m22)),
+        ],
+        axis=-1,
+    ) / 2.0
+    # Magnitudes from the diagonal, signs from the antisymmetric part (relative to w >= 0). Near 180 degrees
+    # w -> 0 and the antisymmetric part vanishes, so take the signs from the symmetric part against the largest.
+    q[..., 1] = np.copysign(q[..., 1], R[..., 2, 1] - R[..., 1, 2])
+    q[..., 2] = np.copysign(q[..., 2], R[..., 0, 2] - R[..., 2, 0])
+    q[..., 3] = np.copysign(q[..., 3], R[..., 1, 0] - R[..., 0, 1])
+    flip = q[..., 0] < 1e-3
+    if np.any(flip):
+        from workbench.geometry import matrix_to_quat_wxyz  # exact (Shepperd), slow: only for the rare few
+
+        q[flip] = matrix_to_quat_wxyz(R[flip])
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def split_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 4, 4) -> (wxyz (..., 4), position (..., 3))."""
+    return wxyz_from_matrices(T[..., :3, :3]), np.asarray(T[..., :3, 3], dtype=np.float64)
+
+
+@dataclass
+class Nodes:
+    """Scene handles to remove together when a new frame is loaded."""
+
+    handles: list = field(default_factory=list)
+
+    def add(self, handle):
+        self.handles.append(handle)
+        return handle
+
+    def clear(self) -> None:
+        for h in self.handles:
+            h.remove()
+        self.handles = []
+
+
+@dataclass
+class ObservationLayer:
+    """The frame as seen: point cloud, table, object region, camera frustum, ground truth (hidden by default)."""
+
+    server: viser.ViserServer
+    nodes: Nodes = field(default_factory=Nodes)
+    cloud: viser.PointCloudHandle | None = None
+    gt: list = field(default_factory=list)
+
+    def draw(self, view: ObservationView, show_cloud: bool, show_gt: bool) -> None:
+        scene, add = self.server.scene, self.nodes.add
+        self.nodes.clear()
+        self.cloud = add(scene.add_point_cloud(
+            "/observation/points", view.points, view.colors, point_size=0.0025, point_shape="rounded",
+            visible=show_cloud,
+        ))
+        x0, x1, y0, y1 = view.table
+        # The table slab's top a millimetre below z = 0, so the table's own points stay visible on it.
+        add(scene.add_box(
+            "/observation/table", color=(200, 190, 170), dimensions=(x1 - x0, y1 - y0, 0.004),
+            position=((x0 + x1) / 2, (y0 + y1) / 2, -0.003), opacity=0.5, cast_shadow=False,
+        ))
+        rx0, rx1, ry0, ry1 = view.region
+        corners = np.array([[rx0, ry0, 0], [rx1, ry0, 0], [rx1, ry1, 0], [rx0, ry1, 0]], dtype=np.float32)
+        add(scene.add_line_segments(
+            "/observation/region", np.stack([corners, np.roll(corners, -1, axis=0)], axis=1),
+            colors=(255, 140, 0), thickness=1.5, thickness_units="screen",
+        ))
+        w, h = view.image_size
+        wxyz, pos = split_pose(view.T_world_cam)
+        add(scene.add_camera_frustum(
+            "/observation/camera", fov=2 * np.arctan2(h / 2, view.K[1, 1]), aspect=w / h, scale=0.1,
+            thickness=1.5, thickness_units="screen", color=(40, 40, 40), wxyz=wxyz, position=pos,
+        ))
+        self.gt = []
+        if view.gt_T_world_obj is not None:
+            for k, (mesh, T) in enumerate(zip(view.meshes, view.gt_T_world_obj)):
+                if np.all(np.isfinite(T)):
+                    q, t = split_pose(T)
+                    self.gt.append(add(scene.add_mesh_simple(
+                        f"/observation/ground_truth/{k}", mesh.vertices, mesh.faces, color=(120, 220, 120),
+                        wireframe=True, wxyz=q, position=t, visible=show_gt,
+                    )))
+
+    def set_visible(self, cloud: bool, gt: bool) -> None:
+        if self.cloud is not None:
+            self.cloud.visible = cloud
+        for h in self.gt:
+            h.visible = gt
+
+
+@dataclass
+class ParticleLayer:
+    """Every published particle as one instanced mesh per object, coloured (and faded) by normalised weight, and
+    the most likely scene drawn solid. Clicking an instance calls ``on_pick(rank)`` (instances are in rank order)."""
+
+    server: viser.ViserServer
+    on_pick: Callable[[int], None]
+    meshes: list[MeshData] = field(default_factory=list)
+    batches: list = field(default_factory=list)
+    best: list = field(default_factory=list)
+    nodes: Nodes = field(default_factory=Nodes)
+    show_cloud: bool = True
+    show_best: bool = True
+
+    def set_frame(self, meshes: list[MeshData]) -> None:
+        self.nodes.clear()
+        self.meshes, self.batches, self.best = meshes, [], []
+
+    def update(self, cloud: ParticleCloud) -> None:
+        if len(cloud.poses) == 0 or not self.meshes:
+            return
+        scene = self.server.scene
+        wxyz, pos = split_pose(cloud.poses)  # (M, K, 4), (M, K, 3)
+        w = np.asarray(cloud.weights, dtype=np.float64)
+        rel = w / w.max() if w.max() > 0 else np.ones_like(w)
+        tint = colors.apply_map(rel, 0.0, 1.0, colors.WEIGHT)
+        opacity = (0.1 + 0.5 * rel).astype(np.float32)  # faint, so the solid most likely scene shows through
+        if self.batches and len(self.batches[0].batched_positions) != len(w):
+            for b in self.batches:  # the instance count changed: viser wants all per-instance arrays resized at once
+                b.remove()
+            self.batches = []
+        with self.server.atomic():
+            for k, mesh in enumerate(self.meshes):
+                if len(self.batches) <= k:
+                    handle = self.nodes.add(scene.add_batched_meshes_simple(
+                        f"/particles/{k}", mesh.vertices, mesh.faces, batched_wxyzs=wxyz[:, k],
+                        batched_positions=pos[:, k], batched_colors=tint, batched_opacities=opacity,
+                        lod="off", cast_shadow=False, receive_shadow=False, visible=self.show_cloud,
+                    ))
+                    handle.on_click(self._clicked)
+                    self.batches.append(handle)
+                else:
+                    b = self.batches[k]
+                    b.batched_positions, b.batched_wxyzs = pos[:, k], wxyz[:, k]
+                    b.batched_colors, b.batched_opacities = tint, opacity
+                if len(self.best) <= k:
+                    self.best.append(self.nodes.add(scene.add_mesh_simple(
+                        f"/best/{k}", mesh.vertices, mesh.faces, color=colors.object_color(k), wxyz=wxyz[0, k],
+                        position=pos[0, k], visible=self.show_best,
+                    )))
+                else:
+                    self.best[k].wxyz, self.best[k].position = wxyz[0, k], pos[0, k]
+
+    def _clicked(self, event: viser.SceneNodePointerEvent) -> None:
+        if event.instance_index is not None:
+            self.on_pick(int(event.instance_index))
+
+    def set_visible(self, cloud: bool, best: bool) -> None:
+        self.show_cloud, self.show_best = cloud, best
+        for h in self.batches:
+            h.visible = cloud
+        for h in self.best:
+            h.visible = best
+
+
+@dataclass
+class ChosenLayer:
+    """One particle's scene before (red) and after (object colours) physics: one of them, both overlaid with a line
+    per object showing how physics moved it, or side by side: before left of the observation, after right of it."""
+
+    server: viser.ViserServer
+    meshes: list[MeshData] = field(default_factory=list)
+    shifts: dict = field(default_factory=dict)
+    nodes: Nodes = field(default_factory=Nodes)
+    before: list = field(default_factory=list)
+    after: list = field(default_factory=list)
+    extras: Nodes = field(default_factory=Nodes)
+    last: Chosen | None = None
+
+    def set_frame(self, view: ObservationView) -> None:
+        self.nodes.clear()
+        self.extras.clear()
+        self.meshes, self.last = view.meshes, None
+        # Side by side: "before" to the left of the objects and "after" to the right, as the sensor sees them, so
+        # the observation stays in the middle. The sensor's x axis, flattened onto the table, is "right".
+        right = view.T_world_cam[:3, 0] * np.array([1.0, 1.0, 0.0])
+        right /= max(np.linalg.norm(right), 1e-9)
+        x0, x1, y0, y1 = view.region
+        reach = float(np.hypot(x1 - x0, y1 - y0)) + 0.05
+        self.shifts = {"before": -reach * right, "after": reach * right}
+        scene = self.server.scene
+        self.before = [
+            self.nodes.add(scene.add_mesh_simple(f"/chosen/before/{k}", m.vertices, m.faces, color=BEFORE_COLOR,
+                                                 visible=False))
+            for k, m in enumerate(view.meshes)
+        ]
+        # "After" wears the objects' own colours, like the most likely scene: when the chosen particle is the most
+        # likely one the two coincide, and equal colours hide the z-fighting.
+        self.after = [
+            self.nodes.add(scene.add_mesh_simple(f"/chosen/after/{k}", m.vertices, m.faces,
+                                                 color=colors.object_color(k), visible=False))
+            for k, m in enumerate(view.meshes)
+        ]
+
+    def update(self, chosen: Chosen | None, mode: str) -> None:
+        self.last = chosen if chosen is not None else self.last
+        c = self.last
+        self.extras.clear()
+        show = {
+            "before": c is not None and mode in ("before physics", "before + after", "side by side"),
+            "after": c is not None and mode in ("after physics", "before + after", "side by side"),
+        }
+        side = mode == "side by side"
+        with self.server.atomic():
+            for which, handles in (("before", self.before), ("after", self.after)):
+                shift = self.shifts[which] if side else np.zeros(3)
+                for k, h in enumerate(handles):
+                    h.visible = show[which]
+                    if not show[which]:
+                        continue
+                    q, t = split_pose(getattr(c, which)[k])
+                    h.wxyz, h.position = q, t + shift
+                    # Overlaid, "before" is a wireframe so the resting scene shows through it.
+                    h.wireframe = mode == "before + after" and which == "before"
+                if side and show[which]:
+                    poses = getattr(c, which)
+                    top = poses[:, :3, 3].mean(axis=0) * np.array([1.0, 1.0, 0.0]) + [0.0, 0.0, poses[:, 2, 3].max() + 0.08]
+                    self.extras.add(self.server.scene.add_label(
+                        f"/chosen/{which}_label", f"{which} physics", position=top + shift
+                    ))
+            if c is not None and mode == "before + after":
+                segments = np.stack([c.before[:, :3, 3], c.after[:, :3, 3]], axis=1).astype(np.float32)
+                self.extras.add(self.server.scene.add_line_segments(
+                    "/chosen/moves", segments, colors=(255, 60, 60), thickness=3.0, thickness_units="screen"
+                ))
+
+
+@dataclass
+class HeatmapLayer:
+    """The chosen particle's per-pixel log-likelihood or residual on the observed points of the problem grid."""
+
+    server: viser.ViserServer
+    view: ObservationView | None = None
+    nodes: Nodes = field(default_factory=Nodes)
+
+    def set_frame(self, view: ObservationView) -> None:
+        self.nodes.clear()
+        self.view = view
+
+    def update(self, chosen: Chosen | None, mode: str) -> tuple[str, np.ndarray | None]:
+        """Redraw -> (legend HTML, the heatmap as an (h, w, 3) image for the panel, or None)."""
+        self.nodes.clear()
+        if chosen is None or self.view is None or mode == "off":
+            return "", None
+        mask = self.view.grid_mask
+        if mode == "residual":
+            values = chosen.residual.astype(np.float64) * 100.0  # cm
+            finite = np.abs(values[mask])
+            finite = finite[np.isfinite(finite)]
+            limit = max(0.5, float(np.percentile(finite, 98))) if finite.size else 1.0
+            lo, hi, stops, unit = -limit, limit, colors.DIVERGING, "cm"
+            note = "observed minus predicted depth: blue where the observation is nearer; grey: nothing predicted"
+        else:
+            values = chosen.pixel_loglik.astype(np.float64)
+            lo, hi = colors.robust_range(values[mask])
+            stops, unit = colors.MISFIT, "per pixel"
+            note = f"total {chosen.loglik:.1f}; dark = poorly explained, pale = well explained"
+        rgb = colors.apply_map(values, lo, hi, stops)  # (h, w, 3)
+        self.nodes.add(self.server.scene.add_point_cloud(
+            "/heatmap", self.view.grid_points, rgb[mask], point_size=0.003, point_shape="rounded",
+            precision="float32",
+        ))
+        legend = colors.legend_html(f"{mode} ({unit}), particle rank {chosen.rank}", f"{lo:.2f}", f"{hi:.2f}", stops, note)
+        image = np.where(mask[..., None], rgb, 0).astype(np.uint8)
+        return legend, image
