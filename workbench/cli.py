@@ -103,8 +103,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     if args.dataset is None:
         raise InputError(None, "name a dataset made by `workbench make-scenes`, or pass --speed")
-    run_benchmark(args.dataset, args.out, quick=args.quick, methods=args.methods.split(","),
-                  particles=args.particles, iterations=args.iterations, workers=args.workers)
+    categories = None if args.categories is None else [c.strip() for c in args.categories.split(",")]
+    run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
+                  particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
+                  categories=categories, per_category=args.per_category)
     return 0
 
 
@@ -145,8 +147,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", action="store_true", help="particle evaluations per second and peak memory")
     p.add_argument("--quick", action="store_true", help="few scenes, small budget (CI)")
     p.add_argument("--methods", default="icp,pipf,mcpf")
-    p.add_argument("--particles", type=int, default=None)
-    p.add_argument("--iterations", type=int, default=None)
+    p.add_argument("--particles", type=int, default=None, help="override the per-object-count default budget")
+    p.add_argument("--iterations", type=int, default=None, help="override the maximum iterations")
+    p.add_argument("--state", choices=("auto", *STATES), default="auto",
+                   help="auto: 6-DoF for 2 objects, the paper's x,y,z,yaw for 3-4 (default)")
+    p.add_argument("--categories", default=None, help="comma-separated subset of the dataset's categories")
+    p.add_argument("--per-category", type=int, default=None, help="only the first N scenes of each category")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("bench-out"))

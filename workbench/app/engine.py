@@ -181,7 +181,7 @@ class Engine:
         from workbench.evaluation import make_evaluator
 
         evaluator = make_evaluator(self.problem, self.workers)
-        # PoolEvaluator keeps its processes private; the pids serve the status line and the crash tests.
+        # The pids serve the status line and the crash tests; a LocalEvaluator has none.
         pids = getattr(evaluator, "pids", [])
         reason = "" if crash is None else f"{type(crash).__name__}: {crash}"
         self.results.put(p.Workers(pids, crash is not None, reason))
