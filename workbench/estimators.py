@@ -18,7 +18,7 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation import STAGES, Evaluation, Evaluator
 from workbench.geometry import rotation_angle
-from workbench.particles import STATES, Sigma, diffuse, initial_particles, random_turns
+from workbench.particles import STATES, Sigma, diffuse, initial_particles, random_relocations, random_turns
 from workbench.problem import Problem
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 
@@ -35,9 +35,12 @@ class EstimatorConfig:
     seed: int = 0
     target_ess: float = 0.25  # fraction of N kept by the tempered weights each iteration
     turn_prob: float = 0.05  # per object and iteration: a random new heading / face (particles.random_turns)
+    relocate_prob: float = 0.02  # per object and iteration: a random new place (particles.random_relocations)
     converge_position: float = 0.01  # m; the paper's "best particle moves < 1 cm"
     converge_degrees: float = 3.0  # and "< 3 degrees"
-    converge_patience: int = 3  # consecutive iterations the rule must hold
+    # Consecutive iterations the rule must hold. PI-MCPF keeps its best particle whenever the proposals around it
+    # are rejected, so a short patience stops it long before the particle set has settled.
+    converge_patience: int = 10
 
     def validate(self) -> None:
         if self.method not in METHODS:
@@ -48,8 +51,9 @@ class EstimatorConfig:
             raise InputError("particles", f"particle count must be between 1 and 100000, got {self.particles}")
         if self.iterations < 0:
             raise InputError("iterations", f"iterations must be >= 0, got {self.iterations}")
-        if not 0.0 <= self.turn_prob <= 1.0:
-            raise InputError("turn_prob", f"must lie in [0, 1], got {self.turn_prob}")
+        for name in ("turn_prob", "relocate_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise InputError(name, f"must lie in [0, 1], got {getattr(self, name)}")
         if not 0.0 < self.target_ess <= 1.0:
             raise InputError("target_ess", f"must lie in (0, 1], got {self.target_ess}")
         self.sigma.validate()
@@ -133,7 +137,7 @@ class Estimator:
         else:
             idx = systematic_resample(self._beta * self.loglik, self.rng, cfg.particles)
             parents = self.projected[idx]
-            proposals = random_turns(self.rng, diffuse(self.rng, parents, cfg.sigma, cfg.state), cfg.turn_prob, cfg.state)
+            proposals = self._propose(parents)
             t_resample = time.perf_counter() - t0
             ev = self._evaluate(proposals)
             if cfg.method == "pipf":
@@ -191,6 +195,13 @@ class Estimator:
         self.best_history = [np.array(b) for b in state["best_history"]]
         self._beta = float(state["beta"])
         self._calm = int(state["calm"])
+
+    def _propose(self, parents: np.ndarray) -> np.ndarray:
+        """Gaussian diffusion, plus the occasional large move (new heading or face, new place)."""
+        cfg, models, table = self.config, self.problem.models, self.problem.table
+        proposals = diffuse(self.rng, parents, cfg.sigma, cfg.state)
+        proposals = random_turns(self.rng, proposals, cfg.turn_prob, cfg.state)
+        return random_relocations(self.rng, proposals, cfg.relocate_prob, models, table)
 
     def _evaluate(self, hypotheses: np.ndarray) -> Evaluation:
         return self.evaluator.evaluate(hypotheses)
