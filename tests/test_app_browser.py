@@ -27,13 +27,20 @@ def free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def workbench():
+def sessions_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sessions")
+    (d / "damaged.json").write_text('{"format_version": 1, "kind": "workbench-session", "frame": ')  # cut short
+    return d
+
+
+@pytest.fixture(scope="module")
+def workbench(sessions_dir):
     from workbench.app.server import serve
     from workbench.estimators import EstimatorConfig
 
     # One worker: the machine running the tests also runs Chromium's software WebGL.
     handle = serve(demo=True, block=False, port=free_port(), workers=1,
-                   config=EstimatorConfig(particles=48, iterations=500))
+                   config=EstimatorConfig(particles=48, iterations=500), sessions_dir=sessions_dir)
     try:
         assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the demo did not load"
         assert handle.app.state.view is not None, handle.app.state.failures
@@ -164,3 +171,85 @@ def test_two_tabs_see_the_same_run(browser, page, workbench):
         other.get_by_text(iteration_text(nxt)).wait_for(timeout=TIMEOUT_MS)
     finally:
         other.close()
+
+
+LABEL_FIELDS = ("x (cm)", "y (cm)", "z (cm)", "roll (°)", "pitch (°)", "yaw (°)")
+
+
+def test_label_snap_save_session_reload_and_load_it(page, workbench):
+    """Label an object by typing, snap it, save the session; spoil the label, reload the page, load the session:
+    the label (and the run) come back as saved."""
+    app = workbench.app
+    if app.state.iteration < 0:
+        step(page, app)
+    page.get_by_role("tab", name="Label").click()
+    z = gui_input(page, "z (cm)")
+    z.fill("9")
+    z.press("Enter")
+    assert app.wait_for(lambda s: app.labelling.labels[0] is not None and app.labelling.labels[0][2, 3] == 0.09, 30)
+    page.get_by_role("button", name="Snap to plausible").click()
+    page.get_by_text("Snapped").first.wait_for(timeout=TIMEOUT_MS)
+    snapped = app.labelling.labels[0].copy()
+    assert snapped[2, 3] < 0.085  # it fell onto the table (or the other object)
+    expect(z).not_to_have_value(re.compile(r"^9(\.0*)?$"), timeout=TIMEOUT_MS)
+    shown = {name: gui_input(page, name).input_value() for name in LABEL_FIELDS}
+    # With a label present, the estimate's errors against it are shown.
+    page.get_by_text("Best estimate vs label").wait_for(timeout=TIMEOUT_MS)
+
+    page.get_by_role("tab", name="Sessions").click()
+    name = gui_input(page, "Session name")
+    name.fill("labelled")
+    name.press("Enter")
+    page.get_by_role("button", name="Save session").click()
+    page.get_by_text(re.compile(r"Saved session labelled")).wait_for(timeout=TIMEOUT_MS)
+    saved_iteration = app.state.iteration
+
+    # Spoil the label and advance the run, then come back with a fresh page.
+    page.get_by_role("tab", name="Label").click()
+    x = gui_input(page, "x (cm)")
+    x.fill("3")
+    x.press("Enter")
+    assert app.wait_for(lambda s: app.labelling.labels[0][0, 3] == 0.03, 30)
+    step(page, app)
+    page.reload()
+    page.get_by_role("button", name="Step").wait_for(timeout=TIMEOUT_MS)
+    page.get_by_role("tab", name="Sessions").click()
+    assert app.sessions.tab.choice.value == "labelled"  # the save selected it
+    page.get_by_role("button", name="Load session").click()
+    page.get_by_text(re.compile(r"Loaded session labelled at iteration")).wait_for(timeout=TIMEOUT_MS)
+    assert app.state.iteration == saved_iteration
+    assert np.array_equal(app.labelling.labels[0], snapped)
+    page.get_by_role("tab", name="Label").click()
+    for field_name, value in shown.items():
+        expect(gui_input(page, field_name)).to_have_value(value, timeout=TIMEOUT_MS)
+    nxt = step(page, app)  # and the restored run goes on
+    assert nxt == saved_iteration + 1
+
+
+def test_dragging_a_gizmo_labels_the_object_and_moves_its_fields(page, workbench):
+    import viser
+
+    app = workbench.app
+    page.get_by_role("tab", name="Label").click()
+    app.labelling.tab.object.value = app.labelling.names[1]  # shared GUI state, as another tab would choose it
+    gizmo = app.labelling.gizmos[1]
+    assert gizmo.visible
+    # What viser does when a browser drags the gizmo: the handle takes the pose, then the callbacks run.
+    gizmo.position = (0.0123, -0.0456, 0.05)
+    app.labelling.gizmo_moved(1, viser.TransformControlsEvent(client=None, client_id=None, target=gizmo, phase="end"))
+    assert np.allclose(app.labelling.labels[1][:3, 3], (0.0123, -0.0456, 0.05))
+    expect(gui_input(page, "x (cm)")).to_have_value(re.compile(r"^1\.23"), timeout=TIMEOUT_MS)
+    expect(gui_input(page, "y (cm)")).to_have_value(re.compile(r"^-4\.56"), timeout=TIMEOUT_MS)
+    page.get_by_role("button", name="Clear label").click()
+    assert app.wait_for(lambda s: app.labelling.labels[1] is None, 30)
+
+
+def test_a_damaged_session_shows_its_problem_and_the_run_goes_on(page, workbench):
+    app = workbench.app
+    page.get_by_role("tab", name="Sessions").click()
+    page.get_by_text(re.compile(r"damaged — ⚠ cannot be loaded: corrupt session file")).wait_for(timeout=TIMEOUT_MS)
+    app.sessions.tab.choice.value = "damaged"  # shared GUI state, as another tab would choose it
+    page.get_by_role("button", name="Load session").click()
+    page.get_by_text(re.compile(r"damaged\.json: corrupt session file")).first.wait_for(timeout=TIMEOUT_MS)
+    assert any(f.topic == "session" and f.path.endswith("damaged.json") for f in app.state.failures)
+    step(page, app)

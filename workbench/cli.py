@@ -76,7 +76,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from workbench.app.server import serve
 
     dataset = DEMO_DATASET if args.demo or args.dataset is None else args.dataset
-    serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port)
+    if args.session is not None:
+        from workbench.sessions import load_session
+
+        load_session(args.session)  # a bad session file is an input error here, before any server starts
+        if args.dataset is not None or args.demo:
+            raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
+    serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
+          session=args.session, sessions_dir=args.sessions_dir)
     return 0
 
 
@@ -106,7 +113,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     categories = None if args.categories is None else [c.strip() for c in args.categories.split(",")]
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
-                  categories=categories, per_category=args.per_category)
+                  categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop)
     return 0
 
 
@@ -132,6 +139,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=int, default=None)
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--session", type=Path, default=None,
+                   help="continue a saved session (its .json file); bit for bit with the same worker count (2)")
+    p.add_argument("--sessions-dir", type=Path, default=None,
+                   help="where sessions are saved and listed (default: the --session's folder, else ./sessions)")
     p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("make-scenes", help="generate a BOP dataset of the paper's scene categories")
@@ -153,6 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto: 6-DoF for 2 objects, the paper's x,y,z,yaw for 3-4 (default)")
     p.add_argument("--categories", default=None, help="comma-separated subset of the dataset's categories")
     p.add_argument("--per-category", type=int, default=None, help="only the first N scenes of each category")
+    p.add_argument("--no-early-stop", action="store_true", help="run every iteration even after convergence")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("bench-out"))

@@ -5,6 +5,10 @@ server never waits for an iteration: the server puts commands on a queue and rea
 ``EngineClient``). Commands are drained between iterations, so a Pause takes effect after the iteration in
 progress.
 
+Labels and sessions are handled here too, because they need the estimator and a renderer: the server only shows
+them. Label edits arrive as ``SetLabels`` on every gizmo move; the engine keeps the latest and renders its heatmap
+once the command queue is empty, so a fast drag costs one render per pass, not one per mouse event.
+
 A dead evaluation worker surfaces as ``WorkerCrashed`` (or a broken pipe): the pool is rebuilt and the iteration
 retried once, and the user is told. If this whole process dies, ``EngineClient`` (the server side) restarts it
 and reloads the frame.
@@ -57,7 +61,7 @@ def demo_dataset(cache: Callable[[], Path]) -> Path:
 
 
 def load(source: p.Source, likelihood: str, cache: Callable[[], Path]):
-    """-> (frame, problem) for ``source``; raises ``InputError`` naming the file at fault."""
+    """-> (dataset folder, frame, problem) for ``source``; raises ``InputError`` naming the file at fault."""
     from workbench import bop
     from workbench.likelihood import LikelihoodConfig
     from workbench.pipeline import load_bop_problem
@@ -77,7 +81,7 @@ def load(source: p.Source, likelihood: str, cache: Callable[[], Path]):
         scene_id, im_id = frames[0] if im_id is None else (frames[0][0], im_id)
     config = ProblemConfig(likelihood=LikelihoodConfig(model=likelihood))
     frame, problem = load_bop_problem(dataset, scene_id, im_id, config=config)
-    return frame, problem
+    return dataset, frame, problem
 
 
 def title_of(source: p.Source, frame) -> str:
@@ -105,6 +109,12 @@ class Engine:
         self.max_display = DEFAULT_DISPLAY
         self.order = np.zeros(0, int)  # particle indices of the last snapshot, most likely first
         self.rank = 0
+        # Labels and sessions: the frame's place in its dataset (None: sessions unavailable, see frame_ref_problem)
+        self.frame_ref = None
+        self.frame_ref_problem = "nothing is loaded"
+        self.labels: list[np.ndarray | None] = []
+        self.label_heatmap = False
+        self.label_dirty = False  # labels changed: heatmap and errors to recompute once the queue is drained
 
     def cache(self) -> Path:
         """A scratch folder of this process (made on first use, removed by ``close``)."""
@@ -137,10 +147,32 @@ class Engine:
             if self.running:
                 self.running = False
                 self.send_state("paused")
+        elif isinstance(cmd, p.SetLabels):
+            self.set_labels(cmd)
+        elif isinstance(cmd, p.SnapLabels):
+            self.aside("labels", self.snap_labels)
+        elif isinstance(cmd, p.FitLabels):
+            self.aside("labels", self.fit_labels)
+        elif isinstance(cmd, p.UseBestAsLabel):
+            self.aside("labels", self.use_best_as_label)
+        elif isinstance(cmd, p.SaveLabels):
+            self.aside("labels", lambda: self.save_labels(cmd.overwrite_original))
+        elif isinstance(cmd, p.SaveSession):
+            self.aside("session", lambda: self.save_session(cmd))
+        elif isinstance(cmd, p.LoadSession):
+            self.aside("session", lambda: self.load_session(cmd))
+
+    def aside(self, topic: str, action: Callable[[], None]) -> None:
+        """A labelling or session action: bad input is reported next to its button and the run goes on (``fail``
+        would stop it)."""
+        try:
+            action()
+        except InputError as err:
+            self.results.put(p.Failure(f"{topic.capitalize()}: not done", err.problem, err.path, topic=topic))
 
     def load(self, cmd: p.Load) -> None:
         cmd.config.validate()
-        frame, problem = load(cmd.source, cmd.likelihood, self.cache)  # on failure the old run stays
+        dataset, frame, problem = load(cmd.source, cmd.likelihood, self.cache)  # on failure the old run stays
         from workbench.app.observation import build_view
 
         view = build_view(frame, problem, title_of(cmd.source, frame))
@@ -148,6 +180,7 @@ class Engine:
         self.frame, self.problem, self.config = frame, problem, cmd.config
         self.results.put(p.Loaded(cmd.source, view))
         self.new_estimator()
+        self.adopt_frame(dataset)
 
     def reset(self, config, likelihood: str) -> None:
         if self.problem is None:
@@ -264,23 +297,16 @@ class Engine:
         )
         self.results.put(p.Snapshot(report.as_dict(), cloud, self.running, self.config.particles))
         self.publish_chosen()
+        self.publish_label_errors()
 
     def publish_chosen(self) -> None:
         if self.estimator is None or len(self.order) == 0:
             return
-        from workbench.evaluation import LocalEvaluator
-        from workbench.likelihood import predicted_depth
-
         est = self.estimator
         rank = min(self.rank, len(self.order) - 1)
         i = int(self.order[rank])
-        if self.explainer is None:
-            self.explainer = self.evaluator if isinstance(self.evaluator, LocalEvaluator) else LocalEvaluator(self.problem)
         after = est.projected[i]
-        rendered, pixels = self.explainer.explain(after)
-        predicted = predicted_depth(rendered[None], self.problem.background)[0]
-        observed = self.problem.observed
-        residual = np.where((observed > 0) & (predicted > 0), observed - predicted, np.nan).astype(np.float32)
+        pixels, residual = self.explain(after)
         self.results.put(p.Chosen(
             iteration=est.iteration,
             rank=rank,
@@ -293,6 +319,25 @@ class Engine:
             pixel_loglik=pixels.astype(np.float32),
             residual=residual,
         ))
+
+    def local_evaluator(self):
+        """A LocalEvaluator of this process (the evaluator itself when it is one) for display and labelling."""
+        from workbench.evaluation import LocalEvaluator
+
+        if self.explainer is None:
+            self.explainer = self.evaluator if isinstance(self.evaluator, LocalEvaluator) else LocalEvaluator(self.problem)
+        return self.explainer
+
+    def explain(self, scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One scene (K, 4, 4) as given -> (per-pixel log-likelihood, observed - predicted depth (NaN: either
+        missing)) on the problem grid, from one render."""
+        from workbench.likelihood import predicted_depth
+
+        rendered, pixels = self.local_evaluator().explain(scene)
+        predicted = predicted_depth(rendered[None], self.problem.background)[0]
+        observed = self.problem.observed
+        residual = np.where((observed > 0) & (predicted > 0), observed - predicted, np.nan).astype(np.float32)
+        return pixels, residual
 
     def send_state(self, reason: str) -> None:
         it = -1 if self.estimator is None else self.estimator.iteration
@@ -307,6 +352,244 @@ class Engine:
             log.error("engine error\n%s", traceback.format_exc())
             self.results.put(p.Failure(f"Estimator error ({type(err).__name__})", str(err) or repr(err)))
         self.send_state("error")
+
+    # -- labels
+
+    def adopt_frame(self, dataset: Path, labels: list | None = None) -> None:
+        """Note where the loaded frame lives in its dataset (sessions and label files need it) and take its labels:
+        ``labels`` (a session's), else those saved beside the dataset's ground truth, if any."""
+        from workbench import labels as labelling
+        from workbench import sessions
+
+        frame, problem = self.frame, self.problem
+        try:
+            self.frame_ref, self.frame_ref_problem = sessions.frame_ref_for(dataset, frame, problem), ""
+        except (InputError, OSError) as err:
+            self.frame_ref, self.frame_ref_problem = None, str(err)
+        note, reason = "", "session" if labels is not None else "frame"
+        if labels is None:
+            labels = [None] * problem.n_objects
+            if self.frame_ref is not None:
+                ref = self.frame_ref
+                try:
+                    labels = labelling.load_labels(Path(ref.dataset), frame.scene_id, frame.im_id,
+                                                   problem.camera.T_cam_world, list(frame.object_ids), split=ref.split)
+                except InputError as err:
+                    self.results.put(p.Failure("Labels: not read", err.problem, err.path, topic="labels"))
+                n = sum(T is not None for T in labels)
+                if n:
+                    where = labelling.labels_path(Path(ref.dataset), frame.scene_id, ref.split)
+                    note = f"{n} label(s) read from `{where}`"
+        self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in labels]
+        self.results.put(p.Labels(list(self.labels), reason, note))
+        self.label_dirty = True
+
+    def set_labels(self, cmd: p.SetLabels) -> None:
+        if self.problem is None or len(cmd.labels) != self.problem.n_objects:
+            return  # edits of a frame that has since been replaced
+        self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in cmd.labels]
+        self.label_heatmap = cmd.heatmap
+        self.label_dirty = True
+
+    def labelled(self) -> list[int]:
+        """The labelled objects; InputError when there are none."""
+        which = [k for k, T in enumerate(self.labels) if T is not None]
+        if self.problem is None or not which:
+            raise InputError("labels", "nothing is labelled yet: move an object's gizmo, type its pose, or use the "
+                                       "best estimate as label")
+        return which
+
+    def label_scene(self, leave_out: bool) -> tuple[np.ndarray, str]:
+        """The labels as a whole scene (K, 4, 4) -> (scene, how unlabelled objects were filled in). Physics and the
+        likelihood need every object somewhere: unlabelled ones take the best estimate; before the first
+        iteration, with ``leave_out``, they are put behind the camera, out of the rendered view, else InputError."""
+        from workbench.geometry import invert_pose
+
+        missing = [k for k, T in enumerate(self.labels) if T is None]
+        if not missing:
+            return np.stack(self.labels), ""
+        est = self.estimator
+        if est is not None and est.projected is not None:
+            fill, how = est.best, "best estimate"
+        elif leave_out:
+            behind = invert_pose(self.problem.camera.T_cam_world)
+            behind[:3, 3] -= 100.0 * behind[:3, 2]  # 100 m behind the sensor: clipped, never drawn
+            fill, how = np.broadcast_to(behind, (len(self.labels), 4, 4)), "left out"
+        else:
+            raise InputError("labels", "label every object, or take one estimator step so that its best estimate "
+                                       "can stand in for the unlabelled ones")
+        return np.stack([fill[k] if T is None else T for k, T in enumerate(self.labels)]).astype(np.float64), how
+
+    def adopt_labels(self, scene: np.ndarray, which: list[int], reason: str, note: str) -> None:
+        for k in which:
+            self.labels[k] = np.array(scene[k], dtype=np.float64)
+        self.results.put(p.Labels(list(self.labels), reason, note))
+        self.label_dirty = True
+
+    def object_name(self, k: int) -> str:
+        return f"obj {self.problem.models[k].obj_id}"
+
+    def snap_labels(self) -> None:
+        from workbench import labels as labelling
+        from workbench.physics import STATUS_NAMES
+
+        which = self.labelled()
+        scene, filled = self.label_scene(leave_out=False)
+        projected, moved, status = labelling.snap_to_plausible(self.problem, scene, self.local_evaluator())
+        turned = self.turned(scene, projected)
+        rows = "\n".join(f"| {self.object_name(k)} | {moved[k] * 100:.2f} | {turned[k]:.1f} |" for k in which)
+        stand_in = f" (unlabelled objects: the {filled})" if filled else ""
+        note = (f"**Snapped**: physics {STATUS_NAMES.get(status, status)}{stand_in}\n\n"
+                f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}")
+        self.adopt_labels(projected, which, "snap", note)
+
+    def fit_labels(self) -> None:
+        from workbench import labels as labelling
+
+        which = self.labelled()
+        scene, filled = self.label_scene(leave_out=False)
+        fitted = labelling.fit_label(self.problem, scene, self.local_evaluator())
+        moved = np.linalg.norm(fitted[:, :3, 3] - scene[:, :3, 3], axis=-1)
+        turned = self.turned(scene, fitted)
+        rows = "\n".join(f"| {self.object_name(k)} | {moved[k] * 100:.2f} | {turned[k]:.1f} |" for k in which)
+        stand_in = f" (unlabelled objects: the {filled}, not changed)" if filled else ""
+        note = (f"**Fitted** to the depth, then snapped{stand_in}\n\n"
+                f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}")
+        self.adopt_labels(fitted, which, "fit", note)
+
+    @staticmethod
+    def turned(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        from workbench.geometry import rotation_angle
+
+        return np.degrees(rotation_angle(np.swapaxes(a[:, :3, :3], -1, -2) @ b[:, :3, :3]))
+
+    def use_best_as_label(self) -> None:
+        est = self.estimator
+        if est is None or est.projected is None:
+            raise InputError("labels", "there is no estimate yet: take a step first")
+        best = est.best.copy()
+        self.adopt_labels(best, list(range(len(best))), "best",
+                          f"Labels set to the most likely scene of iteration {est.iteration}")
+
+    def save_labels(self, overwrite_original: bool) -> None:
+        from workbench import labels as labelling
+
+        self.labelled()
+        ref, frame = self.frame_ref, self.frame
+        if ref is None:
+            raise InputError(None, f"labels are saved into the frame's BOP dataset, and {self.frame_ref_problem}")
+        started = time.time()
+        path = labelling.save_labels(Path(ref.dataset), frame.scene_id, frame.im_id, self.problem.camera.T_cam_world,
+                                     self.labels, list(frame.object_ids), overwrite_original=overwrite_original,
+                                     split=ref.split)
+        note = ""
+        if overwrite_original:
+            backups = [b for b in path.parent.glob(f"{path.name}.bak-*") if b.stat().st_mtime >= started - 1]
+            note = f"the original was kept as `{max(backups).name}`" if backups else "there was no original to keep"
+        self.results.put(p.Saved("labels", str(path), note))
+
+    def publish_label_errors(self, always: bool = False) -> None:
+        """The best scene against the labels (every iteration while something is labelled; ``always`` after an
+        edit, so that clearing the labels clears the table)."""
+        from workbench import labels as labelling
+
+        est = self.estimator
+        if est is None or est.projected is None or not (always or any(T is not None for T in self.labels)):
+            return
+        if len(self.labels) != self.problem.n_objects:
+            return
+        errors = labelling.label_errors(self.problem, est.best, self.labels)
+        self.results.put(p.LabelErrors(est.iteration, errors))
+
+    def label_work(self) -> None:
+        """What the latest label edit needs: the errors, and the heatmap if it is shown. Runs once the command
+        queue is drained, so edits that arrived meanwhile were simply overwritten (dropped, not rendered)."""
+        self.label_dirty = False
+        if self.problem is None:
+            return
+        try:
+            self.publish_label_errors(always=True)
+            if self.label_heatmap and any(T is not None for T in self.labels):
+                scene, filled = self.label_scene(leave_out=True)
+                pixels, residual = self.explain(scene)
+                self.results.put(p.LabelHeatmap(pixels.astype(np.float32), residual,
+                                                float(pixels.sum(dtype=np.float64)), filled))
+        except InputError as err:
+            self.results.put(p.Failure("Labels", err.problem, err.path, topic="labels"))
+        except CRASH_ERRORS:
+            raise
+        except Exception as err:  # noqa: BLE001 - a display computation must not stop the run
+            log.error("label heatmap\n%s", traceback.format_exc())
+            self.results.put(p.Failure(f"Label heatmap failed ({type(err).__name__})", str(err), topic="labels"))
+
+    # -- sessions
+
+    def save_session(self, cmd: p.SaveSession) -> None:
+        from workbench import sessions
+
+        est = self.estimator
+        if est is None:
+            raise InputError(None, "nothing is loaded: load a dataset or the demo first")
+        if self.frame_ref is None:
+            raise InputError(None, f"this frame cannot be saved as a session: {self.frame_ref_problem}")
+        state = sessions.session_state_from(est, self.frame_ref, self.labels)
+        path = sessions.save_session(Path(cmd.directory), cmd.name, state, overwrite=cmd.overwrite)
+        n = sum(T is not None for T in self.labels)
+        self.results.put(p.Saved("session", str(path), f"iteration {est.iteration}, {n} of {len(self.labels)} "
+                                                       f"objects labelled, {self.workers_used()} evaluation"))
+
+    def workers_used(self) -> str:
+        return "in-process" if self.workers <= 1 else f"{self.workers} workers"
+
+    def load_session(self, cmd: p.LoadSession) -> None:
+        """Continue a saved session. Everything that can fail on bad input happens before the current run is
+        touched; stepping the restored estimator then continues the saved run bit for bit, given the same worker
+        count (the tile a hypothesis is rendered in changes the last bits of its depth)."""
+        from workbench import sessions
+        from workbench.app.observation import build_view
+
+        path = Path(cmd.path)
+        state = sessions.load_session(path)
+        warnings = sessions.check_dataset(state)
+        frame = problem = None
+        if not warnings:
+            frame, problem = sessions.session_problem(state)
+            warnings = sessions.check_dataset(state, problem)
+        if warnings and not cmd.confirmed:
+            self.results.put(p.SessionQuestion(path, warnings))
+            return
+        if problem is None:
+            frame, problem = sessions.session_problem(state)
+        dataset = Path(state.frame.dataset)
+        if dataset.resolve() == DEMO_DIR:
+            source = p.Source(demo=True)
+        else:
+            split = dataset / state.frame.split if state.frame.split else dataset
+            source = p.Source(split, frame.scene_id, frame.im_id)
+        name = path.name.removesuffix(".json")
+        view = build_view(frame, problem, f"session {name} · {dataset.name} · scene {frame.scene_id} · "
+                                         f"frame {frame.im_id}")
+
+        # From here on the current run is replaced.
+        self.running = False
+        self.close_evaluators()
+        self.frame, self.problem, self.config = frame, problem, state.estimator_config
+        self.order = np.zeros(0, int)
+        self.results.put(p.Loaded(source, view))
+        try:
+            self.evaluator = self.make_evaluator()
+            self.estimator = sessions.restore_estimator(state, problem, self.evaluator)
+        except Exception:
+            self.new_estimator()  # a fresh run on the session's frame: the server shows that frame already
+            self.adopt_frame(dataset)
+            raise
+        est = self.estimator
+        self.adopt_frame(dataset, labels=state.labels)
+        self.results.put(p.SessionRestored(name, path, state.estimator_config, problem.config.likelihood.model,
+                                           [r.as_dict() for r in est.history], warnings))
+        self.send_state("restored")
+        if est.iteration >= 0:
+            self.publish()
 
     def close(self) -> None:
         self.close_evaluators()
@@ -336,8 +619,10 @@ def engine_main(commands: "mp.Queue", results, workers: int) -> None:
         outbox.put(p.Ready(os.getpid()))
         while True:
             try:
-                # Block briefly while idle; never while running, so iterations follow each other at once.
-                cmd = commands.get(timeout=0.5) if not engine.running else commands.get_nowait()
+                # Block briefly while idle; never while running or with label work waiting, so iterations follow
+                # each other at once and a heatmap follows its edit.
+                busy = engine.running or engine.label_dirty
+                cmd = commands.get(timeout=0.5) if not busy else commands.get_nowait()
             except queue.Empty:
                 cmd = None
             if isinstance(cmd, p.Shutdown):
@@ -346,6 +631,8 @@ def engine_main(commands: "mp.Queue", results, workers: int) -> None:
                 if cmd is not None:
                     engine.handle(cmd)
                     continue  # drain every queued command before the next iteration
+                if engine.label_dirty:
+                    engine.label_work()  # for the latest labels only: the edits drained above were overwritten
                 if engine.running:
                     engine.step()
             except Exception as err:  # noqa: BLE001 - every error becomes a message; the loop must survive

@@ -8,7 +8,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 import viser
 
+from workbench.app.labelling import LabelTab, build_label_tab
 from workbench.app.plots import Plots
+from workbench.app.sessions_panel import SessionsTab, build_sessions_tab
 from workbench.app.views import HEATMAP_MODES, SCENE_MODES
 from workbench.errors import InputError
 from workbench.estimators import EstimatorConfig
@@ -62,21 +64,42 @@ class Panel:
     depth_image: viser.GuiImageHandle
     depth_legend: viser.GuiHtmlHandle
     workers: viser.GuiMarkdownHandle
+    # Label, Sessions
+    label: LabelTab
+    sessions: SessionsTab
 
     def estimator_config(self, base: EstimatorConfig) -> EstimatorConfig:
         """The controls' values over ``base`` (which keeps the settings the panel does not show)."""
+        s = base.sigma
+        # A sigma shown as it was set keeps base's exact value: cm and degrees do not round-trip to the last bit,
+        # and a restored session must step with exactly its saved sigma.
+        exact = lambda shown, value, scale: value if shown == value * scale else shown / scale  # noqa: E731
         sx, sy = self.sigma_xy.value
-        roll, pitch, yaw = np.radians(self.sigma_angles.value)
+        roll, pitch, yaw = self.sigma_angles.value
+        deg = 180.0 / np.pi
         config = replace(
             base,
             method=METHOD_LABELS[self.method.value],
             particles=int(self.particles.value),
             iterations=int(self.iterations.value),
-            sigma=Sigma(x=sx / 100, y=sy / 100, z=self.sigma_z.value / 100, roll=roll, pitch=pitch, yaw=yaw),
+            sigma=Sigma(x=exact(sx, s.x, 100.0), y=exact(sy, s.y, 100.0), z=exact(self.sigma_z.value, s.z, 100.0),
+                        roll=exact(roll, s.roll, deg), pitch=exact(pitch, s.pitch, deg), yaw=exact(yaw, s.yaw, deg)),
             seed=int(self.seed.value),
         )
         config.validate()
         return config
+
+    def show_config(self, config: EstimatorConfig, likelihood: str) -> None:
+        """Put ``config`` into the controls (call inside ``Quiet``: these writes fire the controls' callbacks)."""
+        s, deg = config.sigma, 180.0 / np.pi
+        self.method.value = {v: k for k, v in METHOD_LABELS.items()}[config.method]
+        self.particles.value = config.particles
+        self.iterations.value = config.iterations
+        self.sigma_xy.value = (s.x * 100.0, s.y * 100.0)
+        self.sigma_z.value = s.z * 100.0
+        self.sigma_angles.value = (s.roll * deg, s.pitch * deg, s.yaw * deg)
+        self.seed.value = config.seed
+        self.likelihood.value = likelihood
 
     def frame_ids(self) -> tuple[int | None, int | None]:
         """The scene and frame typed in the Data tab; empty means the dataset's first."""
@@ -114,7 +137,7 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
                                    hint="diffusion of the position on the table")
         sigma_z = gui.add_number("σ elevation (cm)", s.z * 100, min=0.0, step=0.05)
         sigma_angles = gui.add_vector3(
-            "σ roll, pitch, yaw (°)", tuple(float(np.degrees(a)) for a in (s.roll, s.pitch, s.yaw)),
+            "σ roll, pitch, yaw (°)", tuple(float(a * (180.0 / np.pi)) for a in (s.roll, s.pitch, s.yaw)),
             min=(0.0, 0.0, 0.0), step=0.5,
         )
         like = gui.add_dropdown("Likelihood", LIKELIHOODS, initial_value=likelihood, hint="applies at Reset")
@@ -154,6 +177,12 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         depth_legend = gui.add_html("")
         workers = gui.add_markdown("")
 
+    with tabs.add_tab("Label", viser.Icon.PENCIL):
+        label = build_label_tab(gui)
+
+    with tabs.add_tab("Sessions", viser.Icon.DEVICE_FLOPPY):
+        sessions = build_sessions_tab(gui)
+
     return Panel(
         title=title, error=error, status=status, step=step, run=run, pause=pause, reset=reset,
         method=method, particles=particles, iterations=iterations, sigma_xy=sigma_xy, sigma_z=sigma_z,
@@ -162,5 +191,5 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         legend=legend, heat_image=heat_image, show_observation=show_observation, show_particles=show_particles,
         show_best=show_best, show_gt=show_gt, max_particles=max_particles, plots=plots,
         dataset=dataset, scene_id=scene_id, im_id=im_id, load=load, demo=demo, depth_image=depth_image,
-        depth_legend=depth_legend, workers=workers,
+        depth_legend=depth_legend, workers=workers, label=label, sessions=sessions,
     )

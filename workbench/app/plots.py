@@ -68,6 +68,13 @@ class Plots:
         self.particles.append(n_particles)
         self.redraw(converge_m, converge_deg)
 
+    def set_history(self, reports: list[dict], n_particles: int, converge_m: float, converge_deg: float) -> None:
+        """A whole run at once (a restored session); the history keeps no per-iteration particle count, so the
+        current one stands for all."""
+        self.reports = list(reports)
+        self.particles = [n_particles] * len(reports)
+        self.redraw(converge_m, converge_deg)
+
     def redraw(self, converge_m: float, converge_deg: float) -> None:
         r = self.reports
         col = lambda key: np.array([row[key] for row in r], dtype=np.float64)  # noqa: E731

@@ -96,7 +96,60 @@ class Shutdown:
     pass
 
 
-Command = Load | Step | Run | Pause | Reset | SetConfig | Select | SetDisplay | Shutdown
+# Labelling and sessions. Labels are per object a (4, 4) T_world_obj in the table frame, or None (not labelled).
+
+
+@dataclass(frozen=True)
+class SetLabels:
+    """The labels as the panel now shows them (sent on every edit and gizmo move). The engine keeps only the
+    latest: its heatmap and error work runs once the queue is drained, so stale edits are dropped, not queued up.
+    ``heatmap``: whether to render the labelled scene's per-pixel fit."""
+
+    labels: tuple
+    heatmap: bool = False
+
+
+@dataclass(frozen=True)
+class SnapLabels:
+    """Let physics put the labelled scene at rest (unlabelled objects: the best estimate)."""
+
+
+@dataclass(frozen=True)
+class FitLabels:
+    """Refine the labelled objects against the depth (local search), then snap."""
+
+
+@dataclass(frozen=True)
+class UseBestAsLabel:
+    """Label every object with the most likely scene."""
+
+
+@dataclass(frozen=True)
+class SaveLabels:
+    """Write the labels to scene_gt_labels.json, or with ``overwrite_original`` (an explicit user choice) into the
+    dataset's scene_gt.json after a backup."""
+
+    overwrite_original: bool = False
+
+
+@dataclass(frozen=True)
+class SaveSession:
+    directory: Path
+    name: str
+    overwrite: bool = False
+
+
+@dataclass(frozen=True)
+class LoadSession:
+    """Continue a saved session. Without ``confirmed``, dataset files that changed since the save make the engine
+    ask (``SessionQuestion``) instead of loading."""
+
+    path: Path
+    confirmed: bool = False
+
+
+Command = (Load | Step | Run | Pause | Reset | SetConfig | Select | SetDisplay | Shutdown | SetLabels | SnapLabels
+           | FitLabels | UseBestAsLabel | SaveLabels | SaveSession | LoadSession)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -195,6 +248,7 @@ class Failure:
     problem: str
     path: str | None = None
     fatal: bool = False  # the estimator is gone for good: only a server restart helps
+    topic: str = ""  # "labels" or "session": also shown in that tab, next to the button that failed
 
 
 @dataclass
@@ -214,4 +268,63 @@ class Ready:
     pid: int
 
 
-Message = Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready
+@dataclass
+class Labels:
+    """The engine's labels changed (frame or session loaded, snap, fit, best estimate): the panel shows these.
+    ``note``: markdown saying what happened (e.g. how far the snap moved each object)."""
+
+    labels: list  # per object (4, 4) or None
+    reason: str
+    note: str = ""
+
+
+@dataclass
+class LabelHeatmap:
+    """The labelled scene's fit per pixel of the problem grid (unlabelled objects filled in, see ``filled``)."""
+
+    pixel_loglik: np.ndarray  # (h, w) float32
+    residual: np.ndarray  # (h, w) float32 observed - predicted (m), NaN where either is missing
+    loglik: float
+    filled: str  # how unlabelled objects were filled in: "", "best estimate" or "left out"
+
+
+@dataclass
+class LabelErrors:
+    """The most likely scene against the labels, per object (``labels.label_errors`` rows; None where unlabelled)."""
+
+    iteration: int
+    errors: list[dict]
+
+
+@dataclass
+class Saved:
+    """A file was written: ``kind`` "labels" or "session"."""
+
+    kind: str
+    path: str
+    note: str = ""
+
+
+@dataclass
+class SessionQuestion:
+    """The session at ``path`` reads well but its dataset changed: load it only after the user confirms."""
+
+    path: Path
+    warnings: list[str]
+
+
+@dataclass
+class SessionRestored:
+    """A session was loaded (``Loaded``, ``Labels`` and the last ``Snapshot`` follow or precede it): the settings
+    and history to show. ``warnings``: what the user confirmed past."""
+
+    name: str
+    path: Path
+    config: EstimatorConfig
+    likelihood: str
+    reports: list[dict]
+    warnings: list[str]
+
+
+Message = (Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready | Labels | LabelHeatmap | LabelErrors
+           | Saved | SessionQuestion | SessionRestored)

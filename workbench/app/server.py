@@ -1,6 +1,7 @@
 """The browser workbench: a viser server showing one estimation run, driven from its control panel.
 
-    workbench serve [DATASET --scene ID --frame ID | --demo] [--host 127.0.0.1] [--port 8080]
+    workbench serve [DATASET --scene ID --frame ID | --demo | --session PATH] [--sessions-dir DIR]
+                    [--host 127.0.0.1] [--port 8080]
 
 The estimator lives in a separate process (``engine.py``); this process only draws. GUI and scene are viser's
 server-wide ones, so every open tab sees and drives the same run. Messages from the engine arrive on a reader
@@ -21,7 +22,10 @@ import viser
 from workbench.app import protocol as p
 from workbench.app.colors import VIRIDIS, legend_html
 from workbench.app.engine import DEMO_DIR, EngineClient
+from workbench.app.labelling import Labelling
 from workbench.app.panel import Panel, build_panel
+from workbench.app.quiet import Quiet
+from workbench.app.sessions_panel import Sessions
 from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer
 from workbench.errors import InputError
 from workbench.estimators import EstimatorConfig
@@ -31,6 +35,7 @@ log = logging.getLogger(__name__)
 
 # Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
+SESSIONS_DIR = Path("sessions")
 STATUS_NAMES = {0: "rest", 1: "step cap", 2: "unstable", 3: "off the table"}  # physics.STATUS_*
 
 
@@ -55,9 +60,11 @@ class RunView:
 
 class App:
     def __init__(self, server: viser.ViserServer, source: p.Source | None, workers: int,
-                 config: EstimatorConfig = DEFAULT_CONFIG, likelihood: str = "robust"):
+                 config: EstimatorConfig = DEFAULT_CONFIG, likelihood: str = "robust",
+                 sessions_dir: Path = SESSIONS_DIR, session: Path | None = None):
         self.server = server
         self.lock = threading.RLock()
+        self.quiet = Quiet()  # set while the server itself writes controls: their callbacks must not echo
         self.config = config
         self.source: p.Source | None = None  # the last frame the engine loaded
         self.state = RunView()
@@ -67,9 +74,16 @@ class App:
         self.particles = ParticleLayer(server, on_pick=self.pick)
         self.chosen = ChosenLayer(server)
         self.heatmap = HeatmapLayer(server)
+        self.labelling = Labelling(server, self.panel.label, self.send, self.lock, self.quiet,
+                                   on_heatmap_mode=self.label_heatmap_mode_changed)
+        self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.lock, self.quiet)
         self._wire()
         self.engine = EngineClient(workers, self.on_message, self.on_engine_died)
-        if source is not None:
+        if session is not None:
+            # As the Sessions tab's Load: the engine asks first if the dataset changed; a bad file is a message.
+            self.panel.title.content = f"**workbench** · loading session {session} …"
+            self.sessions.load_path(session)
+        elif source is not None:
             self.load(source)
 
     # -- commands from the panel
@@ -105,6 +119,9 @@ class App:
             self.report(p.Failure("Input error", err.problem, err.path))
 
     def config_changed(self) -> None:
+        if self.quiet.active:
+            return  # a restored session's settings being shown, not a user's edit
+
         def apply():
             self.config = self.panel.estimator_config(self.config)
             self.send(p.SetConfig(self.config))
@@ -157,6 +174,12 @@ class App:
                 p.RunState: self.on_run_state,
                 p.Failure: self.report,
                 p.Workers: self.on_workers,
+                p.Labels: self.labelling.show_labels,
+                p.LabelHeatmap: self.labelling.show_heatmap,
+                p.LabelErrors: self.labelling.show_errors,
+                p.Saved: self.on_saved,
+                p.SessionQuestion: self.sessions.on_question,
+                p.SessionRestored: self.on_session_restored,
             }[type(msg)]
             try:
                 handler(msg)
@@ -182,6 +205,8 @@ class App:
             self.particles.set_frame(view.meshes)
             self.chosen.set_frame(view)
             self.heatmap.set_frame(view)
+            self.labelling.set_frame(view)
+            self.sessions.on_frame(view.title)
             P.depth_image.image = view.depth_image
             P.depth_image.visible = True
             lo, hi = view.depth_range
@@ -217,6 +242,8 @@ class App:
         s.reports.append(msg.report)
         s.cloud, s.iteration, s.running = msg.cloud, msg.report["iteration"], msg.running
         self.particles.update(msg.cloud)
+        if len(msg.cloud.poses):
+            self.labelling.show_estimate(msg.cloud.poses[0])
         P.rank.max = max(1, msg.cloud.n_total - 1)
         P.plots.add(msg.report, msg.cloud.n_total, self.config.converge_position, self.config.converge_degrees)
         P.timings.content = timings_markdown(msg.report)
@@ -238,9 +265,19 @@ class App:
             P.physics_change.content = physics_markdown(c) if c is not None else ""
 
     def heatmap_mode_changed(self) -> None:
-        # The heatmap is drawn on the observed points: showing both would bury one under the other.
-        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off"
+        # The heatmap is drawn on the observed points: showing both would bury one under the other. So would the
+        # label heatmap, on the same points: one heatmap at a time.
+        if self.panel.heatmap_mode.value != "off" and self.panel.label.heatmap.value != "off":
+            self.panel.label.heatmap.value = "off"
+        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
+            self.panel.label.heatmap.value == "off"
         self.redraw_chosen()
+
+    def label_heatmap_mode_changed(self) -> None:
+        if self.panel.label.heatmap.value != "off" and self.panel.heatmap_mode.value != "off":
+            self.panel.heatmap_mode.value = "off"
+        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
+            self.panel.label.heatmap.value == "off"
 
     def on_run_state(self, msg: p.RunState) -> None:
         s, P = self.state, self.panel
@@ -250,6 +287,7 @@ class App:
             P.plots.clear()
             self.particles.set_frame(self.particles.meshes)
             self.redraw_chosen()
+            self.labelling.show_estimate(None)
         P.run.disabled = msg.running
         P.pause.disabled = not msg.running
         P.step.disabled = msg.running
@@ -279,8 +317,31 @@ class App:
         if source is not None:
             self.send(p.Load(source, self.config, self.panel.likelihood.value))
 
+    def on_saved(self, msg: p.Saved) -> None:
+        if msg.kind == "session":
+            self.sessions.on_saved(msg)
+        else:
+            self.labelling.show_saved(msg)
+
+    def on_session_restored(self, msg: p.SessionRestored) -> None:
+        """Show the restored run's settings and history (its frame came in ``Loaded`` just before)."""
+        s, P = self.state, self.panel
+        self.config = msg.config
+        with self.quiet:  # the engine has these settings already; showing them must not send them back
+            P.show_config(msg.config, msg.likelihood)
+        s.reports = list(msg.reports)
+        s.iteration = msg.reports[-1]["iteration"] if msg.reports else -1
+        P.plots.set_history(msg.reports, msg.config.particles, msg.config.converge_position,
+                            msg.config.converge_degrees)
+        self.sessions.on_restored(msg)
+        P.status.content = self.status_markdown()
+
     def report(self, failure: p.Failure) -> None:
         with self.lock:
+            if failure.topic == "session":
+                self.sessions.on_failure(failure)
+            elif failure.topic == "labels":
+                self.labelling.show_failure(failure)
             self.state.failures.append(failure)
             where = f"`{failure.path}`: " if failure.path else ""
             self.panel.error.content = f"**⚠ {failure.title}** — {where}{failure.problem}"
@@ -375,18 +436,29 @@ def serve(
     workers: int = 2,
     config: EstimatorConfig = DEFAULT_CONFIG,
     likelihood: str = "robust",
+    session: Path | None = None,
+    sessions_dir: Path | None = None,
 ) -> AppHandle:
     """Start the workbench on ``host:port`` (localhost unless told otherwise) with ``dataset``'s frame, or the demo
-    (``demo``, or no dataset). ``block``: serve until Ctrl-C and then stop; else return the handle at once."""
+    (``demo``, or no dataset), or continuing the saved ``session`` (a session JSON file). Sessions are saved to and
+    listed from ``sessions_dir`` (default: the session's folder, else ./sessions). ``block``: serve until Ctrl-C
+    and then stop; else return the handle at once.
+
+    A session continues bit for bit only with the worker count it was saved with (``workers``; the command line
+    uses 2): the tile a hypothesis is rendered in changes the last bits of its depth."""
     # The CLI names the bundled demo folder, which a checkout may not hold yet: the engine writes it on demand.
     demo = demo or dataset is None or Path(dataset).resolve() == DEMO_DIR
     source = p.Source(demo=True) if demo else p.Source(Path(dataset), scene_id, im_id)
+    if sessions_dir is None:
+        sessions_dir = Path(session).parent if session is not None else SESSIONS_DIR
     server = viser.ViserServer(host=host, port=port, label="workbench")
-    app = App(server, source, workers, config, likelihood)
+    app = App(server, None if session is not None else source, workers, config, likelihood, sessions_dir,
+              None if session is None else Path(session))
     handle = AppHandle(server, app, f"http://{host}:{server.get_port()}")
     if not block:
         return handle
-    print(f"workbench: serving {source.describe()} at {handle.url} (Ctrl-C stops)", flush=True)
+    what = f"session {session}" if session is not None else source.describe()
+    print(f"workbench: serving {what} at {handle.url} (Ctrl-C stops)", flush=True)
     try:
         while True:
             time.sleep(1.0)

@@ -62,6 +62,11 @@ class Nodes:
         self.handles.append(handle)
         return handle
 
+    def remove(self, handle) -> None:
+        """Remove one node now (and not again at ``clear``, which viser would warn about)."""
+        handle.remove()
+        self.handles = [h for h in self.handles if h is not handle]
+
     def clear(self) -> None:
         for h in self.handles:
             h.remove()
@@ -148,7 +153,7 @@ class ParticleLayer:
         opacity = (0.1 + 0.5 * rel).astype(np.float32)  # faint, so the solid most likely scene shows through
         if self.batches and len(self.batches[0].batched_positions) != len(w):
             for b in self.batches:  # the instance count changed: viser wants all per-instance arrays resized at once
-                b.remove()
+                self.nodes.remove(b)
             self.batches = []
         with self.server.atomic():
             for k, mesh in enumerate(self.meshes):
@@ -258,9 +263,11 @@ class ChosenLayer:
 
 @dataclass
 class HeatmapLayer:
-    """The chosen particle's per-pixel log-likelihood or residual on the observed points of the problem grid."""
+    """A scene's per-pixel log-likelihood or residual on the observed points of the problem grid: the chosen
+    particle's, or (a second layer at another ``path``) the labelled scene's."""
 
     server: viser.ViserServer
+    path: str = "/heatmap"
     view: ObservationView | None = None
     nodes: Nodes = field(default_factory=Nodes)
 
@@ -269,28 +276,36 @@ class HeatmapLayer:
         self.view = view
 
     def update(self, chosen: Chosen | None, mode: str) -> tuple[str, np.ndarray | None]:
-        """Redraw -> (legend HTML, the heatmap as an (h, w, 3) image for the panel, or None)."""
+        """Redraw for the chosen particle -> (legend HTML, the heatmap as an (h, w, 3) image for the panel, or None)."""
+        if chosen is None:
+            self.nodes.clear()
+            return "", None
+        return self.draw(chosen.pixel_loglik, chosen.residual, chosen.loglik, mode, f"particle rank {chosen.rank}")
+
+    def draw(self, pixel_loglik: np.ndarray, residual: np.ndarray, loglik: float, mode: str,
+             subject: str) -> tuple[str, np.ndarray | None]:
+        """Redraw one scene's maps (``mode``: one of HEATMAP_MODES) -> (legend HTML, (h, w, 3) image or None)."""
         self.nodes.clear()
-        if chosen is None or self.view is None or mode == "off":
+        if self.view is None or mode == "off" or pixel_loglik.shape != self.view.grid_mask.shape:
             return "", None
         mask = self.view.grid_mask
         if mode == "residual":
-            values = chosen.residual.astype(np.float64) * 100.0  # cm
+            values = residual.astype(np.float64) * 100.0  # cm
             finite = np.abs(values[mask])
             finite = finite[np.isfinite(finite)]
             limit = max(0.5, float(np.percentile(finite, 98))) if finite.size else 1.0
             lo, hi, stops, unit = -limit, limit, colors.DIVERGING, "cm"
             note = "observed minus predicted depth: blue where the observation is nearer; grey: nothing predicted"
         else:
-            values = chosen.pixel_loglik.astype(np.float64)
+            values = pixel_loglik.astype(np.float64)
             lo, hi = colors.robust_range(values[mask])
             stops, unit = colors.MISFIT, "per pixel"
-            note = f"total {chosen.loglik:.1f}; dark = poorly explained, pale = well explained"
+            note = f"total {loglik:.1f}; dark = poorly explained, pale = well explained"
         rgb = colors.apply_map(values, lo, hi, stops)  # (h, w, 3)
         self.nodes.add(self.server.scene.add_point_cloud(
-            "/heatmap", self.view.grid_points, rgb[mask], point_size=0.003, point_shape="rounded",
+            self.path, self.view.grid_points, rgb[mask], point_size=0.003, point_shape="rounded",
             precision="float32",
         ))
-        legend = colors.legend_html(f"{mode} ({unit}), particle rank {chosen.rank}", f"{lo:.2f}", f"{hi:.2f}", stops, note)
+        legend = colors.legend_html(f"{mode} ({unit}), {subject}", f"{lo:.2f}", f"{hi:.2f}", stops, note)
         image = np.where(mask[..., None], rgb, 0).astype(np.uint8)
         return legend, image

@@ -1,0 +1,350 @@
+"""Labelling ground truth in the browser: the Label tab and the labelled scene in the 3D view.
+
+A label is an object's pose T_world_obj in the table frame. The selected object has a transform gizmo, and six
+numeric fields (x, y, z in cm; roll, pitch, yaw in degrees, ``R = Rz(yaw) Ry(pitch) Rx(roll)`` about the table's
+axes) that follow it; typing into a field moves the gizmo. Labelled objects are drawn in magenta (beside their gizmo
+rather than as its child: three.js hides the children of a hidden node, and only the selected object's gizmo is
+shown). An unlabelled object's gizmo and fields show the most likely scene; moving or typing labels it.
+
+Everything that computes (snap, fit, the heatmap of the labelled scene, the errors of the estimate, saving) runs
+in the engine process: this module sends ``SetLabels`` on every change and shows what comes back.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import viser
+
+from workbench.app import protocol as p
+from workbench.app.quiet import Quiet
+from workbench.app.views import HEATMAP_MODES, HeatmapLayer, Nodes, split_pose
+from workbench.geometry import euler_to_matrix, make_pose, matrix_to_euler, quat_wxyz_to_matrix
+
+LABEL_COLOR = (230, 40, 200)
+POSITION_FIELDS = ("x (cm)", "y (cm)", "z (cm)")
+ANGLE_FIELDS = ("roll (°)", "pitch (°)", "yaw (°)")
+SEND_INTERVAL_S = 0.05  # gizmo drags report ~60 poses/s; the engine only ever renders the latest anyway
+NO_OBJECT = "(nothing loaded)"
+
+
+@dataclass
+class LabelTab:
+    object: viser.GuiDropdownHandle
+    state: viser.GuiMarkdownHandle
+    position: tuple[viser.GuiNumberHandle, viser.GuiNumberHandle, viser.GuiNumberHandle]  # cm, table frame
+    angles: tuple[viser.GuiNumberHandle, viser.GuiNumberHandle, viser.GuiNumberHandle]  # roll, pitch, yaw (deg)
+    show_gizmo: viser.GuiCheckboxHandle
+    clear: viser.GuiButtonHandle
+    use_best: viser.GuiButtonHandle
+    snap: viser.GuiButtonHandle
+    fit: viser.GuiButtonHandle
+    result: viser.GuiMarkdownHandle
+    heatmap: viser.GuiDropdownHandle
+    legend: viser.GuiHtmlHandle
+    errors: viser.GuiMarkdownHandle
+    overwrite_original: viser.GuiCheckboxHandle
+    save: viser.GuiButtonHandle
+    saved: viser.GuiMarkdownHandle
+
+
+def build_label_tab(gui: viser.GuiApi) -> LabelTab:
+    obj = gui.add_dropdown("Object", (NO_OBJECT,), hint="the object whose label the fields and the gizmo edit")
+    state = gui.add_markdown("")
+    position = tuple(gui.add_number(name, 0.0, step=0.01, hint="table frame: x, y along the table, z up from its "
+                                    "top; the object's origin") for name in POSITION_FIELDS)
+    angles = tuple(gui.add_number(name, 0.0, step=0.01, hint="about the table's axes: R = Rz(yaw) Ry(pitch) Rx(roll)")
+                   for name in ANGLE_FIELDS)
+    show_gizmo = gui.add_checkbox("Gizmo", True, hint="drag the selected object in the 3D view")
+    clear = gui.add_button("Clear label", icon=viser.Icon.ERASER, color="gray", hint="the selected object's")
+    use_best = gui.add_button("Use best estimate as label", icon=viser.Icon.STAR, hint="every object")
+    snap = gui.add_button("Snap to plausible", icon=viser.Icon.ARROW_BAR_TO_DOWN,
+                          hint="physics puts the labelled scene at rest (unlabelled objects: the best estimate)")
+    fit = gui.add_button("Fit to depth", icon=viser.Icon.TARGET,
+                         hint="local refinement of the labelled objects against the depth, then snap")
+    result = gui.add_markdown("")
+    heatmap = gui.add_dropdown("Label heatmap", ("off", *[m for m in HEATMAP_MODES if m != "off"]),
+                               initial_value="off", hint="the labelled scene's fit per pixel, updated while you drag")
+    legend = gui.add_html("")
+    errors = gui.add_markdown("")
+    overwrite_original = gui.add_checkbox("Overwrite scene_gt.json", False,
+                                          hint="write into the dataset's own ground truth (a backup is kept); "
+                                               "otherwise labels go to scene_gt_labels.json beside it")
+    save = gui.add_button("Save labels", icon=viser.Icon.DEVICE_FLOPPY)
+    saved = gui.add_markdown("")
+    return LabelTab(object=obj, state=state, position=position, angles=angles, show_gizmo=show_gizmo, clear=clear,
+                    use_best=use_best, snap=snap, fit=fit, result=result, heatmap=heatmap, legend=legend,
+                    errors=errors, overwrite_original=overwrite_original, save=save, saved=saved)
+
+
+def errors_markdown(msg: p.LabelErrors) -> str:
+    """The estimate's errors against the labels, one row per object."""
+    rows = []
+    for e in msg.errors:
+        if e["position_error_m"] is None:
+            rows.append(f"| obj {e['obj_id']} | — | — | — |")
+        else:
+            rows.append(f"| obj {e['obj_id']} | {e['position_error_m'] * 100:.2f} | {e['rotation_error_deg']:.1f} | "
+                        f"{e['add_s_m'] * 1000:.1f} |")
+    if all(e["position_error_m"] is None for e in msg.errors):
+        return ""
+    return (f"**Best estimate vs label** (iteration {msg.iteration})\n\n"
+            "| object | position (cm) | rotation (°) | ADD-S (mm) |\n|---|---:|---:|---:|\n" + "\n".join(rows) +
+            "\n\n<small>rotation up to the object's symmetries; — not labelled</small>")
+
+
+@dataclass
+class Labelling:
+    """The labels as the panel shows them (per object a (4, 4) table-frame pose or None), their gizmo and meshes,
+    and the fields of the selected object. ``send`` reaches the engine; ``on_heatmap_mode`` tells the app that the
+    label heatmap was switched (it hides the observed points under it)."""
+
+    server: viser.ViserServer
+    tab: LabelTab
+    send: Callable[[object], None]
+    lock: threading.RLock
+    quiet: Quiet
+    on_heatmap_mode: Callable[[], None] = lambda: None
+    labels: list = field(default_factory=list)
+    estimate: np.ndarray | None = None  # the most likely scene (K, 4, 4): where unlabelled objects are shown
+    names: list[str] = field(default_factory=list)
+    homes: np.ndarray | None = None  # (K, 4, 4): where an object sits before there is any estimate
+    gizmos: list = field(default_factory=list)
+    meshes: list = field(default_factory=list)
+    nodes: Nodes = field(default_factory=Nodes)
+    heatmap: HeatmapLayer | None = None
+    _last_send: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
+        t = self.tab
+        t.object.on_update(lambda _: self._guard(self.selection_changed))
+        for i, h in enumerate(t.position):
+            h.on_update(lambda _, i=i: self._guard(lambda: self.field_edited(position_axis=i)))
+        for h in t.angles:
+            h.on_update(lambda _: self._guard(lambda: self.field_edited(position_axis=None)))
+        t.show_gizmo.on_update(lambda _: self._guard(self.selection_changed))
+        t.clear.on_click(lambda _: self._guard(self.clear_selected))
+        t.use_best.on_click(lambda _: self.act(p.UseBestAsLabel(), "Taking the best estimate …"))
+        t.snap.on_click(lambda _: self.act(p.SnapLabels(), "Snapping …"))
+        t.fit.on_click(lambda _: self.act(p.FitLabels(), "Fitting …"))
+        t.heatmap.on_update(lambda _: self._guard(self.heatmap_mode_changed))
+        t.save.on_click(lambda _: self.save())
+
+    def _guard(self, action: Callable[[], None]) -> None:
+        """Run a GUI callback unless the server itself is writing the controls (see ``Quiet``)."""
+        if self.quiet.active:
+            return
+        with self.lock:
+            action()
+
+    # -- frame, engine messages
+
+    def set_frame(self, view: p.ObservationView) -> None:
+        """New frame: one gizmo and one mesh per object, nothing labelled until the engine says."""
+        with self.lock:
+            self.nodes.clear()
+            self.heatmap.set_frame(view)
+            scene = self.server.scene
+            K = len(view.meshes)
+            self.labels, self.estimate = [None] * K, None
+            self.names = [f"{k}: {m.name}" for k, m in enumerate(view.meshes)]
+            x0, x1, y0, y1 = view.region
+            self.homes = np.stack([
+                make_pose(np.eye(3), [(x0 + x1) / 2, (y0 + y1) / 2, -float(np.min(m.vertices[:, 2]))])
+                for m in view.meshes
+            ])
+            self.gizmos, self.meshes = [], []
+            for k, m in enumerate(view.meshes):
+                size = float(np.max(np.ptp(m.vertices, axis=0)))
+                gizmo = self.nodes.add(scene.add_transform_controls(
+                    f"/label/{k}", scale=max(0.06, 1.2 * size), line_width=2.0, depth_test=False, visible=False,
+                ))
+                gizmo.on_update(lambda event, k=k: self.gizmo_moved(k, event))
+                self.gizmos.append(gizmo)
+                self.meshes.append(self.nodes.add(scene.add_mesh_simple(
+                    f"/label_mesh/{k}", m.vertices, m.faces, color=LABEL_COLOR, opacity=0.75, visible=False,
+                )))
+            with self.quiet:
+                self.tab.object.options = tuple(self.names) or (NO_OBJECT,)
+                self.tab.object.value = self.tab.object.options[0]
+                self.tab.result.content = ""
+                self.tab.errors.content = ""
+                self.tab.legend.content = ""
+            self.redraw()
+
+    def show_labels(self, msg: p.Labels) -> None:
+        with self.lock:
+            if len(msg.labels) != len(self.labels):
+                return
+            self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in msg.labels]
+            if msg.note or msg.reason in ("frame", "session"):
+                self.tab.result.content = msg.note
+            if not any(T is not None for T in self.labels):
+                self.clear_heatmap()
+            self.redraw()
+
+    def show_estimate(self, best: np.ndarray | None) -> None:
+        """The latest most likely scene: an unlabelled selected object (gizmo and fields) follows it. Only that one:
+        this runs every iteration, and hidden gizmos are placed when they are selected."""
+        with self.lock:
+            self.estimate = None if best is None else np.asarray(best, dtype=np.float64)
+            sel = self.selected()
+            if sel is None or self.labels[sel] is not None:
+                return
+            with self.server.atomic(), self.quiet:
+                gizmo = self.gizmos[sel]
+                gizmo.wxyz, gizmo.position = split_pose(self.pose(sel))
+                self.show_fields(sel)
+
+    def show_heatmap(self, msg: p.LabelHeatmap) -> None:
+        with self.lock:
+            mode = self.tab.heatmap.value
+            if mode == "off" or not any(T is not None for T in self.labels):
+                return
+            subject = "labelled scene" + (f" (unlabelled: {msg.filled})" if msg.filled else "")
+            legend, _ = self.heatmap.draw(msg.pixel_loglik, msg.residual, msg.loglik, mode, subject)
+            self.tab.legend.content = legend
+
+    def show_errors(self, msg: p.LabelErrors) -> None:
+        with self.lock:
+            if len(msg.errors) == len(self.labels):
+                self.tab.errors.content = errors_markdown(msg)
+
+    def show_saved(self, msg: p.Saved) -> None:
+        with self.lock:
+            note = f" · {msg.note}" if msg.note else ""
+            self.tab.saved.content = f"Saved labels to `{msg.path}`{note}"
+
+    def show_failure(self, failure: p.Failure) -> None:
+        with self.lock:
+            self.tab.result.content = f"**⚠ {failure.problem}**"
+
+    # -- drawing
+
+    def selected(self) -> int | None:
+        try:
+            return self.names.index(self.tab.object.value)
+        except ValueError:
+            return None
+
+    def pose(self, k: int) -> np.ndarray:
+        """Where object k is shown: its label, else the best estimate, else its place before any estimate."""
+        if self.labels[k] is not None:
+            return self.labels[k]
+        if self.estimate is not None and len(self.estimate) == len(self.labels):
+            return self.estimate[k]
+        return self.homes[k]
+
+    def redraw(self) -> None:
+        """Gizmo, meshes and fields from the labels (the server writing: no callback may echo this back)."""
+        sel = self.selected()
+        with self.server.atomic(), self.quiet:
+            for k, (gizmo, mesh) in enumerate(zip(self.gizmos, self.meshes)):
+                q, t = split_pose(self.pose(k))
+                gizmo.wxyz, gizmo.position = q, t
+                gizmo.visible = k == sel and self.tab.show_gizmo.value
+                mesh.wxyz, mesh.position = q, t
+                mesh.visible = self.labels[k] is not None
+            self.show_fields(sel)
+
+    def show_fields(self, sel: int | None) -> None:
+        t = self.tab
+        if sel is None:
+            t.state.content = "Load a frame to label its objects."
+            return
+        T = self.pose(sel)
+        xyz = T[:3, 3] * 100.0
+        rpy = np.degrees(matrix_to_euler(T[:3, :3]))
+        for h, v in zip((*t.position, *t.angles), (*xyz, *rpy)):
+            h.value = float(v)
+        if self.labels[sel] is not None:
+            state = f"**{self.names[sel]}** is labelled."
+        else:
+            shown = "the best estimate" if self.estimate is not None else "a starting place"
+            state = (f"**{self.names[sel]}** is not labelled: the fields show {shown}. Type a value or drag the gizmo "
+                     "to label it.")
+        if t.state.content != state:  # markdown is re-sent on every assignment, changed or not
+            t.state.content = state
+
+    # -- edits
+
+    def selection_changed(self) -> None:
+        self.redraw()
+
+    def field_edited(self, position_axis: int | None) -> None:
+        """A typed value: a position field changes that coordinate only; an angle field sets the rotation from
+        all three angles (so the other coordinates are kept to the last bit)."""
+        k = self.selected()
+        if k is None:
+            return
+        T = np.array(self.pose(k), dtype=np.float64)
+        if position_axis is not None:
+            T[position_axis, 3] = float(self.tab.position[position_axis].value) / 100.0
+        else:
+            T[:3, :3] = euler_to_matrix(np.radians([float(h.value) for h in self.tab.angles]))
+        self.labels[k] = T
+        self.redraw()
+        self.send_labels()
+
+    def gizmo_moved(self, k: int, event: viser.TransformControlsEvent) -> None:
+        with self.lock:
+            if k >= len(self.labels) or self.gizmos[k] is not event.target:
+                return  # a late event for the previous frame's gizmo
+            R = quat_wxyz_to_matrix(np.asarray(event.target.wxyz, dtype=np.float64))
+            self.labels[k] = make_pose(R, np.asarray(event.target.position, dtype=np.float64))
+            with self.server.atomic(), self.quiet:
+                mesh = self.meshes[k]
+                mesh.wxyz, mesh.position, mesh.visible = event.target.wxyz, event.target.position, True
+                if self.selected() != k:
+                    self.tab.object.value = self.names[k]
+                self.show_fields(k)
+            now = time.monotonic()
+            if event.phase != "update" or now - self._last_send >= SEND_INTERVAL_S:
+                self.send_labels()
+
+    def clear_selected(self) -> None:
+        k = self.selected()
+        if k is None:
+            return
+        self.labels[k] = None
+        if not any(T is not None for T in self.labels):
+            self.clear_heatmap()
+        self.redraw()
+        self.send_labels()
+
+    def send_labels(self) -> None:
+        self._last_send = time.monotonic()
+        self.send(p.SetLabels(tuple(self.labels), heatmap=self.tab.heatmap.value != "off"))
+
+    def act(self, cmd, doing: str) -> None:
+        if self.quiet.active:
+            return
+        with self.lock:
+            self.tab.result.content = doing
+        self.send(cmd)
+
+    def heatmap_mode_changed(self) -> None:
+        if self.tab.heatmap.value == "off":
+            self.clear_heatmap()
+        self.send_labels()  # the engine renders the labelled scene only while the heatmap is on
+        self.on_heatmap_mode()
+
+    def clear_heatmap(self) -> None:
+        self.heatmap.nodes.clear()
+        self.tab.legend.content = ""
+
+    def save(self) -> None:
+        if self.quiet.active:
+            return
+        with self.lock:
+            overwrite = bool(self.tab.overwrite_original.value)
+            self.tab.saved.content = "Saving …"
+            # Overwriting the dataset's ground truth is a choice made for one save, not a mode that stays on.
+            with self.quiet:
+                self.tab.overwrite_original.value = False
+        self.send(p.SaveLabels(overwrite_original=overwrite))
