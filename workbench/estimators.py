@@ -132,14 +132,14 @@ class Estimator:
         if self.iteration < 0:
             start = initial_particles(self.rng, cfg.particles, self.problem.models, self.problem.table, cfg.state)
             t_resample = time.perf_counter() - t0
-            ev = self._evaluate(start)
+            ev = self.evaluator.evaluate(start)
             self._adopt(start, ev, np.ones(cfg.particles, bool))
         else:
             idx = systematic_resample(self._beta * self.loglik, self.rng, cfg.particles)
             parents = self.projected[idx]
             proposals = self._propose(parents)
             t_resample = time.perf_counter() - t0
-            ev = self._evaluate(proposals)
+            ev = self.evaluator.evaluate(proposals)
             if cfg.method == "pipf":
                 self._adopt(proposals, ev, np.ones(len(idx), bool))
             else:
@@ -202,9 +202,6 @@ class Estimator:
         proposals = diffuse(self.rng, parents, cfg.sigma, cfg.state)
         proposals = random_turns(self.rng, proposals, cfg.turn_prob, cfg.state)
         return random_relocations(self.rng, proposals, cfg.relocate_prob, models, table)
-
-    def _evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        return self.evaluator.evaluate(hypotheses)
 
     def _keep_parents(self, idx: np.ndarray) -> None:
         self.hypotheses = self.hypotheses[idx]

@@ -3,6 +3,7 @@ frames. Numbers, not assertions: the README quotes them with the machine and the
 
 from __future__ import annotations
 
+import os
 import platform
 import resource
 import tempfile
@@ -63,7 +64,7 @@ def run_speed_benchmark(particles: int | None = None, workers: int = 2, repeats:
             results.append(measure(dataset, scene_id, particles, workers, repeats))
     own, child = _peak_rss_mb()
     print(f"# workbench bench --speed: N={particles}, {workers} workers, {repeats} timed iterations, "
-          f"{platform.processor() or platform.machine()}, {__import__('os').cpu_count()} CPUs")
+          f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs")
     print("| objects | render px | iteration s | evaluations/s | projection ms | render ms | likelihood ms | resampling ms |")
     print("|---|---|---|---|---|---|---|---|")
     for r in results:

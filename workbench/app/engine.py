@@ -436,11 +436,9 @@ class Engine:
         which = self.labelled()
         scene, filled = self.label_scene(leave_out=False)
         projected, moved, status = labelling.snap_to_plausible(self.problem, scene, self.local_evaluator())
-        turned = self.turned(scene, projected)
-        rows = "\n".join(f"| {self.object_name(k)} | {moved[k] * 100:.2f} | {turned[k]:.1f} |" for k in which)
         stand_in = f" (unlabelled objects: the {filled})" if filled else ""
         note = (f"**Snapped**: physics {STATUS_NAMES.get(status, status)}{stand_in}\n\n"
-                f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}")
+                + self.movement_table(which, moved, self.turned(scene, projected)))
         self.adopt_labels(projected, which, "snap", note)
 
     def fit_labels(self) -> None:
@@ -450,12 +448,15 @@ class Engine:
         scene, filled = self.label_scene(leave_out=False)
         fitted = labelling.fit_label(self.problem, scene, self.local_evaluator())
         moved = np.linalg.norm(fitted[:, :3, 3] - scene[:, :3, 3], axis=-1)
-        turned = self.turned(scene, fitted)
-        rows = "\n".join(f"| {self.object_name(k)} | {moved[k] * 100:.2f} | {turned[k]:.1f} |" for k in which)
         stand_in = f" (unlabelled objects: the {filled}, not changed)" if filled else ""
         note = (f"**Fitted** to the depth, then snapped{stand_in}\n\n"
-                f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}")
+                + self.movement_table(which, moved, self.turned(scene, fitted)))
         self.adopt_labels(fitted, which, "fit", note)
+
+    def movement_table(self, which, moved: np.ndarray, turned: np.ndarray) -> str:
+        """Markdown table of how far each labelled object moved (m -> cm) and turned (deg)."""
+        rows = "\n".join(f"| {self.object_name(k)} | {moved[k] * 100:.2f} | {turned[k]:.1f} |" for k in which)
+        return f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}"
 
     @staticmethod
     def turned(a: np.ndarray, b: np.ndarray) -> np.ndarray:
