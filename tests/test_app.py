@@ -114,7 +114,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
     try:
         engine.handle(p.Load(p.Source(demo=True), config, "robust"))
         engine.step()
-        engine.handle(p.SetConfig(replace(config, particles=16, turn_prob=0.2)))
+        engine.handle(p.SetConfig(replace(config, particles=16, data_start=0.5)))
         engine.step()
         label = engine.estimator.best[1].copy()
         engine.handle(p.SetLabels((None, label), heatmap=True))
@@ -137,7 +137,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
         restored.handle(p.LoadSession(tmp_path / "run.json"))
         assert not second.of(p.Failure) and not second.of(p.SessionQuestion)
         msg = second.of(p.SessionRestored)[-1]
-        assert msg.config == replace(config, particles=16, turn_prob=0.2) and len(msg.reports) == 2
+        assert msg.config == replace(config, particles=16, data_start=0.5) and len(msg.reports) == 2
         assert np.array_equal(second.of(p.Labels)[-1].labels[1], label) and second.of(p.Labels)[-1].labels[0] is None
         restored.step(), restored.step()
         for name, value in expected.items():

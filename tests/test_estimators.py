@@ -87,11 +87,12 @@ def test_particle_count_and_sigma_change_between_steps(frame_and_problem):
 
 def test_reduced_state_keeps_roll_and_pitch(frame_and_problem):
     """In the paper's (x, y, z, yaw) state, diffusion never tilts an object: only physics may."""
-    from workbench.particles import Sigma, diffuse
+    from workbench.inference.gaussian import propose_joint
+    from workbench.particles import Sigma
 
     rng = np.random.default_rng(0)
     upright = np.tile(np.eye(4), (50, 2, 1, 1))
-    moved = diffuse(rng, upright, Sigma(), "xyzyaw")
+    moved = propose_joint(rng, upright, Sigma(), np.ones(2), "xyzyaw").hypotheses
     assert np.allclose(moved[..., 2, :3], [0, 0, 1])  # the object's z axis stays vertical
     assert not np.allclose(moved[..., :2, :2], upright[..., :2, :2])  # but it turned
 

@@ -53,7 +53,7 @@ def test_resumed_session_steps_bit_identically(loaded, tmp_path, kind, method):
     try:
         run = Estimator(problem, replace(CONFIG, method=method), evaluator)
         run.step()
-        run.set_config(replace(run.config, particles=30, sigma=Sigma(x=0.02, yaw=0.2), turn_prob=0.2))
+        run.set_config(replace(run.config, particles=30, sigma=Sigma(x=0.02, yaw=0.2), data_start=0.5))
         run.step(), run.step(), run.step()
         path = save_session(tmp_path, "run", session_state_from(run, ref, _labels(problem)))
         for _ in range(3):

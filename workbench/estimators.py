@@ -18,7 +18,11 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation import STAGES, Evaluation, Evaluator
 from workbench.geometry import rotation_angle
-from workbench.particles import STATES, Sigma, diffuse, initial_particles, random_relocations, random_turns
+from workbench.inference import datadriven, gaussian, refine, resting, stacking
+from workbench.inference.proposal import Proposal
+from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix, kind_counts
+from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points, unexplained
+from workbench.particles import STATES, Sigma, initial_particles, random_relocations
 from workbench.problem import Problem
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 
@@ -33,9 +37,14 @@ class EstimatorConfig:
     sigma: Sigma = field(default_factory=Sigma)
     state: str = "6dof"
     seed: int = 0
+    # "paper": random starts and Gaussian diffusion only, as Desingh et al. define PI-PF and PI-MCPF; "default":
+    # data-driven starts and the move mix below (inference/), with Sigma shrinking as the particles agree.
+    proposals: str = "default"
+    moves: MoveMix = field(default_factory=MoveMix)
+    data_start: float = 0.8  # share of objects in the initial particles drawn from data-driven candidates
+    library_every: int = 5  # iterations between refits of the candidates to what the estimate leaves unexplained
+    sigma_floor: float = 0.25  # coarse to fine: Sigma shrinks per object down to this fraction
     target_ess: float = 0.25  # fraction of N kept by the tempered weights each iteration
-    turn_prob: float = 0.05  # per object and iteration: a random new heading / face (particles.random_turns)
-    relocate_prob: float = 0.02  # per object and iteration: a random new place (particles.random_relocations)
     converge_position: float = 0.01  # m; the paper's "best particle moves < 1 cm"
     converge_degrees: float = 3.0  # and "< 3 degrees"
     # Consecutive iterations the rule must hold. PI-MCPF keeps its best particle whenever the proposals around it
@@ -51,9 +60,14 @@ class EstimatorConfig:
             raise InputError("particles", f"particle count must be between 1 and 100000, got {self.particles}")
         if self.iterations < 0:
             raise InputError("iterations", f"iterations must be >= 0, got {self.iterations}")
-        for name in ("turn_prob", "relocate_prob"):
+        if self.proposals not in PROPOSALS:
+            raise InputError("proposals", f"unknown proposals {self.proposals!r}; use one of {', '.join(PROPOSALS)}")
+        self.moves.validate()
+        for name in ("data_start", "sigma_floor"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise InputError(name, f"must lie in [0, 1], got {getattr(self, name)}")
+        if self.library_every < 1:
+            raise InputError("library_every", f"must be >= 1, got {self.library_every}")
         if not 0.0 < self.target_ess <= 1.0:
             raise InputError("target_ess", f"must lie in (0, 1], got {self.target_ess}")
         self.sigma.validate()
@@ -72,6 +86,10 @@ class IterationReport:
     n_failed: int  # particles whose physics blew up or left the table
     accept_rate: float  # PI-MCPF only (nan for PI-PF)
     timings: dict[str, float]
+    # Per move kind: how many were proposed this iteration, and how many were accepted (PI-MCPF) or, for PI-PF,
+    # the expected number of their offspring at the next resampling (N times their share of the weight).
+    moves: dict[str, dict[str, float]] = field(default_factory=dict)
+    best_kind: str = ""  # the move kind that produced the estimate (the best scene evaluated so far)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -88,7 +106,9 @@ def symmetric_angle(problem: Problem, A: np.ndarray, B: np.ndarray) -> np.ndarra
 
 class Estimator:
     """Holds the particle set and steps it. Arrays: ``hypotheses`` (N, K, 4, 4) as proposed, ``projected``
-    (N, K, 4, 4) after physics, ``loglik`` (N,), ``status`` (N,); all in the table frame."""
+    (N, K, 4, 4) after physics, ``loglik`` (N,), ``status`` (N,), ``kinds`` (N,) the MoveKind that produced each
+    particle; all in the table frame. The estimate (``best``) is the best scene ever evaluated, with
+    ``best_loglik``: it never gets worse from one iteration to the next."""
 
     def __init__(self, problem: Problem, config: EstimatorConfig, evaluator: Evaluator):
         config.validate()
@@ -97,11 +117,16 @@ class Estimator:
         self.evaluator = evaluator
         self.rng = np.random.default_rng(config.seed)
         self.iteration = -1
-        self.hypotheses = self.projected = self.loglik = self.status = None
+        self.hypotheses = self.projected = self.loglik = self.status = self.kinds = None
         self.history: list[IterationReport] = []
         self.best_history: list[np.ndarray] = []
         self._beta = 1.0
         self._calm = 0
+        self._map: np.ndarray | None = None
+        self._map_loglik = float("-inf")
+        self._map_kind = MoveKind.START
+        self._library: datadriven.Library | None = None
+        self._search = None  # per-object geometry for the default proposals, built at the first step
 
     def set_config(self, config: EstimatorConfig) -> None:
         """Takes effect at the next step; the particle set is kept (its size changes at the next resampling)."""
@@ -110,12 +135,21 @@ class Estimator:
 
     @property
     def best_index(self) -> int:
+        """The most likely particle of the current set."""
         return int(np.argmax(self.loglik))
 
     @property
     def best(self) -> np.ndarray:
-        """The most likely scene (K, 4, 4), table frame."""
-        return self.projected[self.best_index]
+        """The estimate: the best scene (K, 4, 4) evaluated so far, table frame."""
+        return self._map if self._map is not None else self.projected[self.best_index]
+
+    @property
+    def best_loglik(self) -> float:
+        return self._map_loglik
+
+    @property
+    def best_kind(self) -> MoveKind:
+        return self._map_kind
 
     @property
     def converged(self) -> bool:
@@ -125,33 +159,37 @@ class Estimator:
         """(N,) normalised weights of the current particles, with this iteration's tempering."""
         return normalised_weights(self._beta * self.loglik)
 
+    # --------------------------------------------------------------------------------------------------- steps
     def step(self) -> IterationReport:
         cfg = self.config
         t0 = time.perf_counter()
         accept_rate = float("nan")
         if self.iteration < 0:
-            start = initial_particles(self.rng, cfg.particles, self.problem.models, self.problem.table, cfg.state)
+            start, kinds = self._start()
             t_resample = time.perf_counter() - t0
             ev = self.evaluator.evaluate(start)
-            self._adopt(start, ev, np.ones(cfg.particles, bool))
+            self._adopt(start, ev, kinds, np.ones(cfg.particles, bool))
+            accepted = None
         else:
             idx = systematic_resample(self._beta * self.loglik, self.rng, cfg.particles)
-            parents = self.projected[idx]
-            proposals = self._propose(parents)
+            proposals, log_q, kinds = self._propose(self.projected[idx])
             t_resample = time.perf_counter() - t0
             ev = self.evaluator.evaluate(proposals)
             if cfg.method == "pipf":
-                self._adopt(proposals, ev, np.ones(len(idx), bool))
+                self._adopt(proposals, ev, kinds, np.ones(len(idx), bool))
+                accepted = None
             else:
-                log_ratio = self._beta * (ev.loglik - self.loglik[idx])
+                log_ratio = self._beta * (ev.loglik - self.loglik[idx]) + log_q
                 with np.errstate(invalid="ignore"):
-                    accept = np.log(self.rng.random(len(idx))) < np.nan_to_num(log_ratio, nan=-np.inf)
-                accept_rate = float(accept.mean())
+                    accepted = np.log(self.rng.random(len(idx))) < np.nan_to_num(log_ratio, nan=-np.inf)
+                accept_rate = float(accepted.mean())
                 self._keep_parents(idx)
-                self._adopt(proposals, ev, accept)
+                self._adopt(proposals, ev, kinds, accepted)
+        self._update_map(ev, kinds)
         self.iteration += 1
         self._beta = temper_to_ess(self.loglik, cfg.target_ess)
-        report = self._report(ev, t_resample, time.perf_counter() - t0, accept_rate)
+        moves = self._move_counts(kinds, accepted)
+        report = self._report(ev, t_resample, time.perf_counter() - t0, accept_rate, moves)
         self.history.append(report)
         return report
 
@@ -166,11 +204,14 @@ class Estimator:
                 break
         return self.best
 
+    # ------------------------------------------------------------------------------------------------ sessions
     def state_dict(self) -> dict:
         """Everything ``step`` continues from besides the problem, config and evaluator, as copies: loaded with
         ``load_state`` into a new Estimator of the same problem and config, the next steps equal this one's bit
         for bit. ``rng`` is numpy's ``bit_generator.state`` (plain strings and ints, JSON-serialisable); the
-        particle arrays are None before the first step."""
+        particle arrays are None before the first step. ``search``: the estimate and the data-driven candidates,
+        as plain lists (JSON-serialisable)."""
+        lib = self._library
         return {
             "iteration": self.iteration,
             "rng": self.rng.bit_generator.state,
@@ -178,15 +219,24 @@ class Estimator:
             "projected": None if self.projected is None else self.projected.copy(),
             "loglik": None if self.loglik is None else self.loglik.copy(),
             "status": None if self.status is None else self.status.copy(),
-            "history": [replace(r, timings=dict(r.timings)) for r in self.history],
+            "history": [replace(r, timings=dict(r.timings), moves={k: dict(v) for k, v in r.moves.items()})
+                        for r in self.history],
             "best_history": [b.copy() for b in self.best_history],
             "beta": self._beta,
             "calm": self._calm,
+            "search": {
+                "kinds": None if self.kinds is None else self.kinds.astype(int).tolist(),
+                "map": None if self._map is None else self._map.tolist(),
+                "map_loglik": self._map_loglik if np.isfinite(self._map_loglik) else None,
+                "map_kind": int(self._map_kind),
+                "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
+                                                     "weights": [w.tolist() for w in lib.weights]},
+            },
         }
 
     def load_state(self, state: dict) -> None:
         """Continue from a ``state_dict()``. The caller vouches that it belongs to this problem and config
-        (``sessions.load_session`` checks a saved one)."""
+        (``sessions.load_session`` checks a saved one). Raises ValueError for a malformed ``search`` entry."""
         self.rng.bit_generator.state = state["rng"]  # raises ValueError for another kind of generator
         self.iteration = int(state["iteration"])
         for name in ("hypotheses", "projected", "loglik", "status"):
@@ -195,32 +245,146 @@ class Estimator:
         self.best_history = [np.array(b) for b in state["best_history"]]
         self._beta = float(state["beta"])
         self._calm = int(state["calm"])
+        search = state.get("search") or {}
+        K, N = self.problem.n_objects, 0 if self.loglik is None else len(self.loglik)
+        kinds = search.get("kinds")
+        self.kinds = None if self.loglik is None else (
+            np.full(N, int(MoveKind.START), np.int8) if kinds is None else _array(kinds, (N,), np.int8, "kinds"))
+        m = search.get("map")
+        self._map = None if m is None else _array(m, (K, 4, 4), np.float64, "map")
+        ll = search.get("map_loglik")
+        self._map_loglik = float("-inf") if ll is None else float(ll)
+        self._map_kind = MoveKind(int(search.get("map_kind", 0)))
+        lib = search.get("library")
+        self._library = None if lib is None else datadriven.Library(
+            [_array(p, (len(p), 4, 4), np.float64, "library") if len(p) else np.zeros((0, 4, 4)) for p in lib["poses"]],
+            [np.asarray(w, dtype=np.float64) for w in lib["weights"]])
+        if self._library is not None and len(self._library.poses) != K:
+            raise ValueError(f"search.library lists {len(self._library.poses)} objects, the problem has {K}")
 
-    def _propose(self, parents: np.ndarray) -> np.ndarray:
-        """Gaussian diffusion, plus the occasional large move (new heading or face, new place)."""
-        cfg, models, table = self.config, self.problem.models, self.problem.table
-        proposals = diffuse(self.rng, parents, cfg.sigma, cfg.state)
-        proposals = random_turns(self.rng, proposals, cfg.turn_prob, cfg.state)
-        return random_relocations(self.rng, proposals, cfg.relocate_prob, models, table)
+    # ---------------------------------------------------------------------------------------------- proposals
+    def _context(self):
+        """Per-object geometry the default proposals use, computed once: resting poses, surface samples, hull
+        vertices and horizontal reach of each model, and the observed points above the table."""
+        if self._search is None:
+            models = self.problem.models
+            upright = self.config.state == "xyzyaw"
+            hulls = [np.asarray(m.mesh.convex_hull.vertices, dtype=np.float64) for m in models]
+            self._search = _Search(
+                rest=[resting.resting_poses(m.mesh, upright_only=upright) for m in models],
+                samples=[model_samples(m.mesh) for m in models],
+                hulls=hulls,
+                reach=np.array([float(np.max(np.linalg.norm(h[:, :2], axis=1))) for h in hulls]),
+                points=observed_points(self.problem),
+            )
+        return self._search
 
+    def _refit_library(self) -> None:
+        """Candidates from the clusters of observed points the estimate does not explain (all of them before
+        the first estimate), merged with the earlier candidates."""
+        ctx = self._context()
+        loose = unexplained(self.problem, ctx.points, self._map, ctx.samples)
+        groups = clusters(ctx.points.points[loose], seed=self.config.seed)
+        fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
+        self._library = fresh if self._library is None else self._library.merged(fresh)
+
+    def _start(self) -> tuple[np.ndarray, np.ndarray]:
+        """Iteration 0: random scenes over the object region; in the default search most objects are taken from
+        the data-driven candidates instead (some stay uniform, so that nothing is ruled out)."""
+        cfg = self.config
+        start = initial_particles(self.rng, cfg.particles, self.problem.models, self.problem.table, cfg.state)
+        kinds = np.full(cfg.particles, int(MoveKind.START), np.int8)
+        if cfg.proposals == "paper":
+            return start, kinds
+        self._refit_library()
+        for k in range(self.problem.n_objects):
+            if not self._library.has(k):
+                continue
+            take = self.rng.random(cfg.particles) < cfg.data_start
+            start[take, k] = datadriven.sample_candidates(self.rng, self._library, k, int(take.sum()))
+            kinds[take] = int(MoveKind.DATA_START)
+        return start, kinds
+
+    def _propose(self, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Proposals from the resampled ``parents`` (N, K, 4, 4) -> (hypotheses (N, K, 4, 4), log-q corrections
+        (N,), move kinds (N,))."""
+        cfg, n, K = self.config, len(parents), self.problem.n_objects
+        if cfg.proposals == "paper":
+            ones = np.ones(K)
+            return (gaussian.propose_joint(self.rng, parents, cfg.sigma, ones, cfg.state).hypotheses, np.zeros(n),
+                    np.full(n, int(MoveKind.JOINT), np.int8))
+        ctx = self._context()
+        if self.iteration % cfg.library_every == 0:
+            self._refit_library()
+        # Objects that explain their part of the observation worst are moved most often; every object sometimes.
+        choose = object_badness(self.problem, self.best, ctx.samples) + 0.1
+        scales = gaussian.object_scales(self.projected, self.weights(), cfg.sigma, cfg.sigma_floor)
+        mix = cfg.moves if cfg.state == "6dof" else replace(cfg.moves, face=0.0)
+        kinds = mix.draw(self.rng, n)
+        out, log_q = parents.copy(), np.zeros(n)
+        for kind in np.unique(kinds):
+            sel = np.nonzero(kinds == kind)[0]
+            sub = parents[sel]
+            if kind == MoveKind.JOINT:
+                p = gaussian.propose_joint(self.rng, sub, cfg.sigma, scales, cfg.state)
+            elif kind == MoveKind.SINGLE:
+                p = gaussian.propose_single(self.rng, sub, cfg.sigma, scales, cfg.state, choose)
+            elif kind == MoveKind.FACE:
+                p = resting.propose_face(self.rng, sub, ctx.rest, ctx.hulls, choose)
+            elif kind == MoveKind.TURN:
+                p = resting.propose_turn(self.rng, sub, choose)
+            elif kind == MoveKind.STACK:
+                p = stacking.propose_stack(self.rng, sub, ctx.hulls, choose)
+            elif kind == MoveKind.DATA:
+                p = datadriven.propose_data(self.rng, sub, self._library, choose)
+            elif kind == MoveKind.ICP:
+                p = refine.propose_icp(self.rng, sub, ctx.points.points, ctx.samples, ctx.reach, choose)
+            else:  # RELOCATE: the uniform move keeps every place reachable
+                p = Proposal.symmetric(random_relocations(
+                    self.rng, sub, 1.0 / K, self.problem.models, self.problem.table))
+            out[sel], log_q[sel] = p.hypotheses, p.log_q_ratio
+        return out, log_q, kinds
+
+    # ------------------------------------------------------------------------------------------- bookkeeping
     def _keep_parents(self, idx: np.ndarray) -> None:
         self.hypotheses = self.hypotheses[idx]
         self.projected = self.projected[idx]
         self.loglik = self.loglik[idx]
         self.status = self.status[idx]
+        self.kinds = self.kinds[idx]
 
-    def _adopt(self, hypotheses: np.ndarray, ev: Evaluation, take: np.ndarray) -> None:
+    def _adopt(self, hypotheses: np.ndarray, ev: Evaluation, kinds: np.ndarray, take: np.ndarray) -> None:
         """Replace particles where ``take`` (N,) is true with the evaluated ``hypotheses``."""
         if self.hypotheses is None or len(self.hypotheses) != len(take):
             self.hypotheses, self.projected = hypotheses.copy(), ev.projected.copy()
-            self.loglik, self.status = ev.loglik.copy(), ev.status.copy()
+            self.loglik, self.status, self.kinds = ev.loglik.copy(), ev.status.copy(), kinds.copy()
             return
         self.hypotheses[take] = hypotheses[take]
         self.projected[take] = ev.projected[take]
         self.loglik[take] = ev.loglik[take]
         self.status[take] = ev.status[take]
+        self.kinds[take] = kinds[take]
 
-    def _report(self, ev: Evaluation, t_resample: float, t_total: float, accept_rate: float) -> IterationReport:
+    def _update_map(self, ev: Evaluation, kinds: np.ndarray) -> None:
+        """Every evaluated scene, accepted or not, competes for the estimate."""
+        i = int(np.argmax(ev.loglik))
+        if ev.loglik[i] > self._map_loglik:
+            self._map, self._map_loglik = ev.projected[i].copy(), float(ev.loglik[i])
+            self._map_kind = MoveKind(int(kinds[i]))
+
+    def _move_counts(self, kinds: np.ndarray, accepted: np.ndarray | None) -> dict[str, dict[str, float]]:
+        """Per move kind of this iteration's proposals: proposed, and accepted (PI-MCPF) or expected offspring at
+        the next resampling (PI-PF: N times the tempered weight of that kind's particles)."""
+        out = {}
+        w = self.weights()
+        for label, count in kind_counts(kinds).items():
+            sel = np.array([MoveKind(int(k)).label == label for k in kinds])
+            kept = float(accepted[sel].sum()) if accepted is not None else float(len(kinds) * w[sel].sum())
+            out[label] = {"proposed": float(count), "accepted": kept}
+        return out
+
+    def _report(self, ev: Evaluation, t_resample: float, t_total: float, accept_rate: float,
+                moves: dict) -> IterationReport:
         best = self.best
         if self.best_history:
             prev = self.best_history[-1]
@@ -237,7 +401,7 @@ class Estimator:
         timings["total"] = t_total
         return IterationReport(
             iteration=self.iteration,
-            best_loglik=float(self.loglik[self.best_index]),
+            best_loglik=self._map_loglik,
             mean_loglik=float(self.loglik[finite].mean()) if finite.any() else float("-inf"),
             ess=ess(self._beta * self.loglik),
             beta=self._beta,
@@ -247,7 +411,25 @@ class Estimator:
             n_failed=int((~finite).sum()),
             accept_rate=accept_rate,
             timings={k: float(timings.get(k, 0.0)) for k in (*STAGES, "resampling", "total")},
+            moves=moves,
+            best_kind=self._map_kind.label,
         )
+
+
+@dataclass
+class _Search:
+    rest: list
+    samples: list
+    hulls: list
+    reach: np.ndarray
+    points: object
+
+
+def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:
+    a = np.asarray(value, dtype=dtype)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise ValueError(f"search.{where} must be finite numbers of shape {shape}, got {a.shape}")
+    return a
 
 
 def object_confidence(problem: Problem, projected: np.ndarray, weights: np.ndarray, best: np.ndarray,

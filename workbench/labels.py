@@ -76,7 +76,7 @@ def scene_logliks(problem: Problem, evaluator: LocalEvaluator, scenes: np.ndarra
 
 def _moves(T: np.ndarray, step_m: float, step_rad: float) -> np.ndarray:
     """Every single-coordinate move of one object: +-step along the table's x, y, z, and +-step rotations about
-    table axes through the object's origin (as ``particles.diffuse``). (K, 4, 4) -> (K, 12, K, 4, 4)."""
+    table axes through the object's origin (as ``inference.gaussian``). (K, 4, 4) -> (K, 12, K, 4, 4)."""
     K = len(T)
     out = np.broadcast_to(T, (K, 12, K, 4, 4)).copy()
     for k in range(K):

@@ -1,4 +1,5 @@
-"""Where particles come from: random initial scenes over the support region, and Gaussian diffusion.
+"""Where the paper's particles come from: random initial scenes over the support region, and random relocations
+(the default search's uniform move). Gaussian diffusion and the other moves are in ``inference/``.
 
 A particle is a scene hypothesis: (K, 4, 4) object poses in the table frame; a particle set is (N, K, 4, 4).
 The state is either full 6-DoF or the paper's reduced (x, y, z, yaw) used for 3- and 4-object clutter, where
@@ -12,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.geometry import euler_to_matrix, random_rotations, rot_z
+from workbench.geometry import random_rotations, rot_z
 from workbench.scene import ObjectModel, Table
 
 STATES = ("6dof", "xyzyaw")
@@ -56,44 +57,6 @@ def initial_particles(
         out[:, k, 0, 3] = rng.uniform(table.region_min[0], table.region_max[0], n)
         out[:, k, 1, 3] = rng.uniform(table.region_min[1], table.region_max[1], n)
         out[:, k, 2, 3] = rng.uniform(0.0, lift, n) - lowest
-    return out
-
-
-def diffuse(rng: np.random.Generator, particles: np.ndarray, sigma: Sigma, state: str) -> np.ndarray:
-    """Gaussian diffusion of every object of every particle. (N, K, 4, 4) -> (N, K, 4, 4).
-
-    Angles perturb the orientation about the table axes (R' = Rz Ry Rx R), so a yaw step is a turn on the table
-    whatever the object's current tilt."""
-    n, k = particles.shape[:2]
-    s = sigma.as_array()
-    if state == "xyzyaw":
-        s = s * np.array([1, 1, 1, 0, 0, 1])
-    noise = rng.normal(size=(n, k, 6)) * s
-    out = particles.copy()
-    out[..., :3, 3] += noise[..., :3]
-    out[..., :3, :3] = euler_to_matrix(noise[..., 3:]) @ particles[..., :3, :3]
-    return out
-
-
-def random_turns(rng: np.random.Generator, particles: np.ndarray, prob: float, state: str) -> np.ndarray:
-    """With probability ``prob`` per object, turn it to a uniformly random heading on the table, and in 6-DoF
-    also (half the time) roll it by 90 degrees about one of its own axes, onto another face. (N, K, 4, 4) ->
-    (N, K, 4, 4).
-
-    Small Gaussian steps cannot leave a wrong but locally good orientation (a box turned by 90 degrees, lying on
-    the wrong face); these occasional large moves can, and physics and the weights judge them like any other."""
-    n, k = particles.shape[:2]
-    out = particles.copy()
-    turn = rng.random((n, k)) < prob
-    yaw = rng.uniform(-np.pi, np.pi, (n, k))
-    R = np.where(turn[..., None, None], rot_z(yaw) @ particles[..., :3, :3], particles[..., :3, :3])
-    if state == "6dof":
-        roll = turn & (rng.random((n, k)) < 0.5)
-        axis = rng.integers(0, 3, (n, k))
-        sign = rng.choice([-1.0, 1.0], (n, k))
-        quarter = euler_to_matrix(np.eye(3)[axis] * (sign * np.pi / 2)[..., None])  # about x, y or z
-        R = np.where(roll[..., None, None], R @ quarter, R)
-    out[..., :3, :3] = R
     return out
 
 

@@ -348,6 +348,7 @@ def _document(state: SessionState, arrays: dict[str, np.ndarray], arrays_entry: 
             "beta": est["beta"],
             "calm": est["calm"],
             "history": [r.as_dict() for r in est["history"]],
+            "search": est.get("search"),
         },
         "labels": [None if T is None else np.asarray(T, dtype=np.float64).tolist() for T in state.labels],
         "arrays": arrays_entry,
@@ -439,6 +440,7 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
             "beta": _float(e["beta"], "estimator.beta"),
             "calm": _int(e["calm"], "estimator.calm"),
             "history": [_report(r) for r in e["history"]],
+            "search": _search(e.get("search")),
         },
         labels=[None if T is None else _pose(T, "labels") for T in labels],
         problem_sha256=_str(d["problem_sha256"], "problem_sha256"),
@@ -538,6 +540,13 @@ def _rng_state(v) -> dict:
     return v
 
 
+def _search(v) -> dict | None:
+    """The estimator's search state (estimate, move kinds, candidates): plain JSON, shapes checked on load."""
+    if v is not None and not isinstance(v, dict):
+        raise ValueError("estimator.search must be an object")
+    return v
+
+
 def _report(v) -> IterationReport:
     names = [f.name for f in fields(IterationReport)]
     if not isinstance(v, dict) or sorted(v) != sorted(names):
@@ -545,13 +554,18 @@ def _report(v) -> IterationReport:
     if not isinstance(v["timings"], dict):
         raise ValueError("history timings must be an object")
     values = {k: _float(v[k], f"history.{k}") for k in names if k not in ("iteration", "converged", "n_failed",
-                                                                            "timings")}
+                                                                            "timings", "moves", "best_kind")}
+    moves = v["moves"]
+    if not (isinstance(moves, dict) and all(isinstance(c, dict) for c in moves.values())):
+        raise ValueError("history.moves must map move kinds to counts")
     if not isinstance(v["converged"], bool):
         raise ValueError("history.converged must be true or false")
     return IterationReport(iteration=_int(v["iteration"], "history.iteration"), converged=v["converged"],
                            n_failed=_int(v["n_failed"], "history.n_failed"),
                            timings={str(k): _float(t, "history.timings") for k, t in v["timings"].items()},
-                           **values)
+                           moves={str(k): {str(n): _float(x, "history.moves") for n, x in c.items()}
+                                  for k, c in moves.items()},
+                           best_kind=_str(v["best_kind"], "history.best_kind"), **values)
 
 
 def config_from_dict(cls, data, where: str):

@@ -1,0 +1,197 @@
+"""Data-driven placements: candidate poses fitted to clusters of observed points, and the starts and moves drawn
+from them.
+
+Each cluster of observed points above the table (those the current best scene does not explain) proposes places
+for every object of fitting size: its position from the cluster (centroid, and a few spread points of a large
+cluster, which may be several objects touching), its heading from the cluster's principal axes, its resting face
+from the cluster's height. Each such start is fitted by ICP and scored by how many observed points it explains,
+less the points it would hide (the sensor sees through it). The best few per object form the ``Library``.
+
+A move draws one object's pose from its library entries with a small Gaussian jitter: an independence proposal
+whose density is a Gaussian mixture, so its log-q correction is exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
+from workbench.inference.proposal import Proposal, pick_objects
+from workbench.inference.refine import crop, icp
+from workbench.inference.resting import RestingPoses
+from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, project_samples
+from workbench.problem import Problem
+
+JITTER_POS = 0.005  # m
+JITTER_ANG = np.radians(3.0)
+PER_OBJECT = 8  # candidates kept per object
+MAX_CLUSTERS = 8
+MAX_CENTRES = 4  # per cluster
+PER_CLUSTER = 3  # candidates per object and cluster
+MIN_TOP = 0.015  # m; lower clusters are table unevenness or flat clutter (paper, cables)
+
+
+@dataclass
+class Library:
+    """Per object k: ``poses[k]`` (C_k, 4, 4) candidate poses in the table frame, ``weights[k]`` (C_k,) summing
+    to 1 (empty arrays when no cluster fits the object)."""
+
+    poses: list[np.ndarray]
+    weights: list[np.ndarray]
+
+    def has(self, k: int) -> bool:
+        return len(self.poses[k]) > 0
+
+    def merged(self, other: "Library", keep: int = PER_OBJECT) -> "Library":
+        """Both libraries' candidates per object, the best ``keep`` by weight (re-normalised)."""
+        poses, weights = [], []
+        for k in range(len(self.poses)):
+            p = np.concatenate([self.poses[k], other.poses[k]])
+            w = np.concatenate([self.weights[k], other.weights[k]])
+            order = np.argsort(-w, kind="stable")[:keep]
+            poses.append(p[order])
+            weights.append(w[order] / w[order].sum() if len(order) else w[order])
+        return Library(poses, weights)
+
+
+def empty_library(k: int) -> Library:
+    return Library([np.zeros((0, 4, 4))] * k, [np.zeros(0)] * k)
+
+
+def spread_centres(points: np.ndarray, spacing: float, limit: int) -> np.ndarray:
+    """The centroid of ``points`` (P, 3) and up to ``limit`` - 1 farthest-point samples at least ``spacing``
+    apart (xy) -> (C, 2)."""
+    centres = [np.median(points[:, :2], axis=0)]
+    xy = points[:, :2]
+    d = np.linalg.norm(xy - centres[0], axis=1)
+    while len(centres) < limit:
+        i = int(np.argmax(d))
+        if d[i] < spacing:
+            break
+        centres.append(xy[i])
+        d = np.minimum(d, np.linalg.norm(xy - xy[i], axis=1))
+    return np.array(centres)
+
+
+def principal_heading(points: np.ndarray) -> float:
+    """Heading (rad) of the principal axis of the points' xy spread."""
+    xy = points[:, :2] - points[:, :2].mean(axis=0)
+    w, v = np.linalg.eigh(xy.T @ xy)
+    return float(np.arctan2(v[1, -1], v[0, -1]))
+
+
+def fit_score(problem: Problem, T: np.ndarray, samples: ModelSamples) -> float:
+    """Pixels a candidate explains (observed depth on its camera-facing surface) less three for each pixel where
+    the sensor sees through it (a pose that floats in front of the background). Pixels hidden behind something
+    else count for nothing: an object may be occluded, and a pose buried inside another object explains little."""
+    v, u, d = project_samples(problem, T[None], [samples])[0]
+    o = problem.observed[v, u]
+    pixel = v * problem.observed.shape[1] + u
+    on = np.unique(pixel[(o > 0) & (np.abs(o - d) < EXPLAINED)])
+    through = np.unique(pixel[(o > 0) & (o > d + SEEN_THROUGH)])
+    return float(len(on) - 3.0 * len(np.setdiff1d(through, on)))
+
+
+def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.ndarray,
+                  rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray]) -> Library:
+    """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
+    ``all_points`` (P, 3) near each start. -> Library."""
+    K = len(rest)
+    found: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(K)]
+    reach = np.array([np.max(np.linalg.norm(h[:, :2], axis=1)) for h in hulls])
+    clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP][:MAX_CLUSTERS]
+    for cluster in clusters:
+        top = float(np.percentile(cluster[:, 2], 95))
+        heading = principal_heading(cluster)
+        for k in range(K):
+            here: list[tuple[float, np.ndarray]] = []
+            footprint = 2.0 * reach[k]
+            for centre in spread_centres(cluster, 0.6 * footprint, MAX_CENTRES):
+                # Faces whose standing height best matches the cluster's top; a cluster clearly taller than the
+                # object on that face may be it standing on something, so it starts on top.
+                heights = np.array([_height(R, hulls[k]) for R in rest[k].rotations])
+                for f in np.argsort(np.abs(heights - top))[:2]:
+                    R0 = rest[k].rotations[f]
+                    base = top - heights[f] if top > heights[f] + 0.02 else 0.0
+                    for quarter in range(4):
+                        R = rot_z(heading + quarter * np.pi / 2) @ R0
+                        T0 = make_pose(R, np.array([centre[0], centre[1], base + rest[k].heights[f]]))
+                        T, inliers = icp(crop(all_points, T0[:3, 3], reach[k] + 0.02), samples[k], T0)
+                        if inliers < 10 or not np.all(np.isfinite(T)):
+                            continue
+                        here.append((fit_score(problem, T, samples[k]), T))
+            # A few per cluster, so that one large cluster (several objects touching) cannot crowd out the others.
+            found[k] += _distinct(sorted(here, key=lambda c: -c[0]), PER_CLUSTER)
+    poses, weights = [], []
+    for k in range(K):
+        kept = _distinct(sorted(found[k], key=lambda c: -c[0]), PER_OBJECT)
+        if not kept:
+            poses.append(np.zeros((0, 4, 4)))
+            weights.append(np.zeros(0))
+            continue
+        scores = np.array([s for s, _ in kept])
+        # Flat on purpose: a large object fits well into another object's cluster too, and only the whole scene
+        # (physics, the likelihood) can tell which cluster is whose. Softmax in units of half the best score,
+        # mixed with uniform, so that no candidate is starved.
+        w = np.exp((scores - scores.max()) / max(0.5 * abs(scores.max()), 1.0))
+        w = 0.7 * w / w.sum() + 0.3 / len(w)
+        poses.append(np.stack([T for _, T in kept]))
+        weights.append(w / w.sum())
+    return Library(poses, weights)
+
+
+def _height(R: np.ndarray, hull: np.ndarray) -> float:
+    """Height (m) of an object with rotation R: its vertical extent."""
+    z = hull @ R[2]
+    return float(z.max() - z.min())
+
+
+def _distinct(candidates: list[tuple[float, np.ndarray]], keep: int) -> list[tuple[float, np.ndarray]]:
+    """The best candidates, skipping any within 1.5 cm and 15 degrees of a better one."""
+    out: list[tuple[float, np.ndarray]] = []
+    for s, T in candidates:
+        if all(np.linalg.norm(T[:3, 3] - U[:3, 3]) > 0.015
+               or rotation_angle(T[:3, :3].T @ U[:3, :3]) > np.radians(15) for _, U in out):
+            out.append((s, T))
+        if len(out) >= keep:
+            break
+    return out
+
+
+def sample_candidates(rng: np.random.Generator, library: Library, k: int, n: int) -> np.ndarray:
+    """n poses of object k drawn from its library with jitter -> (n, 4, 4)."""
+    c = rng.choice(len(library.weights[k]), size=n, p=library.weights[k])
+    out = library.poses[k][c].copy()
+    out[:, :3, 3] += rng.normal(scale=JITTER_POS, size=(n, 3))
+    out[:, :3, :3] = euler_to_matrix(rng.normal(scale=JITTER_ANG, size=(n, 3))) @ out[:, :3, :3]
+    return out
+
+
+def log_density(library: Library, k: int, T: np.ndarray) -> float:
+    """log of object k's library mixture density at pose T (4, 4), up to a constant shared by all poses."""
+    P = library.poses[k]
+    d2 = np.sum((P[:, :3, 3] - T[:3, 3]) ** 2, axis=1)
+    a = rotation_angle(np.swapaxes(P[:, :3, :3], 1, 2) @ T[:3, :3])
+    terms = np.log(library.weights[k]) - 0.5 * d2 / JITTER_POS**2 - 0.5 * a * a / JITTER_ANG**2
+    m = terms.max()
+    return float(m + np.log(np.sum(np.exp(terms - m))))
+
+
+def propose_data(rng: np.random.Generator, parents: np.ndarray, library: Library, weights: np.ndarray) -> Proposal:
+    """One object per particle (drawn by ``weights`` (K,) among objects with candidates) takes a pose from its
+    library; the others stay. An independence move: log-q correction log q(x_k) - log q(x*_k).
+    (B, K, 4, 4) -> Proposal."""
+    K = parents.shape[1]
+    has = np.array([library.has(k) for k in range(K)])
+    out = parents.copy()
+    log_q = np.zeros(len(parents))
+    if not has.any():
+        return Proposal(out, log_q)
+    ks = pick_objects(rng, len(parents), np.where(has, weights, 0.0))
+    for b, k in enumerate(ks):
+        new = sample_candidates(rng, library, k, 1)[0]
+        log_q[b] = log_density(library, k, parents[b, k]) - log_density(library, k, new)
+        out[b, k] = new
+    return Proposal(out, log_q)

@@ -1,0 +1,121 @@
+"""Stable resting poses of each object on a plane, and the moves between them.
+
+A resting pose is an orientation (3, 3) of the object, at heading 0, in which it rests on the table, with the
+height (m) of its origin above the plane. A box-like mesh (one that fills at least ``BOX_FILL`` of its oriented
+bounding box) rests on one of its 6 faces; any other mesh on the faces ``trimesh.poses.compute_stable_poses``
+finds for its convex hull, with the probabilities it estimates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from workbench.geometry import rot_z
+from workbench.inference.proposal import Proposal, pick_objects
+
+BOX_FILL = 0.85
+MAX_POSES = 8  # non-box meshes: the most probable stable poses kept
+MIN_PROB = 0.02
+
+
+@dataclass(frozen=True)
+class RestingPoses:
+    """``rotations``: (F, 3, 3) object -> table rotations resting on face f at heading 0; ``heights``: (F,) z of
+    the object origin above the plane when resting; ``probs``: (F,) how often the object comes to rest so."""
+
+    rotations: np.ndarray
+    heights: np.ndarray
+    probs: np.ndarray
+
+
+def _faces_of_box(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """The 6 face-down rotations of the mesh's oriented bounding box and their face areas, or None if the mesh
+    is not box-like."""
+    obb = mesh.bounding_box_oriented
+    hull = mesh if mesh.is_watertight else mesh.convex_hull
+    if abs(float(hull.volume)) < BOX_FILL * float(obb.volume):
+        return None
+    axes = np.asarray(obb.primitive.transform)[:3, :3]  # box axes in the object frame (columns)
+    ext = np.asarray(obb.primitive.extents)
+    rots, areas = [], []
+    for i in range(3):
+        for sign in (1.0, -1.0):
+            down = sign * axes[:, i]  # object-frame direction that must point to -z
+            # Build a rotation whose third row maps `down` to -z: rows are table axes in object coordinates.
+            z_row = -down
+            x_row = axes[:, (i + 1) % 3]
+            y_row = np.cross(z_row, x_row)
+            rots.append(np.stack([x_row, y_row, z_row]))
+            j, k = [a for a in range(3) if a != i]
+            areas.append(ext[j] * ext[k])
+    return np.array(rots), np.array(areas)
+
+
+def resting_poses(mesh: trimesh.Trimesh, upright_only: bool = False) -> RestingPoses:
+    """The stable resting poses of ``mesh`` (metres, object frame). ``upright_only``: only the model's own
+    orientation (for the x, y, z, yaw state, which never samples roll and pitch)."""
+    if upright_only:
+        rots = np.eye(3)[None]
+        probs = np.ones(1)
+    else:
+        box = _faces_of_box(mesh)
+        if box is not None:
+            rots, areas = box
+            probs = areas / areas.sum()  # a larger face is the likelier one to land on
+        else:
+            transforms, probs = trimesh.poses.compute_stable_poses(mesh.convex_hull, n_samples=1)
+            keep = np.argsort(probs)[::-1][:MAX_POSES]
+            keep = keep[probs[keep] >= MIN_PROB] if np.any(probs[keep] >= MIN_PROB) else keep[:1]
+            rots = np.asarray(transforms)[keep, :3, :3]
+            probs = np.asarray(probs)[keep] / np.sum(np.asarray(probs)[keep])
+    heights = -np.min(np.einsum("fij,vj->fvi", rots, mesh.convex_hull.vertices)[..., 2], axis=1)
+    return RestingPoses(np.asarray(rots, dtype=np.float64), heights, np.asarray(probs, dtype=np.float64))
+
+
+def lowest_point(R: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """z of the lowest vertex, relative to the origin, for rotations (..., 3, 3) -> (...)."""
+    return np.min(np.einsum("...j,vj->...v", R[..., 2, :], vertices), axis=-1)
+
+
+def propose_face(rng: np.random.Generator, parents: np.ndarray, rest: list[RestingPoses],
+                 hulls: list[np.ndarray], weights: np.ndarray) -> Proposal:
+    """Put one object per particle (drawn by ``weights`` (K,)) on a resting face drawn by its probabilities,
+    at a random heading, with its lowest point where it was (so a stacked object stays stacked).
+    (B, K, 4, 4) -> Proposal. Faces are drawn by probability, so the correction is log p(old face) - log p(new
+    face), the old face being the resting pose nearest the object's current orientation."""
+    out = parents.copy()
+    ks = pick_objects(rng, len(parents), weights)
+    log_q = np.zeros(len(parents))
+    for b, k in enumerate(ks):
+        rp = rest[k]
+        f = rng.choice(len(rp.probs), p=rp.probs)
+        R_old = parents[b, k, :3, :3]
+        base = parents[b, k, 2, 3] + lowest_point(R_old, hulls[k])
+        R = rot_z(rng.uniform(-np.pi, np.pi)) @ rp.rotations[f]
+        out[b, k, :3, :3] = R
+        out[b, k, 2, 3] = max(base, 0.0) - lowest_point(R, hulls[k]) + 1e-3
+        # Reverse move: back to the old face, whose probability is that of the resting pose it is nearest to.
+        old = _nearest_face(R_old, rp)
+        log_q[b] = np.log(rp.probs[old]) - np.log(rp.probs[f])
+    return Proposal(out, log_q)
+
+
+def _nearest_face(R: np.ndarray, rp: RestingPoses) -> int:
+    """The resting pose whose "down" direction (object frame) is closest to that of R."""
+    down = -R[2]  # object-frame direction pointing to -z
+    downs = -rp.rotations[:, 2, :]
+    return int(np.argmax(downs @ down))
+
+
+def propose_turn(rng: np.random.Generator, parents: np.ndarray, weights: np.ndarray) -> Proposal:
+    """Turn one object per particle by 90, 180 or 270 degrees about the vertical through its origin: the moves
+    that take a box from a wrong but locally good heading to the right one. Symmetric."""
+    out = parents.copy()
+    ks = pick_objects(rng, len(parents), weights)
+    quarter = rng.integers(1, 4, len(parents)) * (np.pi / 2)
+    idx = np.arange(len(parents))
+    out[idx, ks, :3, :3] = rot_z(quarter) @ parents[idx, ks, :3, :3]
+    return Proposal.symmetric(out)

@@ -1,0 +1,126 @@
+"""The observed points above the table, their clusters, and how well a scene explains them.
+
+All on the problem's pixel grid (``Problem.render_camera``, ``Problem.observed``); points in the table frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+import trimesh
+
+from workbench.geometry import invert_pose, transform_points
+from workbench.problem import Problem
+
+MIN_HEIGHT = 0.006  # m; lower points are the table (noise, unevenness)
+EXPLAINED = 0.015  # m; an observed depth this close to a scene's surface is explained by it
+SEEN_THROUGH = 0.02  # m; an observed depth this far behind an object's surface sees through where it should be
+
+
+@dataclass(frozen=True)
+class ScenePoints:
+    """``points``: (P, 3) observed points above the table, table frame; ``pixels``: (P, 2) their (row, col) on the
+    problem grid."""
+
+    points: np.ndarray
+    pixels: np.ndarray
+
+
+@dataclass(frozen=True)
+class ModelSamples:
+    """Surface samples of one model for fitting and explanation tests: ``points`` (M, 3) and ``normals`` (M, 3),
+    object frame, metres."""
+
+    points: np.ndarray
+    normals: np.ndarray
+
+
+def model_samples(mesh: trimesh.Trimesh, n: int = 1500, seed: int = 0) -> ModelSamples:
+    """Evenly spread surface points of ``mesh`` with their face normals (seeded, so the same for every run)."""
+    points, faces = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
+    return ModelSamples(np.asarray(points, dtype=np.float64), np.asarray(mesh.face_normals[faces], dtype=np.float64))
+
+
+def observed_points(problem: Problem, max_height: float = 0.45) -> ScenePoints:
+    """Back-project the observed depth and keep what stands above the table, within the table's extent."""
+    cam = problem.render_camera
+    obs = problem.observed.astype(np.float64)
+    rows, cols = np.nonzero(obs > 0)
+    z = obs[rows, cols]
+    K = cam.K
+    p_cam = np.stack([(cols - K[0, 2]) / K[0, 0] * z, (rows - K[1, 2]) / K[1, 1] * z, z], axis=1)
+    world = transform_points(invert_pose(cam.T_cam_world), p_cam)
+    tb = problem.table
+    keep = ((world[:, 2] > MIN_HEIGHT) & (world[:, 2] < max_height)
+            & (world[:, 0] >= tb.x_min) & (world[:, 0] <= tb.x_max)
+            & (world[:, 1] >= tb.y_min) & (world[:, 1] <= tb.y_max))
+    return ScenePoints(world[keep], np.stack([rows[keep], cols[keep]], axis=1))
+
+
+def project_samples(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]
+                    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per object, its surface samples that face the camera, projected: (rows (M,), cols (M,), depth (M,) m),
+    only those inside the grid."""
+    cam = problem.render_camera
+    h, w = problem.observed.shape
+    out = []
+    for k, s in enumerate(samples):
+        T = cam.T_cam_world @ scene[k]
+        p = s.points @ T[:3, :3].T + T[:3, 3]
+        n = s.normals @ T[:3, :3].T
+        facing = np.einsum("md,md->m", n, p) < 0  # normal points back towards the camera centre
+        p = p[facing & (p[:, 2] > 1e-3)]
+        u = np.round(p[:, 0] / p[:, 2] * cam.K[0, 0] + cam.K[0, 2]).astype(int)
+        v = np.round(p[:, 1] / p[:, 2] * cam.K[1, 1] + cam.K[1, 2]).astype(int)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        out.append((v[inside], u[inside], p[inside, 2]))
+    return out
+
+
+def object_badness(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
+    """How badly each object of ``scene`` (K, 4, 4) explains its part of the observation -> (K,) in [0, 1]: the
+    share of its camera-facing surface samples where the sensor sees through it (observed depth well behind the
+    surface) or sees nothing of it (the surface is in front of the observation but not on it, out of view)."""
+    obs = problem.observed
+    bad = np.zeros(len(samples))
+    for k, (v, u, d) in enumerate(project_samples(problem, scene, samples)):
+        o = obs[v, u]
+        seen = o > 0
+        through = seen & (o > d + SEEN_THROUGH)
+        on = seen & (np.abs(o - d) < EXPLAINED)
+        total = through.sum() + on.sum()
+        bad[k] = through.sum() / total if total else 1.0
+    return bad
+
+
+def unexplained(problem: Problem, points: ScenePoints, scene: np.ndarray | None,
+                samples: list[ModelSamples]) -> np.ndarray:
+    """(P,) bool: the observed points above the table that no object of ``scene`` (K, 4, 4) covers at about their
+    depth (all of them when ``scene`` is None)."""
+    if scene is None:
+        return np.ones(len(points.points), dtype=bool)
+    h, w = problem.observed.shape
+    zbuf = np.full((h, w), np.inf)
+    for v, u, d in project_samples(problem, scene, samples):
+        for dv in (-1, 0, 1):  # samples are sparser than pixels: splat each over its 3x3 neighbourhood
+            for du in (-1, 0, 1):
+                vv, uu = np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)
+                np.minimum.at(zbuf, (vv, uu), d)
+    r, c = points.pixels[:, 0], points.pixels[:, 1]
+    return ~(np.abs(problem.observed[r, c] - zbuf[r, c]) < EXPLAINED)
+
+
+def clusters(points: np.ndarray, eps: float = 0.015, min_points: int = 8, max_points: int = 6000,
+             seed: int = 0) -> list[np.ndarray]:
+    """Groups of nearby points (P, 3) -> list of (P_i, 3) arrays, largest first (DBSCAN; the points are thinned
+    to at most ``max_points`` first, deterministically)."""
+    if len(points) < min_points:
+        return []
+    if len(points) > max_points:
+        points = points[np.random.default_rng(seed).choice(len(points), max_points, replace=False)]
+    labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).cluster_dbscan(
+        eps, min_points=min_points))
+    groups = [points[labels == i] for i in range(labels.max() + 1)]
+    return sorted(groups, key=len, reverse=True)
