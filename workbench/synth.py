@@ -47,7 +47,8 @@ from workbench.meshes import MugShape, can_mesh, mug_collision_parts, mug_mesh, 
 from workbench.metrics import box_symmetries
 from workbench.sensor import SensorModel, apply_sensor
 
-CATEGORIES = ("touching", "stacked", "slant", "occluded", "three", "four", "clutter", "mixed")
+PAPER_CATEGORIES = ("touching", "stacked", "slant", "occluded", "three", "four")
+CATEGORIES = PAPER_CATEGORIES + ("clutter", "mixed")  # new ones go last: a category's index seeds its scenes
 EZ = np.array([0.0, 0.0, 1.0])
 
 
@@ -1016,7 +1017,18 @@ def load_distractors(dataset: Path, scene_id: int, im_id: int = 0,
 
 def true_table_pose(dataset: Path, scene_id: int, im_id: int = 0, split: str = "test") -> np.ndarray:
     """T_cam_world (4, 4, metres) of a generated frame: from scene_camera.json, else from scene_table.json."""
-    scene_dir = Path(dataset) / split / f"{scene_id:06d}"
+    return _table_pose_in(Path(dataset) / split / f"{scene_id:06d}", im_id)
+
+
+def frame_table_pose(frame) -> np.ndarray:
+    """The true T_cam_world (4, 4) of a loaded generated ``Frame``: its camera's, else its scene's
+    scene_table.json (found next to its depth image), for scoring frames that do not give it."""
+    if frame.camera.T_cam_world is not None:
+        return frame.camera.T_cam_world
+    return _table_pose_in(Path(frame.source).parent.parent, frame.im_id)
+
+
+def _table_pose_in(scene_dir: Path, im_id: int) -> np.ndarray:
     for name in ("scene_camera.json", "scene_table.json"):
         path = scene_dir / name
         entry = bop.read_json(path).get(str(im_id), {}) if path.is_file() else {}
