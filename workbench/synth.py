@@ -5,10 +5,10 @@ The paper's categories (Desingh et al. 2016, Sec. V), boxes on a bare 1.2 x 0.8 
 edge), ``slant`` (a box leaning on another box and the table), ``occluded`` (a small box hidden behind a tall one),
 ``three`` and ``four`` (clutter mixing those relations).
 
-Categories more like real frames (``DESKS``): ``clutter`` (4-6 objects, boxes with a can or a mug, some touching,
-some stacked, the rest standing free, and 2-4 distractors; half the frames without the table pose) and ``mixed``
-(2-3 objects mixing boxes with the can and the mug, 1-3 distractors, never the table pose). Their desks are drawn
-from 0.9-2.4 x 0.7-1.5 m, often larger than the camera's view. *Distractors* are slabs (books), cylinders (cups,
+Categories more like real frames (``DESKS``): ``clutter`` (4-6 objects, boxes with the can, the mug or both, some
+touching, some stacked, the rest standing free, and 2-4 distractors; half the frames without the table pose) and
+``mixed`` (2-3 objects mixing boxes with the can, the mug or both, 1-3 distractors, never the table pose). Their
+desks are drawn from 0.9-2.4 x 0.7-1.5 m, often larger than the camera's view. *Distractors* are slabs (books), cylinders (cups,
 bottles) and cables lying on the desk, clear of the objects: they are in the depth image but not in
 scene_gt.json, from which the estimator learns which objects are present (scene_distractors.json lists them). A
 frame without the table pose has no cam_R_w2c / cam_t_w2c in scene_camera.json, so the estimator must find the
