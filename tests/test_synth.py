@@ -1,4 +1,5 @@
-"""Synthetic scenes: categories hold when read back from disk, the sensor model's statistics, the demo."""
+"""Synthetic scenes: categories hold when read back from disk, the sensor model's statistics, the demo; the
+real-like desks: distractors, frames without the table pose, the generated can and mug."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench import bop, synth
+from workbench import bop, metrics, synth
 from workbench.errors import InputError
-from workbench.geometry import invert_pose
+from workbench.geometry import invert_pose, make_pose, rot_z
 from workbench.sensor import SensorModel, apply_sensor, axial_sigma
+from workbench.support import estimate_support
 
 W, H = 320, 240
 TOUCH = 1e-3  # m: boxes closer than this touch
@@ -24,8 +26,12 @@ def dataset(tmp_path_factory) -> tuple[Path, list[dict]]:
     return out, synth.make_scenes(out, list(synth.CATEGORIES), 1, seed=0, width=W, height=H)
 
 
-def _world(frame) -> np.ndarray:
-    return invert_pose(frame.camera.T_cam_world) @ frame.gt_T_cam_obj
+def _world(frame, dataset=None) -> np.ndarray:
+    """Ground-truth T_world_obj (K, 4, 4); the table pose from scene_table.json where the frame omits it."""
+    T_cam_world = frame.camera.T_cam_world
+    if T_cam_world is None:
+        T_cam_world = synth.true_table_pose(dataset, frame.scene_id, frame.im_id)
+    return invert_pose(T_cam_world) @ frame.gt_T_cam_obj
 
 
 def test_every_category_written_once_with_its_relations(dataset):
@@ -35,10 +41,20 @@ def test_every_category_written_once_with_its_relations(dataset):
     sizes = {"three": 3, "four": 4}
     for m in meta:
         rels = [r for r, _ in m["relations"][1:]]
+        kinds = [synth.OBJECT_BY_ID[i].kind for i in m["obj_ids"]]
         if m["category"] in expected:
             assert set(rels) == expected[m["category"]] and len(m["obj_ids"]) == 2
-        else:
+        elif m["category"] in sizes:
             assert len(m["obj_ids"]) == sizes[m["category"]] and len(set(rels)) >= 2
+        elif m["category"] == "clutter":
+            assert 4 <= len(m["obj_ids"]) <= 6 and {"touch", "stack"} <= set(rels) <= {"touch", "stack", "free"}
+            assert "box" in kinds and set(kinds) - {"box"} and 2 <= len(m["distractors"]) <= 4, m
+        else:  # mixed
+            assert 2 <= len(m["obj_ids"]) <= 3 and "box" in kinds and set(kinds) - {"box"}, m
+            assert 1 <= len(m["distractors"]) <= 3 and m["table_pose"] is False, m
+        if m["category"] in synth.PAPER_CATEGORIES:
+            assert set(kinds) == {"box"} and "distractors" not in m and "table_pose" not in m
+        assert len(set(m["obj_ids"])) == len(m["obj_ids"])
 
 
 def test_relations_hold_in_the_reloaded_poses(dataset):
@@ -46,14 +62,15 @@ def test_relations_hold_in_the_reloaded_poses(dataset):
     for m in meta:
         frame = bop.load_frame(out, m["scene_id"], 0)
         assert frame.object_ids == m["obj_ids"] and frame.depth.shape == (H, W)
-        T = _world(frame)
-        ext = np.array([synth.BOX_BY_ID[i].extents for i in frame.object_ids])
-        d = synth.contact_distances(ext, T)
+        T = _world(frame, out)
+        d = synth.item_distances([synth.OBJECT_BY_ID[i] for i in frame.object_ids], T)
         table = len(T)
         for child, (rel, parent) in enumerate(m["relations"]):
             tilt = synth.tilt_deg(T[child, :3, :3])
-            if rel == "base":
+            if rel in ("base", "free"):
                 assert d[child, table] < TOUCH and tilt < 3, m
+                if rel == "free":  # clear of every other object
+                    assert np.all(np.delete(d[child, :table], child) > TOUCH), (m, d)
                 continue
             assert d[child, parent] < TOUCH, (m, rel, d)
             if rel in ("touch", "hide"):
@@ -70,8 +87,10 @@ def test_visibility_info_matches_masks_and_hides_the_occluded_box(dataset):
         scene_dir = out / "test" / f"{m['scene_id']:06d}"
         info = json.loads((scene_dir / "scene_gt_info.json").read_text())["0"]
         frame = bop.load_frame(out, m["scene_id"], 0)
-        meshes = [synth.box_mesh(synth.BOX_BY_ID[i].extents) for i in frame.object_ids]
-        recomputed = synth.visible_masks(frame.camera.K, W, H, meshes, frame.gt_T_cam_obj)
+        meshes = [synth.item_mesh(synth.OBJECT_BY_ID[i]) for i in frame.object_ids]
+        distractors = synth.load_distractors(out, m["scene_id"])  # they hide objects too
+        poses = np.concatenate([frame.gt_T_cam_obj, np.array([T for _, T in distractors]).reshape(-1, 4, 4)])
+        recomputed = synth.visible_masks(frame.camera.K, W, H, meshes + [mesh for mesh, _ in distractors], poses)
         for k, entry in enumerate(info):
             png = np.asarray(Image.open(scene_dir / "mask_visib" / f"000000_{k:06d}.png")) > 0
             assert png.sum() == entry["px_count_visib"]
@@ -87,7 +106,7 @@ def test_visibility_info_matches_masks_and_hides_the_occluded_box(dataset):
 def test_models_carry_box_symmetries(dataset):
     out, _ = dataset
     models = bop.load_models(out)
-    assert sorted(models) == [b.obj_id for b in synth.BOXES]
+    assert sorted(models) == [o.obj_id for o in synth.OBJECTS]
     for b in synth.BOXES:
         assert np.allclose(sorted(models[b.obj_id].mesh.extents), sorted(b.extents), atol=1e-6)
     assert len(models[1].symmetries) == 4  # cracker box: three different sides
@@ -147,3 +166,108 @@ def test_demo_is_small_and_two_touching_boxes(tmp_path):
     ext = np.array([synth.BOX_BY_ID[i].extents for i in frame.object_ids])
     d = synth.contact_distances(ext, _world(frame))
     assert d[0, 1] < TOUCH and d[1, 0] < TOUCH
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Real-like desks
+
+
+def _scene_dirs(out: Path, meta: list[dict], categories) -> list[tuple[dict, Path]]:
+    return [(m, out / "test" / f"{m['scene_id']:06d}") for m in meta if m["category"] in categories]
+
+
+def test_distractors_are_in_the_depth_but_not_in_scene_gt(dataset):
+    out, meta = dataset
+    for m, scene_dir in _scene_dirs(out, meta, ("clutter", "mixed")):
+        gt = json.loads((scene_dir / "scene_gt.json").read_text())["0"]
+        assert [g["obj_id"] for g in gt] == m["obj_ids"]  # the objects of interest, and nothing else
+        entries = json.loads((scene_dir / "scene_distractors.json").read_text())["0"]
+        assert [e["kind"] for e in entries] == m["distractors"]
+        frame = bop.load_frame(out, m["scene_id"], 0)
+        K = frame.camera.K
+        distractors = synth.load_distractors(out, m["scene_id"])
+        objects = [synth.item_mesh(synth.OBJECT_BY_ID[i]).apply_transform(T)
+                   for i, T in zip(frame.object_ids, frame.gt_T_cam_obj)]
+        posed = [mesh.copy().apply_transform(T) for mesh, T in distractors]
+        depth, idx = synth.raycast(objects + posed, synth.pixel_rays(K, W, H))
+        shown = (idx >= len(objects)) & (frame.depth > 0)  # pixels where a distractor is the nearest thing
+        assert shown.sum() > 30, m  # unexplained by the objects the estimator is told about
+        # The sensor saw the distractor there: within 5 sigma of the noise (holes and edges aside).
+        err = np.abs(frame.depth[shown] - depth[shown])
+        assert np.mean(err < 5 * axial_sigma(depth[shown]) + 1e-3) > 0.9, (m, np.median(err))
+        # ... and no distractor touches an object: they were placed clear of every relation.
+        world = invert_pose(synth.true_table_pose(out, m["scene_id"]))
+        for mesh, T in distractors:
+            lowest = (mesh.copy().apply_transform(world @ T)).bounds[0, 2]
+            assert abs(lowest) < 1e-6  # resting on the table
+
+
+def test_frames_without_the_table_pose_load_and_the_table_is_found(dataset):
+    out, meta = dataset
+    omitted = [(m, d) for m, d in _scene_dirs(out, meta, synth.CATEGORIES) if not m.get("table_pose", True)]
+    assert omitted and all(m["category"] in ("clutter", "mixed") for m, _ in omitted)
+    for m, scene_dir in omitted:
+        cam = json.loads((scene_dir / "scene_camera.json").read_text())["0"]
+        assert "cam_R_w2c" not in cam and "cam_t_w2c" not in cam
+        frame = bop.load_frame(out, m["scene_id"], 0)
+        assert frame.camera.T_cam_world is None
+        camera, _ = estimate_support(frame)
+        T_true = synth.true_table_pose(out, m["scene_id"])
+        n_est, n_true = camera.T_cam_world[:3, 2], T_true[:3, 2]  # the table normal in the camera frame
+        assert np.degrees(np.arccos(np.clip(n_est @ n_true, -1, 1))) < 1.0, m
+        # The estimated plane passes within 5 mm of the true table origin (both in the camera frame).
+        assert abs(n_est @ (T_true[:3, 3] - camera.T_cam_world[:3, 3])) < 0.005, m
+
+
+def test_can_and_mug_models_are_watertight_with_their_dimensions(dataset):
+    out, _ = dataset
+    models = bop.load_models(out)
+    can, mug = synth.ROUND
+    for item in (can, mug):
+        mesh = models[item.obj_id].mesh
+        assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+        assert np.allclose(mesh.extents, item.extents, atol=1e-4), (item, mesh.extents)
+        assert np.allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-4)  # centred on its bounding box
+    assert models[can.obj_id].mesh.volume == pytest.approx(np.pi * can.radius**2 * can.height, rel=0.01)
+    s = mug.shape
+    body = np.pi * (s.radius**2 * s.height - (s.radius - s.wall) ** 2 * (s.height - s.bottom))  # hollow
+    width = 2 * s.radius * np.sin(np.pi * s.handle_segments / 64)  # the handle spans that many of 64 wall segments
+    handle = np.pi * (s.handle_reach + s.handle_span / 2) / 2 * s.handle_thickness * width  # ~half an ellipse
+    assert models[mug.obj_id].mesh.volume == pytest.approx(body + handle, rel=0.03)
+    # The mug is hollow: looking down its axis from 10 cm above the rim, one sees its inner bottom.
+    axis_x = -(s.handle_reach + s.handle_thickness / 2) / 2  # the body's axis in the centred model frame
+    down = np.array([[axis_x, 0.0, s.height / 2 + 0.1, 0.0, 0.0, -1.0]], dtype=np.float32)
+    hit, _ = synth.raycast([models[mug.obj_id].mesh], down)
+    assert hit[0] == pytest.approx(0.1 + s.height - s.bottom, abs=1e-5)
+    # The can looks the same turned about its axis (BOP symmetries_continuous), the mug does not.
+    info = json.loads((out / "models" / "models_info.json").read_text())
+    assert info[str(can.obj_id)]["symmetries_continuous"] == [{"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 0.0]}]
+    assert "symmetries_continuous" not in info[str(mug.obj_id)]
+    turned = make_pose(rot_z(np.radians(37.0)), np.zeros(3))
+    assert metrics.rotation_error(np.eye(4), turned, models[can.obj_id].symmetries) < 5.01
+    assert metrics.rotation_error(np.eye(4), turned, models[mug.obj_id].symmetries) == pytest.approx(37.0)
+
+
+def test_desk_options_override_the_category(tmp_path):
+    meta = synth.make_scenes(tmp_path, ["touching"], 1, seed=0, width=W, height=H, distractors=2, table_pose=0.0)
+    scene_dir = tmp_path / "test" / "000000"
+    assert meta[0]["table_pose"] is False and len(meta[0]["distractors"]) == 2
+    assert "cam_R_w2c" not in json.loads((scene_dir / "scene_camera.json").read_text())["0"]
+    assert len(synth.load_distractors(tmp_path, 0)) == 2
+    with pytest.raises(InputError, match="distractors"):
+        synth.make_scenes(tmp_path / "b", ["touching"], 1, seed=0, distractors=-1)
+    with pytest.raises(InputError, match="table pose"):
+        synth.make_scenes(tmp_path / "c", ["touching"], 1, seed=0, table_pose=1.5)
+
+
+def test_estimate_runs_on_a_frame_without_the_table_pose(dataset, tmp_path):
+    from workbench.cli import main
+
+    out, meta = dataset
+    m = next(m for m in meta if m["category"] == "mixed")
+    csv = tmp_path / "r.csv"
+    assert main(["estimate", str(out), "--scene", str(m["scene_id"]), "--frame", "0", "--particles", "16",
+                 "--iterations", "2", "--out", str(csv)]) == 0
+    rows = bop.read_results_csv(csv)
+    assert sorted(r.obj_id for r in rows) == sorted(m["obj_ids"])
+    assert all(np.all(np.isfinite(r.T_cam_obj)) and 0.2 < r.T_cam_obj[2, 3] < 3.0 for r in rows)

@@ -2,7 +2,8 @@
 
 Format (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md)::
 
-    DATASET/models/models_info.json        {"<obj_id>": {"diameter", "min_x".., "size_x".., "symmetries_discrete"}}
+    DATASET/models/models_info.json        {"<obj_id>": {"diameter", "min_x".., "size_x".., "symmetries_discrete",
+                                                         "symmetries_continuous"}}
     DATASET/models/obj_XXXXXX.ply          millimetres
     DATASET/<split>/<scene_id:06d>/scene_camera.json   {"<im_id>": {"cam_K", "depth_scale", ["cam_R_w2c", "cam_t_w2c"]}}
     DATASET/<split>/<scene_id:06d>/scene_gt.json       {"<im_id>": [{"obj_id", "cam_R_m2c", "cam_t_m2c"}, ...]}
@@ -360,11 +361,14 @@ def load_models(
 
 
 def save_models(
-    dataset: Path, meshes: dict[int, trimesh.Trimesh], symmetries: dict[int, np.ndarray] | None = None
+    dataset: Path, meshes: dict[int, trimesh.Trimesh], symmetries: dict[int, np.ndarray] | None = None,
+    symmetries_continuous: dict[int, list[dict]] | None = None,
 ) -> None:
     """Write meshes (metres) as DATASET/models/obj_XXXXXX.ply (mm) and models_info.json.
 
-    ``symmetries``: obj_id -> (S, 4, 4) metres; identity entries are not written (BOP lists only the others)."""
+    ``symmetries``: obj_id -> (S, 4, 4) metres; identity entries are not written (BOP lists only the others).
+    ``symmetries_continuous``: obj_id -> [{"axis": (3,), "offset": (3,) mm}], written as BOP's
+    ``symmetries_continuous`` (a can: axis [0, 0, 1], offset [0, 0, 0])."""
     models_dir = Path(dataset) / "models"
     info_path = models_dir / "models_info.json"
     info = read_json(info_path) if info_path.exists() else {}
@@ -388,6 +392,12 @@ def save_models(
             disc.append(S.ravel().tolist())
         if disc:
             entry["symmetries_discrete"] = disc
+        continuous = [] if symmetries_continuous is None else symmetries_continuous.get(obj_id, [])
+        if continuous:
+            entry["symmetries_continuous"] = [
+                {"axis": [float(v) for v in c["axis"]], "offset": [float(v) for v in c.get("offset", (0, 0, 0))]}
+                for c in continuous
+            ]
         info[str(obj_id)] = entry
     _write_json(info_path, {k: info[k] for k in sorted(info, key=int)})
 

@@ -95,7 +95,8 @@ def _cmd_make_scenes(args: argparse.Namespace) -> int:
         make_demo(args.out, seed=args.seed)
         print(f"wrote the demo scene to {args.out}", file=sys.stderr)
         return 0
-    scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed)
+    scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed,
+                         distractors=args.distractors, table_pose=args.table_pose)
     print(f"wrote {len(scenes)} scenes to {args.out} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0
 
@@ -145,9 +146,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where sessions are saved and listed (default: the --session's folder, else ./sessions)")
     p.set_defaults(func=_cmd_serve)
 
-    p = sub.add_parser("make-scenes", help="generate a BOP dataset of the paper's scene categories")
+    p = sub.add_parser("make-scenes", help="generate a BOP dataset of scene categories")
     p.add_argument("out", type=Path)
-    p.add_argument("--categories", default="touching,stacked,slant,occluded,three,four")
+    p.add_argument("--categories", default="touching,stacked,slant,occluded,three,four",
+                   help="comma-separated, of touching,stacked,slant,occluded,three,four (the paper's) and clutter, "
+                   "mixed (larger desks, round objects, distractors, frames without the table pose)")
+    p.add_argument("--distractors", type=int, default=None,
+                   help="objects the estimator is not told about, per scene (default: clutter 2-4, mixed 1-3, else 0)")
+    p.add_argument("--table-pose", type=float, default=None, metavar="P",
+                   help="share of frames whose scene_camera.json gives the table pose (default: 1; clutter 0.5, "
+                   "mixed 0)")
     p.add_argument("--per-category", type=int, default=7)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--demo", action="store_true", help="write the small bundled demo (assets/demo) instead")

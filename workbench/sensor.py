@@ -3,7 +3,8 @@
 Axial noise follows Nguyen, Izadi & Lovell (2012), "Modeling Kinect Sensor Noise for Improved 3D Reconstruction
 and Tracking": sigma(z) = 1.2 mm + 1.9 mm * (z - 0.4 m)^2 / m^2. Structured-light sensors also lose readings
 where the depth jumps (the projector's pattern is shadowed or smeared there) and at scattered pixels, and they
-report depth in millimetre steps.
+report depth in millimetre steps, up to a maximum range (OpenNI drops Kinect v1 readings beyond about 6 m, where
+a large desk seen at a grazing angle lets the view reach the far floor).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ class SensorModel:
     edge_drop: float = 0.8  # probability that a pixel at a discontinuity has no reading
     random_drop: float = 0.02  # fraction of all pixels without a reading
     quantum: float = 0.001  # depth resolution
+    max_range: float = 6.0  # no reading farther than this
 
 
 def axial_sigma(z: np.ndarray, model: SensorModel = SensorModel()) -> np.ndarray:
@@ -68,4 +70,4 @@ def apply_sensor(depth: np.ndarray, rng: np.random.Generator, model: SensorModel
     noisy = np.round(noisy / model.quantum) * model.quantum
     edge = discontinuities(clean, model.edge_jump, model.edge_width)
     drop = (edge & (rng.random(clean.shape) < model.edge_drop)) | (rng.random(clean.shape) < model.random_drop)
-    return np.where(valid & ~drop & (noisy > 0), noisy, 0.0).astype(np.float32)
+    return np.where(valid & ~drop & (noisy > 0) & (noisy <= model.max_range), noisy, 0.0).astype(np.float32)

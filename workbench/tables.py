@@ -33,7 +33,7 @@ from workbench.metrics import (
 from workbench.pipeline import load_bop_problem
 from workbench.problem import Problem
 from workbench.scene import Frame, ObjectModel
-from workbench.synth import CATEGORIES
+from workbench.synth import CATEGORIES, frame_table_pose
 
 METHODS = ("icp", "pipf", "mcpf")
 METHOD_NAMES = {"icp": "ICP", "pipf": "PI-PF", "mcpf": "PI-MCPF"}
@@ -163,7 +163,7 @@ def score_object(T_gt: np.ndarray, T_est: np.ndarray, model: ObjectModel, points
 def score_scene(frame: Frame, models: list[ObjectModel], points: list[np.ndarray], T_cam_est: np.ndarray,
                 visib: list[float], category: str, method: str) -> list[ObjectResult]:
     """Every object of a frame under one method. ``T_cam_est`` (K, 4, 4) camera frame, like the truth."""
-    T_world_cam = invert_pose(frame.camera.T_cam_world)
+    T_world_cam = invert_pose(frame_table_pose(frame))  # the true table frame, also where the frame omits it
     gt = T_world_cam[None] @ frame.gt_T_cam_obj
     est = T_world_cam[None] @ T_cam_est
     sizes = size_labels(models)
