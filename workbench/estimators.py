@@ -284,7 +284,7 @@ class Estimator:
         the first estimate), merged with the earlier candidates."""
         ctx = self._context()
         loose = unexplained(self.problem, ctx.points, self._map, ctx.samples)
-        groups = clusters(ctx.points.points[loose], seed=self.config.seed)
+        groups = clusters(ctx.points.points[loose])
         fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
         self._library = fresh if self._library is None else self._library.merged(fresh)
 

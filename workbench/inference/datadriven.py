@@ -26,10 +26,10 @@ from workbench.problem import Problem
 
 JITTER_POS = 0.005  # m
 JITTER_ANG = np.radians(3.0)
-PER_OBJECT = 8  # candidates kept per object
+PER_OBJECT = 12  # candidates kept per object
 MAX_CLUSTERS = 8
 MAX_CENTRES = 4  # per cluster
-PER_CLUSTER = 3  # candidates per object and cluster
+PER_CENTRE = 2  # candidates per object and start place
 MIN_TOP = 0.015  # m; lower clusters are table unevenness or flat clutter (paper, cables)
 
 
@@ -106,9 +106,9 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
         top = float(np.percentile(cluster[:, 2], 95))
         heading = principal_heading(cluster)
         for k in range(K):
-            here: list[tuple[float, np.ndarray]] = []
             footprint = 2.0 * reach[k]
             for centre in spread_centres(cluster, 0.6 * footprint, MAX_CENTRES):
+                at_centre: list[tuple[float, np.ndarray]] = []
                 # Faces whose standing height best matches the cluster's top; a cluster clearly taller than the
                 # object on that face may be it standing on something, so it starts on top.
                 heights = np.array([_height(R, hulls[k]) for R in rest[k].rotations])
@@ -121,9 +121,10 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
                         T, inliers = icp(crop(all_points, T0[:3, 3], reach[k] + 0.02), samples[k], T0)
                         if inliers < 10 or not np.all(np.isfinite(T)):
                             continue
-                        here.append((fit_score(problem, T, samples[k]), T))
-            # A few per cluster, so that one large cluster (several objects touching) cannot crowd out the others.
-            found[k] += _distinct(sorted(here, key=lambda c: -c[0]), PER_CLUSTER)
+                        at_centre.append((fit_score(problem, T, samples[k]), T))
+                # The best of each start place, so that in a cluster of several objects touching, the largest
+                # object's surface (where a smaller object also fits well) cannot crowd out the others.
+                found[k] += _distinct(sorted(at_centre, key=lambda c: -c[0]), PER_CENTRE)
     poses, weights = [], []
     for k in range(K):
         kept = _distinct(sorted(found[k], key=lambda c: -c[0]), PER_OBJECT)

@@ -1,0 +1,172 @@
+"""The default search's proposal kinds (workbench/inference/), on a generated frame with real physics and the real
+renderer where they are used."""
+
+import numpy as np
+import pytest
+
+from workbench.estimators import Estimator, EstimatorConfig
+from workbench.evaluation import LocalEvaluator
+from workbench.geometry import invert_pose
+from workbench.inference import datadriven, gaussian, refine, resting, stacking
+from workbench.inference.moves import MoveKind, MoveMix
+from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points
+from workbench.particles import Sigma, random_relocations
+from workbench.pipeline import load_bop_problem
+
+
+@pytest.fixture(scope="module")
+def frame_and_problem(touching_dataset):
+    return load_bop_problem(touching_dataset, 0, 0)
+
+
+@pytest.fixture(scope="module")
+def context(frame_and_problem):
+    _, problem = frame_and_problem
+    est = Estimator(problem, EstimatorConfig(), None)
+    ctx = est._context()
+    est._refit_library()
+    return problem, ctx, est._library
+
+
+def _truth(frame, problem):
+    return invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
+
+
+def _proposals(kind, rng, parents, problem, ctx, library):
+    K = problem.n_objects
+    w = np.ones(K)
+    if kind == "joint":
+        return gaussian.propose_joint(rng, parents, Sigma(), np.ones(K), "6dof")
+    if kind == "single":
+        return gaussian.propose_single(rng, parents, Sigma(), np.ones(K), "6dof", w)
+    if kind == "face":
+        return resting.propose_face(rng, parents, ctx.rest, ctx.hulls, w)
+    if kind == "turn":
+        return resting.propose_turn(rng, parents, w)
+    if kind == "stack":
+        return stacking.propose_stack(rng, parents, ctx.hulls, w)
+    if kind == "data":
+        return datadriven.propose_data(rng, parents, library, w)
+    if kind == "icp":
+        return refine.propose_icp(rng, parents, ctx.points.points, ctx.samples, ctx.reach, w)
+    raise AssertionError(kind)
+
+
+KINDS = ["joint", "single", "face", "turn", "stack", "data", "icp"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_proposal_kind_is_valid_and_seeded(frame_and_problem, context, kind):
+    frame, _ = frame_and_problem
+    problem, ctx, library = context
+    parents = np.repeat(_truth(frame, problem)[None], 12, axis=0)
+    a = _proposals(kind, np.random.default_rng(3), parents, problem, ctx, library)
+    b = _proposals(kind, np.random.default_rng(3), parents, problem, ctx, library)
+    assert a.hypotheses.shape == parents.shape and a.log_q_ratio.shape == (12,)
+    assert np.all(np.isfinite(a.hypotheses)) and np.all(np.isfinite(a.log_q_ratio))
+    R = a.hypotheses[..., :3, :3]
+    assert np.allclose(np.swapaxes(R, -1, -2) @ R, np.eye(3), atol=1e-9)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.allclose(a.hypotheses[..., 3, :], [0, 0, 0, 1])
+    assert np.array_equal(a.hypotheses, b.hypotheses) and np.array_equal(a.log_q_ratio, b.log_q_ratio)
+    assert not np.array_equal(a.hypotheses, parents)  # it moved something
+
+
+def test_one_object_moves_keep_the_others(frame_and_problem, context):
+    frame, _ = frame_and_problem
+    problem, ctx, library = context
+    parents = np.repeat(_truth(frame, problem)[None], 20, axis=0)
+    for kind in ("single", "face", "turn", "stack", "data", "icp"):
+        p = _proposals(kind, np.random.default_rng(0), parents, problem, ctx, library)
+        changed = np.any(np.abs(p.hypotheses - parents) > 1e-12, axis=(2, 3))  # (B, K)
+        assert np.all(changed.sum(axis=1) <= 1), kind
+
+
+def test_data_driven_start_finds_each_generated_object(frame_and_problem, context):
+    """On a clean generated frame, the candidates fitted to the clusters of observed points include every object
+    within 2 cm of where it is."""
+    frame, _ = frame_and_problem
+    problem, ctx, library = context
+    gt = _truth(frame, problem)
+    for k in range(problem.n_objects):
+        assert library.has(k)
+        d = np.linalg.norm(library.poses[k][:, :3, 3] - gt[k, :3, 3], axis=1)
+        assert d.min() < 0.02, f"object {k}: nearest candidate {d.min() * 100:.1f} cm away"
+        assert np.isclose(library.weights[k].sum(), 1.0)
+
+
+def test_resting_pose_proposal_puts_a_box_on_a_face(frame_and_problem, context):
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    parents = np.repeat(_truth(frame, problem)[None], 30, axis=0)
+    p = resting.propose_face(np.random.default_rng(1), parents, ctx.rest, ctx.hulls, np.ones(problem.n_objects))
+    proj, status, _ = LocalEvaluator(problem).projector.project_batch(p.hypotheses)
+    for b in range(len(parents)):
+        for k in range(problem.n_objects):
+            # A box on a face has one of its own axes vertical, before physics (proposed) and after (at rest).
+            for T in (p.hypotheses[b, k], proj[b, k]):
+                assert np.max(np.abs(T[2, :3])) > 0.99, f"particle {b} object {k} is tilted: {T[2, :3]}"
+    assert len(ctx.rest[0].probs) == 6 and np.isclose(ctx.rest[0].probs.sum(), 1.0)
+
+
+def test_badness_singles_out_the_misplaced_object(frame_and_problem, context):
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    scene = _truth(frame, problem).copy()
+    good = object_badness(problem, scene, ctx.samples)
+    scene[1, :2, 3] += 0.15  # object 1 moved off its observation
+    bad = object_badness(problem, scene, ctx.samples)
+    assert bad[1] > good[1] + 0.3 and abs(bad[0] - good[0]) < 0.1
+
+
+def test_clusters_are_deterministic_and_separate():
+    rng = np.random.default_rng(0)
+    a = rng.normal(scale=0.01, size=(300, 3)) + [0, 0, 0.05]
+    b = rng.normal(scale=0.01, size=(200, 3)) + [0.3, 0, 0.05]
+    groups = clusters(np.concatenate([a, b]))
+    assert [len(g) for g in groups] == [300, 200]
+
+
+def test_move_mix_draws_only_its_kinds():
+    kinds = MoveMix.paper().draw(np.random.default_rng(0), 100)
+    assert set(kinds.tolist()) == {int(MoveKind.JOINT)}
+    kinds = MoveMix().draw(np.random.default_rng(0), 2000)
+    assert len(set(kinds.tolist())) == 8
+
+
+@pytest.mark.parametrize("method", ["pipf", "mcpf"])
+def test_estimate_never_gets_worse(frame_and_problem, method):
+    _, problem = frame_and_problem
+    evaluator = LocalEvaluator(problem)
+    try:
+        est = Estimator(problem, EstimatorConfig(method=method, particles=24, seed=2), evaluator)
+        for _ in range(6):
+            est.step()
+    finally:
+        evaluator.close()
+    best = [r.best_loglik for r in est.history]
+    assert all(b1 >= b0 for b0, b1 in zip(best, best[1:]))
+    assert est.best_loglik == best[-1] and est.best_loglik >= est.loglik.max()
+    # Every iteration reports what each move kind proposed and how much of it was kept.
+    assert sum(c["proposed"] for c in est.history[-1].moves.values()) == 24
+    assert est.history[-1].best_kind in {k.label for k in MoveKind}
+
+
+def test_paper_proposals_use_random_starts_and_diffusion_only(frame_and_problem):
+    _, problem = frame_and_problem
+    evaluator = LocalEvaluator(problem)
+    try:
+        est = Estimator(problem, EstimatorConfig(particles=16, seed=2, proposals="paper"), evaluator)
+        est.step()
+        assert set(est.kinds.tolist()) == {int(MoveKind.START)}
+        est.step()
+        assert set(est.kinds.tolist()) == {int(MoveKind.JOINT)}
+    finally:
+        evaluator.close()
+
+
+def test_relocation_stays_valid(frame_and_problem):
+    frame, problem = frame_and_problem
+    parents = np.repeat(_truth(frame, problem)[None], 10, axis=0)
+    out = random_relocations(np.random.default_rng(0), parents, 0.5, problem.models, problem.table)
+    assert np.all(np.isfinite(out)) and out.shape == parents.shape
