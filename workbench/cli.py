@@ -12,6 +12,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.estimators import METHODS, EstimatorConfig
+from workbench.inference.moves import PROPOSALS
 from workbench.likelihood import LikelihoodConfig
 from workbench.particles import STATES, Sigma
 from workbench.problem import ProblemConfig
@@ -25,6 +26,9 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--iterations", type=int, default=60, help="maximum iterations (default 60)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--state", choices=STATES, default="6dof", help="6dof, or the paper's reduced x,y,z,yaw")
+    p.add_argument("--proposals", choices=PROPOSALS, default="default",
+                   help="default: data-driven starts and moves (one object at a time, resting faces, turns, "
+                        "stacking, ICP); paper: random starts and Gaussian diffusion only, as Desingh et al.")
     p.add_argument("--likelihood", choices=("robust", "ssd"), default="robust")
     p.add_argument("--sigma-pos", type=float, default=0.01, help="diffusion of x and y, metres")
     p.add_argument("--sigma-z", type=float, default=0.01, help="diffusion of elevation, metres")
@@ -43,6 +47,7 @@ def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
         sigma=Sigma(args.sigma_pos, args.sigma_pos, args.sigma_z, a, a, a),
         state=args.state,
         seed=args.seed,
+        proposals=args.proposals,
     )
 
 
