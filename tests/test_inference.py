@@ -46,7 +46,7 @@ def _proposals(kind, rng, parents, problem, ctx, library):
     if kind == "stack":
         return stacking.propose_stack(rng, parents, ctx.hulls, w)
     if kind == "data":
-        return datadriven.propose_data(rng, parents, library, w)
+        return datadriven.propose_data(rng, parents, library, w, ctx.radius)
     if kind == "icp":
         return refine.propose_icp(rng, parents, ctx.points.points, ctx.samples, ctx.reach, w)
     raise AssertionError(kind)

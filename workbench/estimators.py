@@ -275,6 +275,7 @@ class Estimator:
                 samples=[model_samples(m.mesh) for m in models],
                 hulls=hulls,
                 reach=np.array([float(np.max(np.linalg.norm(h[:, :2], axis=1))) for h in hulls]),
+                radius=np.array([float(np.max(np.linalg.norm(h, axis=1))) for h in hulls]),
                 points=observed_points(self.problem),
             )
         return self._search
@@ -297,12 +298,10 @@ class Estimator:
         if cfg.proposals == "paper":
             return start, kinds
         self._refit_library()
-        for k in range(self.problem.n_objects):
-            if not self._library.has(k):
-                continue
-            take = self.rng.random(cfg.particles) < cfg.data_start
-            start[take, k] = datadriven.sample_candidates(self.rng, self._library, k, int(take.sum()))
-            kinds[take] = int(MoveKind.DATA_START)
+        take = self.rng.random((cfg.particles, self.problem.n_objects)) < cfg.data_start
+        start = datadriven.sequential_start(self.rng, self._library, cfg.particles, self._context().radius, take,
+                                            start)
+        kinds[take.any(axis=1)] = int(MoveKind.DATA_START)
         return start, kinds
 
     def _propose(self, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -336,7 +335,7 @@ class Estimator:
             elif kind == MoveKind.STACK:
                 p = stacking.propose_stack(self.rng, sub, ctx.hulls, choose)
             elif kind == MoveKind.DATA:
-                p = datadriven.propose_data(self.rng, sub, self._library, choose)
+                p = datadriven.propose_data(self.rng, sub, self._library, choose, ctx.radius)
             elif kind == MoveKind.ICP:
                 p = refine.propose_icp(self.rng, sub, ctx.points.points, ctx.samples, ctx.reach, choose)
             else:  # RELOCATE: the uniform move keeps every place reachable
@@ -421,7 +420,8 @@ class _Search:
     rest: list
     samples: list
     hulls: list
-    reach: np.ndarray
+    reach: np.ndarray  # (K,) m, horizontal distance from the origin to the farthest hull vertex
+    radius: np.ndarray  # (K,) m, the same in 3D
     points: object
 
 

@@ -28,7 +28,7 @@ JITTER_POS = 0.005  # m
 JITTER_ANG = np.radians(3.0)
 PER_OBJECT = 12  # candidates kept per object
 MAX_CLUSTERS = 8
-MAX_CENTRES = 4  # per cluster
+MAX_CENTRES = 3  # per cluster
 PER_CENTRE = 2  # candidates per object and start place
 MIN_TOP = 0.015  # m; lower clusters are table unevenness or flat clutter (paper, cables)
 
@@ -109,12 +109,14 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
             footprint = 2.0 * reach[k]
             for centre in spread_centres(cluster, 0.6 * footprint, MAX_CENTRES):
                 at_centre: list[tuple[float, np.ndarray]] = []
-                # Faces whose standing height best matches the cluster's top; a cluster clearly taller than the
-                # object on that face may be it standing on something, so it starts on top.
+                # Every face on which the object is no taller than the cluster; where the cluster is clearly
+                # taller, the object may stand on something, so it also starts on top of that.
                 heights = np.array([_height(R, hulls[k]) for R in rest[k].rotations])
-                for f in np.argsort(np.abs(heights - top))[:2]:
+                faces = np.nonzero(heights <= top + 0.02)[0]
+                starts = [(f, 0.0) for f in (faces if len(faces) else [int(np.argmin(heights))])]
+                starts += [(f, top - heights[f]) for f in faces if top > heights[f] + 0.02]
+                for f, base in starts:
                     R0 = rest[k].rotations[f]
-                    base = top - heights[f] if top > heights[f] + 0.02 else 0.0
                     for quarter in range(4):
                         R = rot_z(heading + quarter * np.pi / 2) @ R0
                         T0 = make_pose(R, np.array([centre[0], centre[1], base + rest[k].heights[f]]))
@@ -180,10 +182,51 @@ def log_density(library: Library, k: int, T: np.ndarray) -> float:
     return float(m + np.log(np.sum(np.exp(terms - m))))
 
 
-def propose_data(rng: np.random.Generator, parents: np.ndarray, library: Library, weights: np.ndarray) -> Proposal:
+def overlaps(T: np.ndarray, others: np.ndarray, radius: float, other_radii: np.ndarray) -> bool:
+    """Whether an object of ``radius`` (m) at pose T (4, 4) would sit deep inside one of ``others`` (J, 4, 4)
+    of ``other_radii`` (J,): centres closer than 40 % of the radii's sum (stacked or touching objects are
+    farther apart than that)."""
+    if len(others) == 0:
+        return False
+    d = np.linalg.norm(others[:, :3, 3] - T[:3, 3], axis=1)
+    return bool(np.any(d < 0.4 * (radius + other_radii)))
+
+
+def draw_compatible(rng: np.random.Generator, library: Library, k: int, others: np.ndarray, radii: np.ndarray,
+                    others_k: np.ndarray, tries: int = 8) -> np.ndarray:
+    """A pose of object k from its library that does not sit inside the objects ``others`` (J, 4, 4) (indices
+    ``others_k`` (J,) into ``radii`` (K,)); the last draw if every try overlaps -> (4, 4).
+
+    The others are the same in the forward and the reverse move, so restricting the draw to the poses
+    compatible with them changes the mixture density by a factor that cancels in the log-q correction."""
+    for _ in range(tries):
+        T = sample_candidates(rng, library, k, 1)[0]
+        if not overlaps(T, others, radii[k], radii[others_k]):
+            break
+    return T
+
+
+def sequential_start(rng: np.random.Generator, library: Library, n: int, radii: np.ndarray, take: np.ndarray,
+                     uniform: np.ndarray) -> np.ndarray:
+    """n initial scenes (n, K, 4, 4): objects in a random order each take a library pose compatible with those
+    already placed, where ``take`` (n, K) says so; the others keep their ``uniform`` (n, K, 4, 4) start."""
+    out = uniform.copy()
+    K = uniform.shape[1]
+    for i in range(n):
+        placed: list[int] = []
+        for k in rng.permutation(K):
+            if take[i, k] and library.has(k):
+                idx = np.array(placed, dtype=int)
+                out[i, k] = draw_compatible(rng, library, k, out[i, idx], radii, idx)
+                placed.append(int(k))
+    return out
+
+
+def propose_data(rng: np.random.Generator, parents: np.ndarray, library: Library, weights: np.ndarray,
+                 radii: np.ndarray) -> Proposal:
     """One object per particle (drawn by ``weights`` (K,) among objects with candidates) takes a pose from its
-    library; the others stay. An independence move: log-q correction log q(x_k) - log q(x*_k).
-    (B, K, 4, 4) -> Proposal."""
+    library that does not sit inside another object (``radii`` (K,) m); the others stay. An independence move:
+    log-q correction log q(x_k) - log q(x*_k). (B, K, 4, 4) -> Proposal."""
     K = parents.shape[1]
     has = np.array([library.has(k) for k in range(K)])
     out = parents.copy()
@@ -192,7 +235,8 @@ def propose_data(rng: np.random.Generator, parents: np.ndarray, library: Library
         return Proposal(out, log_q)
     ks = pick_objects(rng, len(parents), np.where(has, weights, 0.0))
     for b, k in enumerate(ks):
-        new = sample_candidates(rng, library, k, 1)[0]
+        others = np.array([j for j in range(K) if j != k], dtype=int)
+        new = draw_compatible(rng, library, k, parents[b, others], radii, others)
         log_q[b] = log_density(library, k, parents[b, k]) - log_density(library, k, new)
         out[b, k] = new
     return Proposal(out, log_q)

@@ -16,6 +16,7 @@ from workbench.inference.scenepoints import ModelSamples
 
 STAGES = (0.04, 0.02, 0.01)  # m; correspondence distances, coarse to fine
 JITTER_POS = 0.003  # m
+MAX_POINTS = 400
 JITTER_ANG = np.radians(1.5)
 
 
@@ -24,7 +25,7 @@ def crop(points: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     return points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < radius]
 
 
-def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations: int = 10
+def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations: int = 8
         ) -> tuple[np.ndarray, int]:
     """Fit the model (samples in its object frame) at ``T_init`` (4, 4, table frame) to the observed points
     ``scene`` (P, 3): scene-to-model point-to-plane ICP, coarse to fine over ``STAGES`` -> (refined pose (4, 4),
@@ -33,6 +34,8 @@ def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations
     multi-threaded ICP, so seeded runs stay identical."""
     if len(scene) < 10:
         return T_init.copy(), 0
+    if len(scene) > MAX_POINTS:  # evenly thinned: a few hundred points pin a pose down as well as thousands
+        scene = scene[np.linspace(0, len(scene) - 1, MAX_POINTS).astype(int)]
     tree = cKDTree(samples.points)
     T_obj_world = invert_pose(T_init)  # scene points are moved into the object frame; the model stays put
     inliers = 0
