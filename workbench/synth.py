@@ -730,18 +730,31 @@ def _scene_meta(scene_id: int, sample: SceneSample) -> dict:
     }
 
 
+def check_out_folder(out: Path, force: bool) -> None:
+    """A dataset is written into a new or empty folder: one that holds anything (another dataset, a user's files)
+    is refused unless ``force``, because its frames and metadata would be replaced or merged."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file: name a folder for the dataset")
+    if out.is_dir() and not force and any(out.iterdir()):
+        raise InputError(out, f"folder is not empty ({len(list(out.iterdir()))} entries): its files would be "
+                              "replaced. Choose a new or empty folder, or pass --force to write into it")
+
+
 def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, width: int = 640,
-                height: int = 480) -> list[dict]:
+                height: int = 480, force: bool = False) -> list[dict]:
     """Write ``per_category`` scenes of each category as a BOP dataset in ``out`` (split "test", one image each).
 
     Scene ids run over ``categories`` in order; each scene's random draw depends only on (seed, category,
     index within the category), so asking for fewer categories leaves the others' scenes unchanged.
     -> per scene {"scene_id", "category", "obj_ids", "relations", "visib_fract", "tries"} (also in scenes.json).
+    ``out`` must be new or empty unless ``force``.
     """
     unknown = [c for c in categories if c not in CATEGORIES]
     if unknown:
         raise InputError("categories", f"unknown {unknown}; choose from {list(CATEGORIES)}")
     out = Path(out)
+    check_out_folder(out, force)
     cfg = SynthConfig(width=width, height=height)
     save_box_models(out)
     _write_camera_json(out, cfg)
@@ -760,9 +773,11 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     return meta
 
 
-def make_demo(out: Path, seed: int = 0) -> list[dict]:
-    """The bundled demo: two touching boxes on a table, one 640x480 frame (a few hundred kB)."""
+def make_demo(out: Path, seed: int = 0, force: bool = False) -> list[dict]:
+    """The bundled demo: two touching boxes on a table, one 640x480 frame (a few hundred kB). ``out`` must be new
+    or empty unless ``force``."""
     out = Path(out)
+    check_out_folder(out, force)
     cfg = SynthConfig()
     sim = Sim(cfg)
     try:
