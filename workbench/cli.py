@@ -73,6 +73,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     todo = [f for f in frames if f not in results.done()]
     if len(todo) < len(frames):
         print(f"resuming: {len(frames) - len(todo)} of {len(frames)} frame(s) already in {args.out}", file=sys.stderr)
+    if not todo:
+        return 0
     rows = estimate_frames(
         args.dataset, todo, config, problem, args.workers,
         split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop, on_frame=results.add,
