@@ -46,6 +46,7 @@ PLAUSIBLE_MEDIAN_DEPTH = (0.15, 6.0)
 # Continuous symmetries (bowls, cans) become this many discrete rotations about their axis.
 CONTINUOUS_SYMMETRY_STEPS = 36
 MAX_FOCAL_IN_IMAGES = 100
+MAX_TABLE_DISTANCE = 100.0  # metres from the camera to the table frame's origin
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -546,6 +547,10 @@ def load_frame(
     T_cam_world = None
     if "cam_R_w2c" in cam and "cam_t_w2c" in cam:
         T_cam_world = parse_pose(cam["cam_R_w2c"], cam["cam_t_w2c"], cam_path, f"image {im_id} cam_R_w2c/cam_t_w2c")
+        distance = float(np.linalg.norm(T_cam_world[:3, 3]))
+        if distance > MAX_TABLE_DISTANCE:
+            raise InputError(cam_path, f"image {im_id} cam_t_w2c puts the table frame {distance:.4g} m from the camera "
+                                       f"(at most {MAX_TABLE_DISTANCE:g} m): translations are in millimetres")
 
     depth_path = scene_dir / "depth" / f"{im_id:06d}.png"
     depth = read_depth_png(depth_path) * depth_scale * MM
@@ -697,18 +702,28 @@ class ResultRow:
 RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 
 
-def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
-    """BOP results CSV: R 9 numbers row-major, t 3 numbers in mm, space-separated."""
+def results_csv_lines(rows: list[ResultRow]) -> list[str]:
+    """The data lines (no header, no newline) of a BOP results CSV: R 9 numbers row-major, t 3 numbers in mm,
+    space-separated."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(RESULTS_HEADER)
     for r in rows:
         R, t = _R_t_mm(r.T_cam_obj)
         w.writerow(
             [r.scene_id, r.im_id, r.obj_id, f"{r.score:.12g}", " ".join(f"{v:.12g}" for v in R),
              " ".join(f"{v:.12g}" for v in t), f"{r.time:.12g}"]
         )
-    _atomic_write(Path(path), buf.getvalue().encode())
+    return buf.getvalue().splitlines()
+
+
+def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
+    """BOP results CSV (``results_csv_lines`` under the header)."""
+    write_results_lines(path, results_csv_lines(rows))
+
+
+def write_results_lines(path: Path, lines: list[str]) -> None:
+    """The header and ``lines`` (from ``results_csv_lines``), atomically."""
+    _atomic_write(Path(path), "".join(f"{line}\n" for line in [",".join(RESULTS_HEADER), *lines]).encode())
 
 
 def read_results_csv(path: Path) -> list[ResultRow]:

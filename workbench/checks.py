@@ -104,10 +104,36 @@ def check_estimator_config(config, where: str = "") -> None:
                                           f"iteration, got {sigma.tolist()}")
 
 
-def check_problem_config(config) -> None:
-    """What ``problem.build_problem`` would refuse only after the frame is loaded."""
+# Upper bounds of the physics and render settings a session file may carry: beyond them a step never ends (a
+# simulation that may run 10**30 steps) or pybullet and OpenGL overflow their C integers.
+PHYSICS_MAX = {"timestep": 0.1, "solver_iterations": 10_000, "max_steps": 100_000, "check_every": 10_000,
+               "rest_checks": 10_000, "separation_iterations": 10_000, "rest_linear": 100.0, "rest_angular": 1000.0,
+               "table_thickness": 10.0, "max_speed": 1e4, "max_angular": 1e5, "max_distance": 1e3,
+               "penetration_tolerance": 1.0, "gravity": 1e3, "table_friction": 100.0}
+RENDER_BACKENDS = ("auto", "osmesa", "egl")
+MAX_FRAMEBUFFER = 16384
+
+
+def check_problem_config(config, where: str = "") -> None:
+    """What ``problem.build_problem`` would refuse only after the frame is loaded, and the bounds of the physics
+    and render settings (``PhysicsConfig`` checks only their signs). ``where`` prefixes the settings' names."""
     config.likelihood.validate()
-    check_count(config.max_render_pixels, "max_render_pixels", low=64)
+    lik = config.likelihood
+    for name in ("sigma", "depth_range", "max_residual"):  # metres; squared and divided by, so not too small
+        value = getattr(lik, name)
+        if not (isinstance(value, (int, float)) and 1e-6 <= value <= 1e3):
+            raise InputError(f"{where}likelihood.{name}", f"must be from 1e-6 to 1000 metres, got {value!r}")
+    check_count(config.max_render_pixels, f"{where}max_render_pixels" if where else "--max-render-pixels", low=64)
+    for name, high in PHYSICS_MAX.items():
+        value = getattr(config.physics, name)
+        if not value <= high:
+            raise InputError(f"{where}physics.{name}", f"must be at most {high:g}, got {value!r}")
+    if not config.physics.off_table_z >= -1e3:
+        raise InputError(f"{where}physics.off_table_z", f"must be at least -1000, got {config.physics.off_table_z!r}")
+    if config.render.backend not in RENDER_BACKENDS:
+        raise InputError(f"{where}render.backend", f"must be one of {', '.join(RENDER_BACKENDS)}, got "
+                                                   f"{config.render.backend!r}")
+    check_count(config.render.max_framebuffer, f"{where}render.max_framebuffer", low=64, high=MAX_FRAMEBUFFER)
 
 
 def check_rigid(T, what: str, path=None) -> np.ndarray:

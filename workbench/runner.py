@@ -74,9 +74,9 @@ def dataset_folder_of(path: Path) -> Path | None:
     return None
 
 
-def check_results_out(out: Path, force: bool = False, resume: bool = False) -> list[ResultRow]:
-    """Check, before any work, that ``estimate`` may write its results CSV at ``out`` -> the rows already there
-    to keep (``resume``; else none). Refused with InputError: a folder, a path below a file, an unwritable place,
+def check_results_out(out: Path, force: bool = False, resume: bool = False) -> list[str]:
+    """Check, before any work, that ``estimate`` may write its results CSV at ``out`` -> the data lines already
+    there to keep as they are (``resume``; else none). Refused with InputError: a folder, a path below a file, an unwritable place,
     anything inside a dataset's scene or models folder (even with ``force``), and an existing file that is not a
     results CSV of ours unless ``force``."""
     out = Path(out)
@@ -103,7 +103,8 @@ def check_results_out(out: Path, force: bool = False, resume: bool = False) -> l
     if not os.access(target, os.W_OK):
         raise InputError(out, "no permission to replace this file")
     try:
-        ours = bop.read_results_csv(target)
+        bop.read_results_csv(target)
+        ours = [line for line in target.read_text().splitlines()[1:] if line.strip()]
     except (InputError, OSError, UnicodeDecodeError):
         ours = None
     if resume:
@@ -118,16 +119,22 @@ def check_results_out(out: Path, force: bool = False, resume: bool = False) -> l
 
 class ResultsFile:
     """The results CSV of a run, rewritten whole (atomically) after every frame: the file always holds every
-    finished frame, in frame order, and nothing half-written."""
+    finished frame, in frame order, and nothing half-written. Lines kept from an earlier run (``lines``, checked
+    by ``check_results_out``) stay exactly as they were."""
 
-    def __init__(self, path: Path, rows: list[ResultRow] | None = None):
+    def __init__(self, path: Path, lines: list[str] | None = None):
         self.path = Path(path)
-        self.rows = list(rows or [])
+        self.lines = list(lines or [])
+
+    @staticmethod
+    def _frame(line: str) -> tuple[int, int]:
+        scene_id, im_id = line.split(",", 2)[:2]
+        return int(scene_id), int(im_id)
 
     def done(self) -> set[tuple[int, int]]:
         """(scene_id, im_id) of the frames already in the file."""
-        return {(r.scene_id, r.im_id) for r in self.rows}
+        return {self._frame(line) for line in self.lines}
 
     def add(self, rows: list[ResultRow]) -> None:
-        self.rows = sorted(self.rows + list(rows), key=lambda r: (r.scene_id, r.im_id))
-        bop.write_results_csv(self.path, self.rows)
+        self.lines = sorted(self.lines + bop.results_csv_lines(rows), key=self._frame)
+        bop.write_results_lines(self.path, self.lines)

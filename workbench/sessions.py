@@ -421,7 +421,7 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
                   region_min=_pair(t["region_min"], "table.region_min"),
                   region_max=_pair(t["region_max"], "table.region_max"))
     problem_config = config_from_dict(ProblemConfig, d["problem_config"], "problem_config")
-    check_problem_config(problem_config)
+    check_problem_config(problem_config, "problem_config.")
     estimator_config = config_from_dict(EstimatorConfig, d["estimator_config"], "estimator_config")
     check_estimator_config(estimator_config, "estimator_config.")  # the command line's bounds, seed included
     e = d["estimator"]
