@@ -46,7 +46,8 @@ PLAUSIBLE_MEDIAN_DEPTH = (0.15, 6.0)
 # Continuous symmetries (bowls, cans) become this many discrete rotations about their axis.
 CONTINUOUS_SYMMETRY_STEPS = 36
 MAX_FOCAL_IN_IMAGES = 100
-MAX_TABLE_DISTANCE = 100.0  # metres from the camera to the table frame's origin
+MAX_TABLE_DISTANCE = 100.0  # metres from the camera to the table frame's origin (along any axis)
+MAX_DEPTH_SCALE = 1e4  # millimetres per PNG unit; beyond it 16-bit depth holds nothing but astronomy
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -213,7 +214,8 @@ def parse_pose(R, t, path: Path, what: str, t_unit: float = MM) -> np.ndarray:
         raise InputError(path, f"{what}: rotation must be 9 numbers and translation 3 numbers") from e
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise InputError(path, f"{what} contains NaN or inf")
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+    # Entries of a rotation lie in [-1, 1]: checked first so that huge values are refused without overflowing.
+    if np.abs(R).max() > 1.001 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
         raise InputError(path, f"{what}: the rotation is not orthonormal with determinant +1 ({R.ravel().tolist()})")
     U, _, Vt = np.linalg.svd(R)
     return make_pose(U @ Vt, t * t_unit)
@@ -542,12 +544,13 @@ def load_frame(
         raise InputError(cam_path, f"image {im_id} has no cam_K (the 3x3 intrinsics, 9 numbers row-major)")
     K = parse_K(cam["cam_K"], cam_path)
     depth_scale = expect_number(cam.get("depth_scale", 1.0), cam_path, f"image {im_id} depth_scale")
-    if depth_scale <= 0:
-        raise InputError(cam_path, f"image {im_id}: depth_scale must be a positive number, got {depth_scale}")
+    if not 0 < depth_scale <= MAX_DEPTH_SCALE:
+        raise InputError(cam_path, f"image {im_id}: depth_scale must be a positive number up to {MAX_DEPTH_SCALE:g} "
+                                   f"(mm per PNG unit), got {depth_scale}")
     T_cam_world = None
     if "cam_R_w2c" in cam and "cam_t_w2c" in cam:
         T_cam_world = parse_pose(cam["cam_R_w2c"], cam["cam_t_w2c"], cam_path, f"image {im_id} cam_R_w2c/cam_t_w2c")
-        distance = float(np.linalg.norm(T_cam_world[:3, 3]))
+        distance = float(np.abs(T_cam_world[:3, 3]).max())
         if distance > MAX_TABLE_DISTANCE:
             raise InputError(cam_path, f"image {im_id} cam_t_w2c puts the table frame {distance:.4g} m from the camera "
                                        f"(at most {MAX_TABLE_DISTANCE:g} m): translations are in millimetres")

@@ -150,7 +150,9 @@ def check_rigid(T, what: str, path=None) -> np.ndarray:
     if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(initial=0.0) > RIGID_TOLERANCE:
         raise InputError(path, f"{what}: the bottom row of a pose must be [0, 0, 0, 1]")
     R = T[..., :3, :3]
-    if np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max(initial=0.0) > RIGID_TOLERANCE:
+    # Entries of a rotation lie in [-1, 1]: checked first so that huge values are refused without overflowing.
+    if np.abs(R).max(initial=0.0) > 1 + RIGID_TOLERANCE or \
+            np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max(initial=0.0) > RIGID_TOLERANCE:
         raise InputError(path, f"{what}: a rotation is not orthonormal")
     if np.any(np.linalg.det(R) < 0):
         raise InputError(path, f"{what}: a rotation has determinant -1 (a reflection, not a rotation)")

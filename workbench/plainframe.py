@@ -23,6 +23,7 @@ import numpy as np
 import trimesh
 
 from .bop import (
+    MAX_DEPTH_SCALE,
     MM,
     check_depth,
     check_depth_units,
@@ -116,8 +117,9 @@ def load_plain_frame(
     if not isinstance(intr, dict):
         raise InputError(intrinsics_path, "expected a JSON object with K (or fx, fy, cx, cy)")
     depth_scale = expect_number(intr.get("depth_scale", 1.0), intrinsics_path, "depth_scale")
-    if depth_scale <= 0:
-        raise InputError(intrinsics_path, f"depth_scale must be a positive number (mm per unit), got {depth_scale}")
+    if not 0 < depth_scale <= MAX_DEPTH_SCALE:
+        raise InputError(intrinsics_path, f"depth_scale must be a positive number up to {MAX_DEPTH_SCALE:g} (mm per "
+                                          f"unit), got {depth_scale}")
     depth = _read_depth(depth_path, depth_scale)
     camera = _camera(intr, intrinsics_path, depth.shape)
     check_depth(depth, depth_path, camera)

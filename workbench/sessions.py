@@ -416,10 +416,14 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
                      _int(f["scene_id"], "frame.scene_id"), _int(f["im_id"], "frame.im_id"), object_ids,
                      _float(f["density"], "frame.density"), _float(f["friction"], "frame.friction"), dict(files))
     T_cam_world = _pose(d["support"]["T_cam_world"], "support.T_cam_world")
+    if np.abs(T_cam_world[:3, 3]).max() > bop.MAX_TABLE_DISTANCE:
+        raise ValueError(f"support.T_cam_world puts the table more than {bop.MAX_TABLE_DISTANCE:g} m from the "
+                         "camera")
     t = d["support"]["table"]
     table = Table(*(_float(t[k], f"table.{k}") for k in ("x_min", "x_max", "y_min", "y_max")),
                   region_min=_pair(t["region_min"], "table.region_min"),
                   region_max=_pair(t["region_max"], "table.region_max"))
+    _check_table(table)
     problem_config = config_from_dict(ProblemConfig, d["problem_config"], "problem_config")
     check_problem_config(problem_config, "problem_config.")
     estimator_config = config_from_dict(EstimatorConfig, d["estimator_config"], "estimator_config")
@@ -544,6 +548,17 @@ def _pose(v, where: str) -> np.ndarray:
         return check_rigid(T, where)
     except InputError as e:
         raise ValueError(e.problem) from e
+
+
+def _check_table(table: Table) -> None:
+    """A table within reach of the camera, its object region inside it (the estimator draws particles there)."""
+    lo = (table.x_min, table.y_min, *table.region_min)
+    hi = (table.x_max, table.y_max, *table.region_max)
+    if not all(np.isfinite(v) and abs(v) <= bop.MAX_TABLE_DISTANCE for v in lo + hi):
+        raise ValueError(f"support.table values must be finite and within {bop.MAX_TABLE_DISTANCE:g} m")
+    if not (table.x_min < table.x_max and table.y_min < table.y_max
+            and all(a <= b for a, b in zip(table.region_min, table.region_max))):
+        raise ValueError("support.table: each minimum must lie below its maximum")
 
 
 def _rng_state(v) -> dict:
