@@ -11,3 +11,14 @@ def touching_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("touching")
     make_scenes(out, ["touching"], 1, seed=3, width=320, height=240)
     return out
+
+
+@pytest.fixture(scope="session", autouse=True)
+def workbench_home(tmp_path_factory) -> Path:
+    """The user data folder (where the app copies the demo) of every test and the processes it starts: never the
+    real home."""
+    import os
+
+    home = tmp_path_factory.mktemp("workbench-home")
+    os.environ["WORKBENCH_HOME"] = str(home)
+    return home

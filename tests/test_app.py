@@ -54,9 +54,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_dead_worker_and_dead_engine_are_restarted_and_the_run_goes_on():
+def test_dead_worker_and_dead_engine_are_restarted_and_the_run_goes_on(capfd, caplog):
+    import logging
+
     from workbench.app.server import serve
     from workbench.estimators import EstimatorConfig
+
+    caplog.set_level(logging.WARNING)
 
     handle = serve(demo=True, block=False, port=free_port(), workers=2,
                    config=EstimatorConfig(particles=16, iterations=50))
@@ -85,6 +89,10 @@ def test_dead_worker_and_dead_engine_are_restarted_and_the_run_goes_on():
         assert not app.state.display_errors
     finally:
         handle.stop()
+    # Both crashes are in the server's log at WARNING: the worker's in the engine process's stderr, the engine's
+    # in the server's own log.
+    assert "an evaluation worker died" in capfd.readouterr().err
+    assert any(r.levelno == logging.WARNING and "estimator process died" in r.getMessage() for r in caplog.records)
 
 
 class Inbox(list):

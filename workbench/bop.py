@@ -46,6 +46,9 @@ MODEL_DIRS = ("models", "models_cad", "models_eval", "models_reconst")
 PLAUSIBLE_MEDIAN_DEPTH = (0.15, 6.0)
 # Continuous symmetries (bowls, cans) become this many discrete rotations about their axis.
 CONTINUOUS_SYMMETRY_STEPS = 36
+MAX_FOCAL_IN_IMAGES = 100
+MAX_TABLE_DISTANCE = 100.0  # metres from the camera to the table frame's origin (along any axis)
+MAX_DEPTH_SCALE = 1e4  # millimetres per PNG unit; beyond it 16-bit depth holds nothing but astronomy
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -63,16 +66,20 @@ def read_json(path: Path) -> dict | list:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    """Write through a temporary file in the same folder so readers never see a half-written file."""
+    """Write through a temporary file in the same folder so readers never see a half-written file. A replaced
+    file keeps its permissions; a new one gets those a plain open() would give it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-        # mkstemp makes owner-only files; give the file the permissions a plain open() would have.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        try:
+            mode = path.stat().st_mode & 0o7777
+        except FileNotFoundError:
+            umask = os.umask(0)  # mkstemp makes owner-only files
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -86,8 +93,7 @@ def _write_json(path: Path, content: dict) -> None:
 def _merge_json(path: Path, im_id: int, value) -> None:
     """Set key ``str(im_id)`` of the JSON object in ``path`` (created if missing), keys kept in numeric order."""
     content = read_json(path) if path.exists() else {}
-    if not isinstance(content, dict):
-        raise InputError(path, "expected a JSON object keyed by image id")
+    image_ids(content, path)  # a file keyed by anything else is refused, not rewritten
     content[str(im_id)] = value
     _write_json(path, {k: content[k] for k in sorted(content, key=int)})
 
@@ -126,6 +132,58 @@ def read_rgb(path: Path) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# Typed values: JSON that parses may still hold a string where a number belongs. Each reader names the file, the
+# key and what was expected.
+
+
+def expect_object(value, path: Path, what: str) -> dict:
+    if not isinstance(value, dict):
+        raise InputError(path, f"{what} must be a JSON object {{...}}, got {_kind(value)}")
+    return value
+
+
+def expect_list(value, path: Path, what: str) -> list:
+    if not isinstance(value, list):
+        raise InputError(path, f"{what} must be a JSON list [...], got {_kind(value)}")
+    return value
+
+
+def expect_int(value, path: Path, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(path, f"{what} must be a whole number, got {_kind(value)}")
+    return value
+
+
+def expect_number(value, path: Path, what: str) -> float:
+    """A finite JSON number -> float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(path, f"{what} must be a number, got {_kind(value)}")
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float range
+        number = float("inf")
+    if not np.isfinite(number):
+        raise InputError(path, f"{what} must be a finite number, got {value!r:.40}")
+    return number
+
+
+def image_ids(content, path: Path) -> list[int]:
+    """The image ids keying a per-image JSON object (scene_camera.json, scene_gt.json, ...)."""
+    expect_object(content, path, "the file")
+    bad = [k for k in content if not (k.isascii() and k.isdigit())]
+    if bad:
+        raise InputError(path, f"keys must be image ids (whole numbers), got {bad[0]!r:.40}")
+    return [int(k) for k in content]
+
+
+def _kind(value) -> str:
+    """A JSON value for an error message: its type and the start of its text."""
+    names = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", int: "a number",
+             float: "a number", type(None): "null"}
+    return f"{names.get(type(value), type(value).__name__)} {json.dumps(value)[:40]}"
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # Validation shared with plainframe.py
 
 
@@ -141,6 +199,8 @@ def parse_K(values, path: Path) -> np.ndarray:
         raise InputError(path, f"cam_K focal lengths must be positive pixels, got fx={K[0, 0]}, fy={K[1, 1]}")
     if not np.allclose(K[2], [0.0, 0.0, 1.0]):
         raise InputError(path, f"cam_K last row must be [0, 0, 1], got {K[2].tolist()} (transposed?)")
+    if abs(K[0, 1]) > 1e-6 * K[0, 0] or K[1, 0] != 0:
+        raise InputError(path, f"cam_K must be [fx, 0, cx, 0, fy, cy, 0, 0, 1] (no skew), got {K.ravel().tolist()}")
     return K
 
 
@@ -155,7 +215,8 @@ def parse_pose(R, t, path: Path, what: str, t_unit: float = MM) -> np.ndarray:
         raise InputError(path, f"{what}: rotation must be 9 numbers and translation 3 numbers") from e
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise InputError(path, f"{what} contains NaN or inf")
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+    # Entries of a rotation lie in [-1, 1]: checked first so that huge values are refused without overflowing.
+    if np.abs(R).max() > 1.001 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
         raise InputError(path, f"{what}: the rotation is not orthonormal with determinant +1 ({R.ravel().tolist()})")
     U, _, Vt = np.linalg.svd(R)
     return make_pose(U @ Vt, t * t_unit)
@@ -201,7 +262,11 @@ def check_depth(depth: np.ndarray, path: Path, camera: Camera) -> None:
 
 
 def check_principal_point(K: np.ndarray, width: int, height: int, path: Path) -> None:
-    """BOP cameras carry no image size: a principal point outside the image betrays K of another resolution."""
+    """BOP cameras carry no image size: a principal point outside the image betrays K of another resolution. A
+    focal length over 100 image widths (a field of view under 0.6 degrees) is a typo or another unit."""
+    if max(K[0, 0], K[1, 1]) > MAX_FOCAL_IN_IMAGES * max(width, height):
+        raise InputError(path, f"cam_K focal lengths fx={K[0, 0]:.4g}, fy={K[1, 1]:.4g} px are implausible for a "
+                               f"{width}x{height} image (more than {MAX_FOCAL_IN_IMAGES} image widths)")
     if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
         raise InputError(
             path,
@@ -311,19 +376,33 @@ def _image_file(folder: Path, im_id: int, exts: tuple[str, ...]) -> Path | None:
 def _symmetries(info: dict, path: Path, obj_id: int) -> np.ndarray:
     """models_info entry -> (S, 4, 4) metres, identity first: discrete ones, each combined with the continuous
     ones discretised into CONTINUOUS_SYMMETRY_STEPS rotations (as bop_toolkit's get_symmetry_transformations)."""
+    what = f"object {obj_id}"
+    expect_object(info, path, what)
     discrete = [np.eye(4)]
-    for values in info.get("symmetries_discrete", []):
-        discrete.append(parse_T(values, path, f"object {obj_id} symmetries_discrete", t_unit=MM))
+    for values in expect_list(info.get("symmetries_discrete", []), path, f"{what} symmetries_discrete"):
+        discrete.append(parse_T(values, path, f"{what} symmetries_discrete", t_unit=MM))
     continuous = [np.eye(4)]
-    for sym in info.get("symmetries_continuous", []):
-        axis = np.asarray(sym["axis"], dtype=np.float64)
-        offset = np.asarray(sym.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64) * MM
+    for sym in expect_list(info.get("symmetries_continuous", []), path, f"{what} symmetries_continuous"):
+        sym = expect_object(sym, path, f"{what} symmetries_continuous entry")
+        if "axis" not in sym:
+            raise InputError(path, f"{what} symmetries_continuous: an entry has no axis")
+        axis = _vector3(sym["axis"], path, f"{what} symmetries_continuous axis")
+        offset = _vector3(sym.get("offset", [0.0, 0.0, 0.0]), path, f"{what} symmetries_continuous offset") * MM
+        if np.linalg.norm(axis) < 1e-9:
+            raise InputError(path, f"{what} symmetries_continuous axis must not be zero")
         axis = axis / np.linalg.norm(axis)
         K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
         for a in np.arange(1, CONTINUOUS_SYMMETRY_STEPS) * 2 * np.pi / CONTINUOUS_SYMMETRY_STEPS:
             R = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
             continuous.append(make_pose(R, offset - R @ offset))
     return np.stack([c @ d for d in discrete for c in continuous])
+
+
+def _vector3(value, path: Path, what: str) -> np.ndarray:
+    values = expect_list(value, path, what)
+    if len(values) != 3:
+        raise InputError(path, f"{what} must be 3 numbers, got {len(values)}")
+    return np.array([expect_number(v, path, what) for v in values])
 
 
 def load_models(
@@ -333,9 +412,7 @@ def load_models(
     models_dir = _models_dir(Path(dataset))
     info_path = models_dir / "models_info.json"
     info = read_json(info_path)
-    if not isinstance(info, dict):
-        raise InputError(info_path, "expected a JSON object keyed by obj_id")
-    known = sorted(int(k) for k in info)
+    known = sorted(_object_ids(info, info_path))
     wanted = known if obj_ids is None else list(dict.fromkeys(int(i) for i in obj_ids))
     models = {}
     for obj_id in wanted:
@@ -360,6 +437,15 @@ def load_models(
     return models
 
 
+def _object_ids(info, path: Path) -> list[int]:
+    """The obj_ids keying models_info.json."""
+    expect_object(info, path, "models_info.json (keyed by obj_id)")
+    bad = [k for k in info if not (k.isascii() and k.isdigit())]
+    if bad:
+        raise InputError(path, f"keys must be object ids (whole numbers), got {bad[0]!r:.40}")
+    return [int(k) for k in info]
+
+
 def save_models(
     dataset: Path, meshes: dict[int, trimesh.Trimesh], symmetries: dict[int, np.ndarray] | None = None,
     symmetries_continuous: dict[int, list[dict]] | None = None,
@@ -372,6 +458,7 @@ def save_models(
     models_dir = Path(dataset) / "models"
     info_path = models_dir / "models_info.json"
     info = read_json(info_path) if info_path.exists() else {}
+    _object_ids(info, info_path)  # a malformed file is refused, not rewritten
     for obj_id, mesh in meshes.items():
         mm = mesh.copy()
         mm.apply_scale(1.0 / MM)
@@ -411,19 +498,25 @@ def list_frames(dataset: Path, split: str | None = None) -> list[tuple[int, int]
     split_dir = _split_dir(Path(dataset), split)
     frames = []
     for scene in sorted(c for c in split_dir.iterdir() if _is_scene_dir(c)):
-        cams = read_json(scene / "scene_camera.json")
-        frames.extend((int(scene.name), int(k)) for k in cams)
+        frames.extend((int(scene.name), im_id) for im_id in image_ids(read_json(scene / "scene_camera.json"),
+                                                                       scene / "scene_camera.json"))
     return sorted(frames)
 
 
 def _targets(dataset_root: Path, scene_id: int, im_id: int) -> list[int] | None:
     """Object ids from a BOP test_targets_*.json (test splits whose ground truth is withheld)."""
     for path in sorted(dataset_root.glob("test_targets_*.json")):
-        rows = read_json(path)
+        rows = expect_list(read_json(path), path, "the file (a list of targets)")
         ids = []
         for row in rows:
+            row = expect_object(row, path, "a target")
             if row.get("scene_id") == scene_id and row.get("im_id") == im_id:
-                ids.extend([int(row["obj_id"])] * int(row.get("inst_count", 1)))
+                if "obj_id" not in row:
+                    raise InputError(path, f"scene {scene_id} image {im_id}: a target has no obj_id")
+                count = expect_int(row.get("inst_count", 1), path, "inst_count")
+                if not 1 <= count <= 100:
+                    raise InputError(path, f"inst_count must be from 1 to 100, got {count}")
+                ids.extend([expect_int(row["obj_id"], path, "obj_id")] * count)
         if ids:
             return ids
     return None
@@ -435,10 +528,10 @@ def _camera_json_size(split_dir: Path) -> tuple[Path, int, int] | None:
     path = split_dir.parent / (f"camera_{suffix}.json" if suffix else "camera.json")
     if not path.is_file():
         return None
-    cam = read_json(path)
+    cam = expect_object(read_json(path), path, "the file")
     if "width" not in cam or "height" not in cam:
         return None
-    return path, int(cam["width"]), int(cam["height"])
+    return path, expect_int(cam["width"], path, "width"), expect_int(cam["height"], path, "height")
 
 
 def load_frame(
@@ -452,20 +545,25 @@ def load_frame(
     scene_dir = _scene_dir(split_dir, scene_id)
     cam_path = scene_dir / "scene_camera.json"
     cams = read_json(cam_path)
+    ids = sorted(image_ids(cams, cam_path))
     if str(im_id) not in cams:
-        ids = sorted(int(k) for k in cams)
         span = f"{ids[0]}..{ids[-1]}" if ids else "none"
         raise InputError(cam_path, f"image {im_id} is not in scene {scene_id} (image ids {span}, {len(ids)} images)")
-    cam = cams[str(im_id)]
+    cam = expect_object(cams[str(im_id)], cam_path, f"image {im_id}")
     if "cam_K" not in cam:
         raise InputError(cam_path, f"image {im_id} has no cam_K (the 3x3 intrinsics, 9 numbers row-major)")
     K = parse_K(cam["cam_K"], cam_path)
-    depth_scale = float(cam.get("depth_scale", 1.0))
-    if not np.isfinite(depth_scale) or depth_scale <= 0:
-        raise InputError(cam_path, f"image {im_id}: depth_scale must be a positive number, got {depth_scale}")
+    depth_scale = expect_number(cam.get("depth_scale", 1.0), cam_path, f"image {im_id} depth_scale")
+    if not 0 < depth_scale <= MAX_DEPTH_SCALE:
+        raise InputError(cam_path, f"image {im_id}: depth_scale must be a positive number up to {MAX_DEPTH_SCALE:g} "
+                                   f"(mm per PNG unit), got {depth_scale}")
     T_cam_world = None
     if "cam_R_w2c" in cam and "cam_t_w2c" in cam:
         T_cam_world = parse_pose(cam["cam_R_w2c"], cam["cam_t_w2c"], cam_path, f"image {im_id} cam_R_w2c/cam_t_w2c")
+        distance = float(np.abs(T_cam_world[:3, 3]).max())
+        if distance > MAX_TABLE_DISTANCE:
+            raise InputError(cam_path, f"image {im_id} cam_t_w2c puts the table frame {distance:.4g} m from the camera "
+                                       f"(at most {MAX_TABLE_DISTANCE:g} m): translations are in millimetres")
 
     depth_path = scene_dir / "depth" / f"{im_id:06d}.png"
     depth = read_depth_png(depth_path) * depth_scale * MM
@@ -487,12 +585,19 @@ def load_frame(
     gt_entries = None
     if gt_path.is_file():
         gt_all = read_json(gt_path)
+        image_ids(gt_all, gt_path)
         if str(im_id) not in gt_all:
             raise InputError(gt_path, f"image {im_id} has no ground-truth entry")
-        gt_entries = gt_all[str(im_id)]
+        gt_entries = expect_list(gt_all[str(im_id)], gt_path, f"image {im_id}")
+        for g in gt_entries:
+            g = expect_object(g, gt_path, f"image {im_id}: an object entry")
+            for key in ("obj_id", "cam_R_m2c", "cam_t_m2c"):
+                if key not in g:
+                    raise InputError(gt_path, f"image {im_id}: an object entry has no {key}")
+            expect_int(g["obj_id"], gt_path, f"image {im_id} obj_id")
     if object_ids is None:
         if gt_entries is not None:
-            object_ids = [int(g["obj_id"]) for g in gt_entries]
+            object_ids = [g["obj_id"] for g in gt_entries]
         else:
             object_ids = _targets(split_dir.parent, scene_id, im_id)
             if object_ids is None:
@@ -501,12 +606,14 @@ def load_frame(
                     "present; pass object_ids"
                 )
     object_ids = [int(i) for i in object_ids]
+    if not object_ids:
+        raise InputError(gt_path if gt_entries is not None else scene_dir, f"image {im_id}: no objects to estimate")
     try:
         info_path = _models_dir(dataset) / "models_info.json"
     except InputError:
         info_path = None  # a dataset without models may still be read for its frames
     if info_path is not None:
-        known = {int(k) for k in read_json(info_path)}
+        known = set(_object_ids(read_json(info_path), info_path))
         unknown = sorted(set(object_ids) - known)
         if unknown:
             raise InputError(info_path, f"unknown obj_id {unknown}; this dataset has objects {sorted(known)}")
@@ -517,7 +624,7 @@ def load_frame(
         used = [False] * len(gt_entries)
         for k, obj_id in enumerate(object_ids):
             for j, g in enumerate(gt_entries):
-                if not used[j] and int(g["obj_id"]) == obj_id:
+                if not used[j] and g["obj_id"] == obj_id:
                     gt[k] = parse_pose(g["cam_R_m2c"], g["cam_t_m2c"], gt_path, f"image {im_id} object {obj_id}")
                     used[j] = True
                     break
@@ -608,18 +715,28 @@ class ResultRow:
 RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 
 
-def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
-    """BOP results CSV: R 9 numbers row-major, t 3 numbers in mm, space-separated."""
+def results_csv_lines(rows: list[ResultRow]) -> list[str]:
+    """The data lines (no header, no newline) of a BOP results CSV: R 9 numbers row-major, t 3 numbers in mm,
+    space-separated."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(RESULTS_HEADER)
     for r in rows:
         R, t = _R_t_mm(r.T_cam_obj)
         w.writerow(
             [r.scene_id, r.im_id, r.obj_id, f"{r.score:.12g}", " ".join(f"{v:.12g}" for v in R),
              " ".join(f"{v:.12g}" for v in t), f"{r.time:.12g}"]
         )
-    _atomic_write(Path(path), buf.getvalue().encode())
+    return buf.getvalue().splitlines()
+
+
+def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
+    """BOP results CSV (``results_csv_lines`` under the header)."""
+    write_results_lines(path, results_csv_lines(rows))
+
+
+def write_results_lines(path: Path, lines: list[str]) -> None:
+    """The header and ``lines`` (from ``results_csv_lines``), atomically."""
+    _atomic_write(Path(path), "".join(f"{line}\n" for line in [",".join(RESULTS_HEADER), *lines]).encode())
 
 
 def read_results_csv(path: Path) -> list[ResultRow]:

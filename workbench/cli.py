@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workbench.checks import check_count, check_estimator_config, check_problem_config, check_seed, check_workers
 from workbench.errors import InputError
 from workbench.estimators import METHODS, EstimatorConfig
 from workbench.inference.moves import PROPOSALS
@@ -57,10 +58,16 @@ def problem_config(args: argparse.Namespace) -> ProblemConfig:
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
     from workbench import bop
-    from workbench.runner import estimate_frames
+    from workbench.runner import ResultsFile, check_results_out, estimate_frames
 
     if args.dataset is None:
         raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
+    # Every setting and the output path are checked before anything is loaded or started.
+    config, problem = estimator_config(args), problem_config(args)
+    check_estimator_config(config)
+    check_problem_config(problem)
+    check_workers(args.workers)
+    results = ResultsFile(args.out, check_results_out(args.out, force=args.force, resume=args.resume))
     frames = bop.list_frames(args.dataset, split=args.split)
     if args.scene is not None:
         frames = [f for f in frames if f[0] == args.scene]
@@ -68,12 +75,16 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         frames = [f for f in frames if f[1] == args.frame]
     if not frames:
         raise InputError(args.dataset, f"no frame matches --scene {args.scene} --frame {args.frame}")
+    todo = [f for f in frames if f not in results.done()]
+    if len(todo) < len(frames):
+        print(f"resuming: {len(frames) - len(todo)} of {len(frames)} frame(s) already in {args.out}", file=sys.stderr)
+    if not todo:
+        return 0
     rows = estimate_frames(
-        args.dataset, frames, estimator_config(args), problem_config(args), args.workers,
-        split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop,
+        args.dataset, todo, config, problem, args.workers,
+        split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop, on_frame=results.add,
     )
-    bop.write_results_csv(args.out, rows)
-    print(f"wrote {len(rows)} result rows for {len(frames)} frame(s) to {args.out}", file=sys.stderr)
+    print(f"wrote {len(rows)} result rows for {len(todo)} frame(s) to {args.out}", file=sys.stderr)
     return 0
 
 
@@ -81,32 +92,55 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from workbench.app.server import serve
 
     dataset = DEMO_DATASET if args.demo or args.dataset is None else args.dataset
+    check_count(args.port, "--port", low=1, high=65535)
     if args.session is not None:
         from workbench.sessions import load_session
 
         load_session(args.session)  # a bad session file is an input error here, before any server starts
         if args.dataset is not None or args.demo:
             raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
+    elif dataset != DEMO_DATASET:
+        _check_frame_exists(dataset, args.scene, args.frame)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
           session=args.session, sessions_dir=args.sessions_dir)
     return 0
 
 
+def _check_frame_exists(dataset: Path, scene_id: int | None, im_id: int | None) -> None:
+    """The dataset has the frame ``serve`` is asked for (None: its first), so that a wrong path ends here."""
+    from workbench import bop
+
+    frames = bop.list_frames(dataset)
+    scenes = sorted({s for s, _ in frames})
+    if scene_id is not None and scene_id not in scenes:
+        raise InputError(dataset, f"no scene {scene_id} (scenes: {scenes[:20]})")
+    in_scene = [i for s, i in frames if s == (scenes[0] if scene_id is None else scene_id)]
+    if im_id is not None and im_id not in in_scene:
+        raise InputError(dataset, f"no frame {im_id} in scene {scene_id} (frames: {in_scene[:20]})")
+
+
 def _cmd_make_scenes(args: argparse.Namespace) -> int:
     from workbench.synth import make_demo, make_scenes
 
+    check_seed(args.seed)
+    check_count(args.per_category, "--per-category", low=1)
     t0 = time.perf_counter()
     if args.demo:
-        make_demo(args.out, seed=args.seed)
+        make_demo(args.out, seed=args.seed, force=args.force)
         print(f"wrote the demo scene to {args.out}", file=sys.stderr)
         return 0
     scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed,
-                         distractors=args.distractors, table_pose=args.table_pose)
+                         distractors=args.distractors, table_pose=args.table_pose, force=args.force)
     print(f"wrote {len(scenes)} scenes to {args.out} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    check_workers(args.workers)
+    check_count(args.repeats, "--repeats", low=1)
+    for name in ("particles", "iterations", "per_category"):
+        if getattr(args, name) is not None:
+            check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1)
     if args.speed:
         from workbench.speed import run_speed_benchmark
 
@@ -116,11 +150,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     if args.dataset is None:
         raise InputError(None, "name a dataset made by `workbench make-scenes`, or pass --speed")
+    _check_bench_out(args.out)
     categories = None if args.categories is None else [c.strip() for c in args.categories.split(",")]
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
                   categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop)
     return 0
+
+
+def _check_bench_out(out: Path) -> None:
+    """``bench --out`` is a folder of our tables and CSVs: never a file, never inside a dataset's folders."""
+    from workbench.runner import dataset_folder_of
+
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file: --out names the folder the tables are written to")
+    inside = dataset_folder_of(out / "x")
+    if inside is not None:
+        raise InputError(out, f"lies in the dataset folder {inside}: choose an --out outside the dataset")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -134,7 +180,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=int, default=None, help="scene id (default: all)")
     p.add_argument("--frame", type=int, default=None, help="image id (default: all)")
     p.add_argument("--objects", type=int, nargs="+", default=None, help="object ids present (default: scene_gt.json)")
-    p.add_argument("--out", type=Path, default=Path("results.csv"))
+    p.add_argument("--out", type=Path, default=Path("results.csv"),
+                   help="results CSV, written after every frame (default results.csv)")
+    p.add_argument("--force", action="store_true", help="replace --out even if it is not a results CSV of ours")
+    p.add_argument("--resume", action="store_true", help="keep the frames already in --out and estimate the rest")
     _add_estimator_args(p)
     p.set_defaults(func=_cmd_estimate)
 
@@ -164,6 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--per-category", type=int, default=7)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--demo", action="store_true", help="write the small bundled demo (assets/demo) instead")
+    p.add_argument("--force", action="store_true", help="write into OUT even if it is not empty")
     p.set_defaults(func=_cmd_make_scenes)
 
     p = sub.add_parser("bench", help="Tables I and II (accuracy, convergence) or --speed")

@@ -16,6 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
+from workbench.checks import check_rigid
 from workbench.likelihood import pixel_loglik, predicted_depth, scene_loglik
 from workbench.physics import STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
@@ -63,6 +64,7 @@ class LocalEvaluator:
         )
 
     def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+        hypotheses = check_rigid(hypotheses, "hypotheses")  # physics would turn a reflection into another pose
         t0 = time.perf_counter()
         projected, status, _ = self.projector.project_batch(hypotheses)
         t1 = time.perf_counter()
@@ -136,7 +138,8 @@ class PoolEvaluator:
         return [proc.pid for proc in self._procs]
 
     def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        chunks = np.array_split(hypotheses, len(self._conns))
+        # Checked here, not only in the workers: a refused batch must not look like a crashed worker.
+        chunks = np.array_split(check_rigid(hypotheses, "hypotheses"), len(self._conns))
         busy = []
         for conn, chunk in zip(self._conns, chunks):
             if len(chunk):

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from workbench import bop
+from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import euler_to_matrix, invert_pose
@@ -33,10 +34,11 @@ MM = bop.MM
 
 
 def _scene(problem: Problem, T_world_obj) -> np.ndarray:
+    """Labels (K, 4, 4) as float64, refused unless finite rigid poses (a reflection is not a pose)."""
     T = np.array(T_world_obj, dtype=np.float64)
     if T.shape != (problem.n_objects, 4, 4) or not np.all(np.isfinite(T)):
         raise InputError("labels", f"expected finite poses of shape ({problem.n_objects}, 4, 4), got {T.shape}")
-    return T
+    return check_rigid(T, "labels")
 
 
 @contextmanager
@@ -183,12 +185,12 @@ def save_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarra
                                      "replace it (a backup is kept) or write the labels elsewhere")
     if len(labels) != len(obj_ids):
         raise InputError("labels", f"{len(labels)} labels for {len(obj_ids)} objects")
-    T_cam_world = np.asarray(T_cam_world, dtype=np.float64)
+    T_cam_world = check_rigid(T_cam_world, "T_cam_world")
     entries = []
     for obj_id, T in zip(obj_ids, labels):
         if T is None or not np.all(np.isfinite(T)):
             continue
-        T_cam_obj = T_cam_world @ np.asarray(T, dtype=np.float64)
+        T_cam_obj = T_cam_world @ check_rigid(T, f"label of object {obj_id}")
         entries.append({"cam_R_m2c": T_cam_obj[:3, :3].ravel().tolist(), "cam_t_m2c": (T_cam_obj[:3, 3] / MM).tolist(),
                         "obj_id": int(obj_id)})
     if overwrite_original and original.exists():

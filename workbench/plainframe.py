@@ -23,10 +23,13 @@ import numpy as np
 import trimesh
 
 from .bop import (
+    MAX_DEPTH_SCALE,
     MM,
     check_depth,
     check_depth_units,
     check_principal_point,
+    expect_int,
+    expect_number,
     parse_K,
     parse_pose,
     parse_T,
@@ -51,8 +54,10 @@ def _read_depth(path: Path, depth_scale: float) -> np.ndarray:
             depth = np.load(path, allow_pickle=False)
         except (ValueError, OSError, EOFError) as e:
             raise InputError(path, f"corrupt .npy file ({e})") from e
-        if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
-            raise InputError(path, f"depth must be a 2-D numeric array, got {depth.dtype} {depth.shape}")
+        real = np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)
+        if depth.ndim != 2 or not real:
+            raise InputError(path, f"depth must be a 2-D array of real numbers (float metres), got {depth.dtype} "
+                                   f"{depth.shape}")
         depth = depth.astype(np.float64)
         depth[~np.isfinite(depth) | (depth < 0)] = 0.0
         return depth
@@ -65,12 +70,14 @@ def _camera(intr: dict, path: Path, depth_shape: tuple[int, int]) -> Camera:
     if "K" in intr:
         K = parse_K(intr["K"], path)
     elif all(k in intr for k in ("fx", "fy", "cx", "cy")):
-        K = parse_K([intr["fx"], 0, intr["cx"], 0, intr["fy"], intr["cy"], 0, 0, 1], path)
+        fx, fy, cx, cy = (expect_number(intr[k], path, k) for k in ("fx", "fy", "cx", "cy"))
+        K = parse_K([fx, 0, cx, 0, fy, cy, 0, 0, 1], path)
     else:
         raise InputError(path, 'no intrinsics: give "K" (3x3) or "fx", "fy", "cx", "cy" in pixels')
     height, width = depth_shape
     if "width" in intr or "height" in intr:
-        size = (int(intr.get("width", width)), int(intr.get("height", height)))
+        size = (expect_int(intr.get("width", width), path, "width"),
+                expect_int(intr.get("height", height), path, "height"))
         if size != (width, height):
             raise InputError(
                 path, f"camera is {size[0]}x{size[1]} but the depth image is {width}x{height}: intrinsics for "
@@ -109,9 +116,10 @@ def load_plain_frame(
     intr = read_json(intrinsics_path)
     if not isinstance(intr, dict):
         raise InputError(intrinsics_path, "expected a JSON object with K (or fx, fy, cx, cy)")
-    depth_scale = float(intr.get("depth_scale", 1.0))
-    if not np.isfinite(depth_scale) or depth_scale <= 0:
-        raise InputError(intrinsics_path, f"depth_scale must be a positive number (mm per unit), got {depth_scale}")
+    depth_scale = expect_number(intr.get("depth_scale", 1.0), intrinsics_path, "depth_scale")
+    if not 0 < depth_scale <= MAX_DEPTH_SCALE:
+        raise InputError(intrinsics_path, f"depth_scale must be a positive number up to {MAX_DEPTH_SCALE:g} (mm per "
+                                          f"unit), got {depth_scale}")
     depth = _read_depth(depth_path, depth_scale)
     camera = _camera(intr, intrinsics_path, depth.shape)
     check_depth(depth, depth_path, camera)

@@ -46,6 +46,7 @@ import numpy as np
 
 from workbench import bop
 from workbench.bop import _atomic_write
+from workbench.checks import check_estimator_config, check_problem_config, check_rigid
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, IterationReport
 from workbench.evaluation import Evaluator
@@ -216,7 +217,7 @@ def normalise_labels(labels, n_objects: int) -> list[np.ndarray | None]:
         T = None if T is None else np.array(T, dtype=np.float64)
         if T is not None and T.shape != (4, 4):
             raise InputError("labels", f"a label must be a 4x4 pose, got shape {T.shape}")
-        out.append(T if T is not None and np.all(np.isfinite(T)) else None)
+        out.append(check_rigid(T, "labels") if T is not None and np.all(np.isfinite(T)) else None)
     return out
 
 
@@ -381,7 +382,7 @@ def _parse(path: Path) -> tuple[SessionState, dict]:
         raise InputError(path, e.problem if e.path is None else f"{e.path}: {e.problem}") from e
     except KeyError as e:
         raise InputError(path, f"malformed session: missing entry {e}") from e
-    except (TypeError, ValueError, AttributeError, IndexError) as e:
+    except (TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
         raise InputError(path, f"malformed session: {e}") from e
 
 
@@ -416,15 +417,24 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
                      _int(f["scene_id"], "frame.scene_id"), _int(f["im_id"], "frame.im_id"), object_ids,
                      _float(f["density"], "frame.density"), _float(f["friction"], "frame.friction"), dict(files))
     T_cam_world = _pose(d["support"]["T_cam_world"], "support.T_cam_world")
+    if np.abs(T_cam_world[:3, 3]).max() > bop.MAX_TABLE_DISTANCE:
+        raise ValueError(f"support.T_cam_world puts the table more than {bop.MAX_TABLE_DISTANCE:g} m from the "
+                         "camera")
     t = d["support"]["table"]
     table = Table(*(_float(t[k], f"table.{k}") for k in ("x_min", "x_max", "y_min", "y_max")),
                   region_min=_pair(t["region_min"], "table.region_min"),
                   region_max=_pair(t["region_max"], "table.region_max"))
+    _check_table(table)
     problem_config = config_from_dict(ProblemConfig, d["problem_config"], "problem_config")
-    problem_config.likelihood.validate()
+    check_problem_config(problem_config, "problem_config.")
     estimator_config = config_from_dict(EstimatorConfig, d["estimator_config"], "estimator_config")
-    estimator_config.validate()
+    check_estimator_config(estimator_config, "estimator_config.")  # the command line's bounds, seed included
     e = d["estimator"]
+    beta = _float(e["beta"], "estimator.beta")
+    if not 0.0 < beta <= 1.0:  # the tempering exponent temper_to_ess chooses
+        raise ValueError(f"estimator.beta must lie in (0, 1], got {beta!r}")
+    if _int(e["calm"], "estimator.calm") < 0:
+        raise ValueError(f"estimator.calm must be >= 0, got {e['calm']!r}")
     labels = d["labels"]
     if not isinstance(labels, list) or len(labels) != len(object_ids):
         raise ValueError(f"labels must list one pose or null for each of the {len(object_ids)} objects")
@@ -437,7 +447,7 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
         estimator={
             "iteration": _int(e["iteration"], "estimator.iteration"),
             "rng": _rng_state(e["rng"]),
-            "beta": _float(e["beta"], "estimator.beta"),
+            "beta": beta,
             "calm": _int(e["calm"], "estimator.calm"),
             "history": [_report(r) for r in e["history"]],
             "search": _search(e.get("search")),
@@ -496,6 +506,9 @@ def _check_arrays(path: Path, state: SessionState, arrays: dict[str, np.ndarray]
                                    f"{ARRAY_DTYPES[name]} {shape} ({K} objects, {T} iterations)")
         if recorded.get(name) != {"shape": list(a.shape), "dtype": a.dtype.name}:
             raise InputError(path, f"array {name!r} is {a.dtype.name} {a.shape}, the JSON records {recorded.get(name)}")
+    for name in ("hypotheses", "best_history"):  # what the run continues from must be rigid poses
+        if name in arrays:
+            check_rigid(arrays[name], f"array {name!r}", path)
 
 
 # Typed readers: a hand-edited value of the wrong type is reported, not passed on to fail somewhere later.
@@ -526,16 +539,34 @@ def _pair(v, where: str) -> tuple[float, float]:
 
 
 def _pose(v, where: str) -> np.ndarray:
-    T = np.array(v, dtype=np.float64)
+    """A rigid 4x4 pose (a reflection or a bad bottom row is refused, not turned into another pose)."""
+    try:
+        T = np.array(v, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise ValueError(f"{where} must be a finite 4x4 matrix") from e
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"{where} must be a finite 4x4 matrix")
-    return T
+    try:
+        return check_rigid(T, where)
+    except InputError as e:
+        raise ValueError(e.problem) from e
+
+
+def _check_table(table: Table) -> None:
+    """A table within reach of the camera, its object region inside it (the estimator draws particles there)."""
+    lo = (table.x_min, table.y_min, *table.region_min)
+    hi = (table.x_max, table.y_max, *table.region_max)
+    if not all(np.isfinite(v) and abs(v) <= bop.MAX_TABLE_DISTANCE for v in lo + hi):
+        raise ValueError(f"support.table values must be finite and within {bop.MAX_TABLE_DISTANCE:g} m")
+    if not (table.x_min < table.x_max and table.y_min < table.y_max
+            and all(a <= b for a, b in zip(table.region_min, table.region_max))):
+        raise ValueError("support.table: each minimum must lie below its maximum")
 
 
 def _rng_state(v) -> dict:
     try:
         np.random.default_rng().bit_generator.state = v  # the estimator's generator kind, numpy's own check
-    except (TypeError, ValueError, KeyError) as e:
+    except (TypeError, ValueError, KeyError, OverflowError) as e:
         raise ValueError(f"estimator.rng is not a valid PCG64 state ({e})") from e
     return v
 

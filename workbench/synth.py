@@ -1086,8 +1086,20 @@ def _scene_meta(scene_id: int, sample: SceneSample) -> dict:
     return meta
 
 
+def check_out_folder(out: Path, force: bool) -> None:
+    """A dataset is written into a new or empty folder: one that holds anything (another dataset, a user's files)
+    is refused unless ``force``, because its frames and metadata would be replaced or merged."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file: name a folder for the dataset")
+    if out.is_dir() and not force and any(out.iterdir()):
+        raise InputError(out, f"folder is not empty ({len(list(out.iterdir()))} entries): its files would be "
+                              "replaced. Choose a new or empty folder, or pass --force to write into it")
+
+
 def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, width: int = 640,
-                height: int = 480, distractors: int | None = None, table_pose: float | None = None) -> list[dict]:
+                height: int = 480, distractors: int | None = None, table_pose: float | None = None,
+                force: bool = False) -> list[dict]:
     """Write ``per_category`` scenes of each category as a BOP dataset in ``out`` (split "test", one image each).
 
     Scene ids run over ``categories`` in order; each scene's random draw depends only on (seed, category,
@@ -1096,6 +1108,7 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     gives the table pose) override every category's ``DESKS`` entry.
     -> per scene {"scene_id", "category", "obj_ids", "relations", "visib_fract", "tries"} and, where they differ
     from the paper's set-up, "table_size", "table_pose", "distractors" (also in scenes.json).
+    ``out`` must be new or empty unless ``force``.
     """
     unknown = [c for c in categories if c not in CATEGORIES]
     if unknown:
@@ -1105,6 +1118,7 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     if table_pose is not None and not 0.0 <= table_pose <= 1.0:
         raise InputError("table pose", f"the share of frames that give it must be in [0, 1], got {table_pose}")
     out = Path(out)
+    check_out_folder(out, force)
     cfg = SynthConfig(width=width, height=height)
     save_object_models(out)
     _write_camera_json(out, cfg)
@@ -1128,9 +1142,11 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     return meta
 
 
-def make_demo(out: Path, seed: int = 0) -> list[dict]:
-    """The bundled demo: two touching boxes on a table, one 640x480 frame (a few hundred kB)."""
+def make_demo(out: Path, seed: int = 0, force: bool = False) -> list[dict]:
+    """The bundled demo: two touching boxes on a table, one 640x480 frame (a few hundred kB). ``out`` must be new
+    or empty unless ``force``."""
     out = Path(out)
+    check_out_folder(out, force)
     cfg = SynthConfig()
     sim = Sim(cfg)
     try:

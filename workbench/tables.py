@@ -366,8 +366,15 @@ def render_report(report: dict) -> str:
 
 def scene_categories(dataset: Path) -> dict[int, str]:
     """scene_id -> category, from the scenes.json `workbench make-scenes` writes."""
-    meta = bop.read_json(Path(dataset) / "scenes.json")
-    return {int(s["scene_id"]): s["category"] for s in meta["scenes"]}
+    path = Path(dataset) / "scenes.json"
+    meta = bop.expect_object(bop.read_json(path), path, "the file")
+    out = {}
+    for s in bop.expect_list(meta.get("scenes"), path, "scenes"):
+        s = bop.expect_object(s, path, "a scene")
+        out[bop.expect_int(s.get("scene_id"), path, "scene_id")] = s.get("category")
+        if not isinstance(out[s["scene_id"]], str):
+            raise InputError(path, f"scene {s['scene_id']}: category must be a string, got {s.get('category')!r:.40}")
+    return out
 
 
 def select_frames(frames: list[tuple[int, int]], categories: dict[int, str], wanted: list[str] | None,
@@ -387,8 +394,15 @@ def select_frames(frames: list[tuple[int, int]], categories: dict[int, str], wan
 
 def visib_fractions(frame: Frame) -> list[float]:
     """scene_gt_info.json visib_fract per object of the frame (same order as scene_gt.json)."""
-    info = bop.read_json(Path(frame.source).parents[1] / "scene_gt_info.json")[str(frame.im_id)]
-    return [float(i["visib_fract"]) for i in info]
+    path = Path(frame.source).parents[1] / "scene_gt_info.json"
+    content = bop.read_json(path)
+    bop.image_ids(content, path)
+    info = bop.expect_list(content.get(str(frame.im_id)), path, f"image {frame.im_id}")
+    fractions = [bop.expect_number(bop.expect_object(i, path, "an object entry").get("visib_fract"), path,
+                                   f"image {frame.im_id} visib_fract") for i in info]
+    if len(fractions) != len(frame.object_ids):
+        raise InputError(path, f"image {frame.im_id}: {len(fractions)} entries for {len(frame.object_ids)} objects")
+    return fractions
 
 
 def run_icp(frame: Frame, models: list[ObjectModel]) -> tuple[np.ndarray, np.ndarray, float]:

@@ -47,27 +47,52 @@ CRASH_ERRORS = (EOFError, BrokenPipeError, ConnectionError)
 # Loading
 
 
-def demo_dataset(cache: Callable[[], Path]) -> Path:
-    """The bundled demo dataset if the checkout has one, else a fresh one written by ``synth.make_demo`` into the
-    folder ``cache()`` gives."""
-    if (DEMO_DIR / "models").is_dir():
-        return DEMO_DIR
-    from workbench.synth import make_demo
+def user_data_dir() -> Path:
+    """Where the workbench keeps what a user may change: ``$WORKBENCH_HOME``, else ``$XDG_DATA_HOME/workbench``,
+    else ``~/.local/share/workbench``."""
+    if os.environ.get("WORKBENCH_HOME"):
+        return Path(os.environ["WORKBENCH_HOME"]).expanduser()
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base).expanduser() / "workbench"
 
-    out = cache() / "demo"
-    if not (out / "models").is_dir():
-        make_demo(out)
+
+def demo_dataset() -> Path:
+    """The demo the app shows, and saves labels into: ``user_data_dir()/demo``, copied once from the bundled
+    ``assets/demo`` (or written by ``synth.make_demo`` when the checkout has none), so that nothing is ever saved
+    into the installed package. An existing copy is used as it is: it may hold the user's labels."""
+    out = user_data_dir() / "demo"
+    if (out / "models" / "models_info.json").is_file():
+        return out
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out, "the demo's copy is incomplete (no models/models_info.json): move it away and the "
+                              "demo is copied again")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".demo-", dir=out.parent))  # copied whole, then renamed into place
+    try:
+        if (DEMO_DIR / "models").is_dir():
+            shutil.copytree(DEMO_DIR, tmp, dirs_exist_ok=True)
+        else:
+            from workbench.synth import make_demo
+
+            make_demo(tmp)
+        os.replace(tmp, out)  # onto a missing or empty folder
+    except OSError:
+        if not (out / "models" / "models_info.json").is_file():  # not another engine's copy, finished first
+            raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    log.info("copied the demo to %s", out)
     return out
 
 
-def load(source: p.Source, likelihood: str, cache: Callable[[], Path]):
+def load(source: p.Source, likelihood: str):
     """-> (dataset folder, frame, problem) for ``source``; raises ``InputError`` naming the file at fault."""
     from workbench import bop
     from workbench.likelihood import LikelihoodConfig
     from workbench.pipeline import load_bop_problem
     from workbench.problem import ProblemConfig
 
-    dataset = demo_dataset(cache) if source.demo else source.dataset
+    dataset = demo_dataset() if source.demo else source.dataset
     if dataset is None:
         raise InputError(None, "no dataset given: type a BOP dataset folder or load the demo")
     dataset = Path(dataset).expanduser()
@@ -97,7 +122,6 @@ class Engine:
     def __init__(self, results: "Outbox", workers: int):
         self.results = results
         self.workers = workers
-        self._cache: Path | None = None
         self.problem = None
         self.frame = None
         self.estimator = None
@@ -115,12 +139,6 @@ class Engine:
         self.labels: list[np.ndarray | None] = []
         self.label_heatmap = False
         self.label_dirty = False  # labels changed: heatmap and errors to recompute once the queue is drained
-
-    def cache(self) -> Path:
-        """A scratch folder of this process (made on first use, removed by ``close``)."""
-        if self._cache is None:
-            self._cache = Path(tempfile.mkdtemp(prefix="workbench-app-"))
-        return self._cache
 
     # -- commands
 
@@ -172,7 +190,7 @@ class Engine:
 
     def load(self, cmd: p.Load) -> None:
         cmd.config.validate()
-        dataset, frame, problem = load(cmd.source, cmd.likelihood, self.cache)  # on failure the old run stays
+        dataset, frame, problem = load(cmd.source, cmd.likelihood)  # on failure the old run stays
         from workbench.app.observation import build_view
 
         view = build_view(frame, problem, title_of(cmd.source, frame))
@@ -229,6 +247,8 @@ class Engine:
         self.evaluator = self.explainer = None
 
     def restart_workers(self, err: BaseException) -> None:
+        log.warning("an evaluation worker died (%s: %s); starting a fresh pool and retrying the iteration",
+                    type(err).__name__, err)
         try:
             self.evaluator.close()
         except Exception:
@@ -562,7 +582,7 @@ class Engine:
         if problem is None:
             frame, problem = sessions.session_problem(state)
         dataset = Path(state.frame.dataset)
-        if dataset.resolve() == DEMO_DIR:
+        if dataset.resolve() in (DEMO_DIR, user_data_dir().resolve() / "demo"):
             source = p.Source(demo=True)
         else:
             split = dataset / state.frame.split if state.frame.split else dataset
@@ -594,8 +614,6 @@ class Engine:
 
     def close(self) -> None:
         self.close_evaluators()
-        if self._cache is not None:
-            shutil.rmtree(self._cache, ignore_errors=True)
 
 
 class Outbox:

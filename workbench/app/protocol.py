@@ -29,7 +29,9 @@ class Source:
     def describe(self) -> str:
         if self.demo:
             return "demo"
-        return f"{self.dataset} scene {self.scene_id} frame {self.im_id}"
+        scene = "its first scene" if self.scene_id is None else f"scene {self.scene_id}"
+        frame = "first frame" if self.im_id is None else f"frame {self.im_id}"
+        return f"{self.dataset} {scene}, {frame}"
 
 
 # ---------------------------------------------------------------------------------------------------------------

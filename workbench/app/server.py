@@ -10,7 +10,9 @@ thread and GUI callbacks on viser's threads: ``App`` serialises both with one lo
 
 from __future__ import annotations
 
+import errno
 import logging
+import socket
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -308,6 +310,12 @@ class App:
             self.state.restarts += 1
             source = self.source
         if gave_up:
+            log.error("the estimator process died again (exit code %s) and was not restarted: restart the server",
+                      exitcode)
+        else:
+            log.warning("the estimator process died (exit code %s); restarted it%s", exitcode,
+                        " and reloading the frame" if source else "")
+        if gave_up:
             self.report(p.Failure("Estimator process keeps dying", f"it exited with code {exitcode} again and was "
                                   "not restarted; see the server's log, then restart the server", fatal=True))
             return
@@ -337,6 +345,8 @@ class App:
         P.status.content = self.status_markdown()
 
     def report(self, failure: p.Failure) -> None:
+        # The terminal hears of every failure too: a server started on a bad path must not look healthy there.
+        log.warning("%s: %s%s", failure.title, f"{failure.path}: " if failure.path else "", failure.problem)
         with self.lock:
             if failure.topic == "session":
                 self.sessions.on_failure(failure)
@@ -412,6 +422,30 @@ def physics_markdown(c: p.Chosen) -> str:
     )
 
 
+def port_in_use_message(host: str, port: int) -> str:
+    return f"port {port} on {host} is in use (another workbench?): stop that program or pass another --port"
+
+
+def check_port_free(host: str, port: int) -> None:
+    """InputError unless ``host:port`` can be listened on (viser would quietly take the next free port, and the
+    user's bookmark would reach whatever holds this one). Port 0 means any free port."""
+    if port == 0:
+        return
+    try:
+        addresses = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as e:
+        raise InputError("--host", f"cannot resolve {host!r} ({e})") from e
+    for family, kind, proto, _, address in addresses:
+        with socket.socket(family, kind, proto) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is free
+            try:
+                sock.bind(address)
+            except OSError as e:
+                if e.errno == errno.EADDRINUSE:
+                    raise InputError("--port", port_in_use_message(host, port)) from e
+                raise InputError("--host", f"cannot listen on {host}:{port} ({e.strerror})") from e
+
+
 @dataclass
 class AppHandle:
     """A running workbench; ``stop()`` ends the engine process and the web server."""
@@ -451,7 +485,11 @@ def serve(
     source = p.Source(demo=True) if demo else p.Source(Path(dataset), scene_id, im_id)
     if sessions_dir is None:
         sessions_dir = Path(session).parent if session is not None else SESSIONS_DIR
+    check_port_free(host, port)
     server = viser.ViserServer(host=host, port=port, label="workbench")
+    if port != 0 and server.get_port() != port:  # taken between the check and the bind: viser moved on
+        server.stop()
+        raise InputError("--port", port_in_use_message(host, port))
     app = App(server, None if session is not None else source, workers, config, likelihood, sessions_dir,
               None if session is None else Path(session))
     handle = AppHandle(server, app, f"http://{host}:{server.get_port()}")
