@@ -124,6 +124,7 @@ def check_problem_config(config, where: str = "") -> None:
         if not (isinstance(value, (int, float)) and 1e-6 <= value <= 1e3):
             raise InputError(f"{where}likelihood.{name}", f"must be from 1e-6 to 1000 metres, got {value!r}")
     check_count(config.max_render_pixels, f"{where}max_render_pixels" if where else "--max-render-pixels", low=64)
+    check_count(config.min_object_pixels, f"{where}min_object_pixels", low=0)
     for name, high in PHYSICS_MAX.items():
         value = getattr(config.physics, name)
         if not value <= high:

@@ -154,7 +154,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     categories = None if args.categories is None else [c.strip() for c in args.categories.split(",")]
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
-                  categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop)
+                  categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop,
+                  proposals=args.proposals)
     return 0
 
 
@@ -221,6 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", action="store_true", help="particle evaluations per second and peak memory")
     p.add_argument("--quick", action="store_true", help="few scenes, small budget (CI)")
     p.add_argument("--methods", default="icp,pipf,mcpf")
+    p.add_argument("--proposals", choices=PROPOSALS, default="default", help="the filters' search (default|paper)")
     p.add_argument("--particles", type=int, default=None, help="override the per-object-count default budget")
     p.add_argument("--iterations", type=int, default=None, help="override the maximum iterations")
     p.add_argument("--state", choices=("auto", *STATES), default="auto",

@@ -22,6 +22,9 @@ from workbench.scene import Camera, Frame, ObjectModel, Table
 @dataclass(frozen=True)
 class ProblemConfig:
     max_render_pixels: int = 160 * 120
+    # Small objects get the pixels they need: the grid is made finer (up to 2x max_render_pixels) until the
+    # smallest object covers about this many pixels at the objects' median depth.
+    min_object_pixels: int = 300
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -98,6 +101,24 @@ def table_depth(camera: Camera, table: Table) -> np.ndarray:
     return np.where(on_table, s, 0.0).astype(np.float32)
 
 
+def render_scale(depth: np.ndarray, camera: Camera, roi: tuple[int, int, int, int], models: list[ObjectModel],
+                 config: ProblemConfig) -> float:
+    """The factor (<= 1) from the full image to the render grid: ``max_render_pixels`` over the ROI, raised (up to
+    2x the pixels) so that the smallest object covers ``min_object_pixels`` at the median depth of the ROI."""
+    x0, y0, w, h = roi
+    scale = min(1.0, float(np.sqrt(config.max_render_pixels / (w * h))))
+    window = depth[y0:y0 + h, x0:x0 + w]
+    z = float(np.median(window[window > 0])) if np.any(window > 0) else 0.0
+    if z <= 0 or config.min_object_pixels <= 0:
+        return scale
+    # The smallest object's typical silhouette: the middle one of its three face areas (m^2), in full-res pixels.
+    area = min(float(np.median([e[0] * e[1], e[1] * e[2], e[0] * e[2]])) for e in (m.mesh.extents for m in models))
+    pixels = camera.K[0, 0] * camera.K[1, 1] * area / (z * z)
+    wanted = float(np.sqrt(config.min_object_pixels / max(pixels, 1e-9)))
+    cap = float(np.sqrt(2.0 * config.max_render_pixels / (w * h)))
+    return min(1.0, max(scale, min(wanted, cap)))
+
+
 def build_problem(
     frame: Frame, models: list[ObjectModel], camera: Camera, table: Table, config: ProblemConfig = ProblemConfig()
 ) -> Problem:
@@ -108,7 +129,7 @@ def build_problem(
     if config.max_render_pixels < 64:
         raise InputError("max_render_pixels", f"at least 64 pixels are needed, got {config.max_render_pixels}")
     roi = region_of_interest(camera, table, models)
-    scale = min(1.0, float(np.sqrt(config.max_render_pixels / (roi[2] * roi[3]))))
+    scale = render_scale(frame.depth, camera, roi, models, config)
     render_camera = camera.cropped(*roi).scaled(scale)
     return Problem(
         camera=camera,

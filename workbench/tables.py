@@ -472,9 +472,9 @@ def build_report(settings: dict, objects: list[ObjectResult], runs: list[RunResu
 def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[str, ...] | list[str] = METHODS,
                   particles: int | None = None, iterations: int | None = None, workers: int = 2,
                   state: str = "auto", categories: list[str] | None = None,
-                  per_category: int | None = None, early_stop: bool = True) -> dict:
+                  per_category: int | None = None, early_stop: bool = True, proposals: str = "default") -> dict:
     """Run the methods on the dataset's frames, write OUT/report.md, OUT/report.json and OUT/results_<method>.csv,
-    print the report -> report.json's content."""
+    print the report -> report.json's content. ``proposals``: the filters' search ("default" or "paper")."""
     dataset, out = Path(dataset), Path(out)
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -528,7 +528,7 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
             for method in filters:
                 bar.set_description(f"scene {scene_id} {category} {METHOD_NAMES[method]}")
                 config = EstimatorConfig(method=method, particles=budget.particles, iterations=budget.iterations,
-                                         state=budget.state, seed=0)
+                                         state=budget.state, seed=0, proposals=proposals)
                 T_cam, scores, measured = run_filter(problem, config, evaluator, early_stop, progress)
                 record(method, T_cam, scores,
                        RunResult(scene_id, category, method, len(models), particles=budget.particles,
@@ -540,7 +540,7 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
 
     settings = {
         "dataset": str(dataset), "quick": quick, "early_stop": early_stop, "machine": machine(),
-        "workers": workers, "methods": list(methods),
+        "workers": workers, "methods": list(methods), "proposals": proposals,
         "budgets": {str(k): asdict(b) for k, b in sorted(budgets.items())},
         "frames": [list(f) for f in frames], "overhead_seconds": overhead,
         "wall_seconds": time.perf_counter() - t_start,
