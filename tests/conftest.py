@@ -11,3 +11,17 @@ def touching_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("touching")
     make_scenes(out, ["touching"], 1, seed=3, width=320, height=240)
     return out
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_cache(tmp_path_factory):
+    """Collision shapes and decimated render meshes are cached under $XDG_CACHE_HOME: keep the tests' own."""
+    import os
+
+    saved = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+    yield
+    if saved is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = saved

@@ -20,10 +20,13 @@ workers, each creating its own ``DepthRenderer``.
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import math
 import os
 import sys
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -57,10 +60,99 @@ os.environ.setdefault("PYOPENGL_PLATFORM", default_backend())
 @dataclass
 class RenderConfig:
     """``backend``: "auto" (the process's backend, see the module docstring) | "osmesa" | "egl".
-    ``max_framebuffer``: pixels per side of the tiled framebuffer; larger batches take several passes."""
+    ``max_framebuffer``: pixels per side of the tiled framebuffer; larger batches take several passes.
+    ``max_depth_error``: metres; each mesh is drawn as its coarsest quadric decimation whose surface stays this
+    close to the full mesh (``render_mesh``), 0 draws the full meshes."""
 
     backend: str = "auto"
     max_framebuffer: int = 2048
+    max_depth_error: float = 1e-3
+
+
+# Decimation halves the face count until the surface leaves the bound: a few decimations (~50 ms each for 16k
+# faces), never below _MIN_FACES.
+_MIN_FACES = 64
+_DEVIATION_PERCENTILE = 99.0
+_SAMPLES = 20000
+_MESH_CACHE: dict[str, trimesh.Trimesh] = {}
+
+
+def default_cache_dir() -> Path:
+    """Where decimated render meshes are kept between runs: ``$XDG_CACHE_HOME/workbench/render``."""
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "workbench" / "render"
+
+
+def surface_deviation(full: trimesh.Trimesh, simple: trimesh.Trimesh) -> float:
+    """Metres: the ``_DEVIATION_PERCENTILE`` percentile of the distances from samples of each surface to the
+    other (both directions, seeded samples). Along a camera ray this bounds the depth difference of the two
+    meshes except at grazing angles and silhouettes, where a pixel straddles an edge anyway."""
+    import open3d as o3d
+
+    def distance(mesh, points):
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                            o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+        return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+
+    a = trimesh.sample.sample_surface(full, _SAMPLES, seed=0)[0]
+    b = trimesh.sample.sample_surface(simple, _SAMPLES, seed=1)[0]
+    return float(max(np.percentile(distance(simple, a), _DEVIATION_PERCENTILE),
+                     np.percentile(distance(full, b), _DEVIATION_PERCENTILE)))
+
+
+def render_mesh(mesh: trimesh.Trimesh, max_error: float = 1e-3, cache_dir: str | os.PathLike | None = None
+                ) -> trimesh.Trimesh:
+    """The mesh to draw for ``mesh`` (metres): its coarsest quadric decimation (open3d) among 1/2, 1/4, ... of
+    its faces whose ``surface_deviation`` from the full mesh is at most ``max_error / 2``; the full mesh itself
+    when none is, or when ``max_error`` is 0. Cached in memory and under ``cache_dir`` (default
+    ``default_cache_dir()``), keyed by the mesh and the bound. The full mesh stays the one for display and
+    metrics."""
+    if max_error <= 0 or len(mesh.faces) <= 2 * _MIN_FACES:
+        return mesh
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    h.update(repr((max_error, _MIN_FACES, _DEVIATION_PERCENTILE, _SAMPLES)).encode())
+    key = h.hexdigest()
+    if key in _MESH_CACHE:
+        return _MESH_CACHE[key]
+    path = Path(cache_dir or default_cache_dir()) / f"{key}.npz"
+    simple = None
+    if path.exists():
+        try:
+            with np.load(path) as data:
+                simple = trimesh.Trimesh(data["vertices"], data["faces"], process=False)
+        except (OSError, KeyError, ValueError):
+            simple = None  # damaged: recompute and overwrite
+    if simple is None:
+        simple = _decimate_within(mesh, max_error)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")  # write then rename: workers race here
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, vertices=simple.vertices, faces=simple.faces)
+        os.replace(tmp, path)
+    _MESH_CACHE[key] = simple
+    return simple
+
+
+def _decimate_within(mesh: trimesh.Trimesh, max_error: float) -> trimesh.Trimesh:
+    import open3d as o3d
+
+    source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
+                                       o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)))
+    best = mesh
+    target = len(mesh.faces) // 2
+    while target >= _MIN_FACES:
+        simple = source.simplify_quadric_decimation(target_number_of_triangles=target)
+        candidate = trimesh.Trimesh(np.asarray(simple.vertices), np.asarray(simple.triangles), process=False)
+        # Along a ray the depth error is the surface offset over the cosine of the viewing angle: half the bound
+        # keeps surfaces seen at up to 60 degrees from the normal within it.
+        if len(candidate.faces) == 0 or surface_deviation(mesh, candidate) > max_error / 2:
+            break
+        best = candidate
+        target //= 2
+    return best
 
 
 _VERTEX_SHADER = """
@@ -198,7 +290,8 @@ class DepthRenderer:
     """Renders batches of particle scenes of fixed meshes from one camera.
 
     ``camera``: K, width, height and ``T_cam_world`` (table frame -> camera), usually a region of interest
-    (``Camera.cropped`` / ``Camera.scaled``). ``meshes``: the K objects in metres, each in its own frame.
+    (``Camera.cropped`` / ``Camera.scaled``). ``meshes``: the K objects in metres, each in its own frame; they
+    are drawn as ``render_mesh`` of each (``self.meshes``), within ``config.max_depth_error`` of them.
     Holds a GL context: call ``close()`` (or use as a context manager). Not thread-safe.
     """
 
@@ -236,7 +329,9 @@ class DepthRenderer:
             for name in ("projection", "tile_size", "rows", "framebuffer_size")
         }
         self._instance_vbo = GL.glGenBuffers(1)
-        self._meshes = [self._upload_mesh(GL, mesh) for mesh in meshes]
+        # Drawn as decimated meshes within the depth bound: the cost of a batch grows with the faces drawn.
+        self.meshes = [render_mesh(mesh, config.max_depth_error) for mesh in meshes]
+        self._meshes = [self._upload_mesh(GL, mesh) for mesh in self.meshes]
         self._fbo = GL.glGenFramebuffers(1)
         self._colour_rb, self._depth_rb = GL.glGenRenderbuffers(2)
         # One fixed tile layout: a particle's pixels then depend only on its place in the batch, never on the batch
