@@ -17,6 +17,7 @@ poses are from those: the cost in accuracy of the simplified geometry.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -65,10 +66,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("dataset", type=Path)
     parser.add_argument("--reference", action="store_true", help="compare with unsimplified collision shapes")
-    parser.add_argument("--rolling-friction", type=float, default=None, help="override PhysicsConfig's (m)")
+    parser.add_argument("--rolling-friction", type=float, default=None,
+                        help="override PhysicsConfig's rolling and spinning friction (m)")
+    parser.add_argument("--solver-residual", type=float, default=None, help="override PhysicsConfig's")
+    parser.add_argument("--pyramid-friction", action="store_true", help="Bullet's pyramid friction, not its cone")
     args = parser.parse_args()
-    physics = PhysicsConfig() if args.rolling_friction is None else PhysicsConfig(
-        rolling_friction=args.rolling_friction, spinning_friction=args.rolling_friction)
+    physics = PhysicsConfig(cone_friction=not args.pyramid_friction)
+    if args.rolling_friction is not None:
+        physics = dataclasses.replace(physics, rolling_friction=args.rolling_friction,
+                                      spinning_friction=args.rolling_friction)
+    if args.solver_residual is not None:
+        physics = dataclasses.replace(physics, solver_residual=args.solver_residual)
     names = object_names(args.dataset)
     drift, versus = [], []
     print("| scene | frame | object | shape | status | steps | moved mm | without lift mm | up mm | sideways mm "
