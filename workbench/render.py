@@ -83,28 +83,40 @@ def default_cache_dir() -> Path:
     return Path(base) / "workbench" / "render"
 
 
-def surface_deviation(full: trimesh.Trimesh, simple: trimesh.Trimesh) -> float:
-    """Metres: the ``_DEVIATION_PERCENTILE`` percentile of the distances from samples of each surface to the
-    other (both directions, seeded samples). Along a camera ray this bounds the depth difference of the two
-    meshes except at grazing angles and silhouettes, where a pixel straddles an edge anyway."""
+def depth_deviation(full: trimesh.Trimesh, simple: trimesh.Trimesh) -> float:
+    """Metres: the ``_DEVIATION_PERCENTILE`` percentile of the depth difference between two meshes along
+    ``_SAMPLES`` seeded rays from all around (from a sphere of twice the mesh's size towards random points of its
+    bounding box), over the rays that hit both. Rays that hit only one lie on a silhouette, where a pixel
+    straddles an edge at any resolution."""
     import open3d as o3d
 
-    def distance(mesh, points):
+    rng = np.random.default_rng(0)
+    lo, hi = full.bounds
+    centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    towards = rng.uniform(lo, hi, size=(_SAMPLES, 3))
+    origins = rng.normal(size=(_SAMPLES, 3))
+    origins = centre + 2.0 * size * origins / np.linalg.norm(origins, axis=1, keepdims=True)
+    directions = towards - origins
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    rays = o3d.core.Tensor(np.concatenate([origins, directions], axis=1).astype(np.float32))
+
+    def hit(mesh):
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
                             o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
-        return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+        return scene.cast_rays(rays)["t_hit"].numpy()
 
-    a = trimesh.sample.sample_surface(full, _SAMPLES, seed=0)[0]
-    b = trimesh.sample.sample_surface(simple, _SAMPLES, seed=1)[0]
-    return float(max(np.percentile(distance(simple, a), _DEVIATION_PERCENTILE),
-                     np.percentile(distance(full, b), _DEVIATION_PERCENTILE)))
+    a, b = hit(full), hit(simple)
+    both = np.isfinite(a) & np.isfinite(b)
+    if not both.any():
+        return float("inf")
+    return float(np.percentile(np.abs(a[both] - b[both]), _DEVIATION_PERCENTILE))
 
 
 def render_mesh(mesh: trimesh.Trimesh, max_error: float = 1e-3, cache_dir: str | os.PathLike | None = None
                 ) -> trimesh.Trimesh:
-    """The mesh to draw for ``mesh`` (metres): its coarsest quadric decimation (open3d) among 1/2, 1/4, ... of
-    its faces whose ``surface_deviation`` from the full mesh is at most ``max_error / 2``; the full mesh itself
+    """The mesh to draw for ``mesh`` (metres): its coarsest quadric decimation (open3d) found whose
+    ``depth_deviation`` from the full mesh is at most ``max_error``; the full mesh itself
     when none is, or when ``max_error`` is 0. Cached in memory and under ``cache_dir`` (default
     ``default_cache_dir()``), keyed by the mesh and the bound. The full mesh stays the one for display and
     metrics."""
@@ -113,7 +125,7 @@ def render_mesh(mesh: trimesh.Trimesh, max_error: float = 1e-3, cache_dir: str |
     h = hashlib.sha1()
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
-    h.update(repr((max_error, _MIN_FACES, _DEVIATION_PERCENTILE, _SAMPLES)).encode())
+    h.update(repr((max_error, _MIN_FACES, _DEVIATION_PERCENTILE, _SAMPLES, "rays")).encode())
     key = h.hexdigest()
     if key in _MESH_CACHE:
         return _MESH_CACHE[key]
@@ -137,21 +149,35 @@ def render_mesh(mesh: trimesh.Trimesh, max_error: float = 1e-3, cache_dir: str |
 
 
 def _decimate_within(mesh: trimesh.Trimesh, max_error: float) -> trimesh.Trimesh:
+    """Halve the face count while the result stays within the bound, then bisect between the last face count
+    that passed and the first that failed (3 more decimations)."""
     import open3d as o3d
 
     source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
                                        o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)))
-    best = mesh
-    target = len(mesh.faces) // 2
-    while target >= _MIN_FACES:
+
+    def within(target: int) -> trimesh.Trimesh | None:
         simple = source.simplify_quadric_decimation(target_number_of_triangles=target)
         candidate = trimesh.Trimesh(np.asarray(simple.vertices), np.asarray(simple.triangles), process=False)
-        # Along a ray the depth error is the surface offset over the cosine of the viewing angle: half the bound
-        # keeps surfaces seen at up to 60 degrees from the normal within it.
-        if len(candidate.faces) == 0 or surface_deviation(mesh, candidate) > max_error / 2:
+        ok = len(candidate.faces) > 0 and depth_deviation(mesh, candidate) <= max_error
+        return candidate if ok else None
+
+    best, good, bad = mesh, len(mesh.faces), None
+    target = len(mesh.faces) // 2
+    while target >= _MIN_FACES:
+        candidate = within(target)
+        if candidate is None:
+            bad = target
             break
-        best = candidate
+        best, good = candidate, target
         target //= 2
+    for _ in range(3 if bad is not None else 0):
+        target = (good + bad) // 2
+        candidate = within(target)
+        if candidate is None:
+            bad = target
+        else:
+            best, good = candidate, target
     return best
 
 
