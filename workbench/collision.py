@@ -75,11 +75,10 @@ class CollisionShape:
         return 8 if self.kind == BOX else sum(len(p) for p in self.parts)
 
     def describe(self) -> str:
-        """One line for tables and the UI, e.g. "box (fills 94 %, 1.8 mm)" or "convex 64 v (fills 91 %, 2.0 mm)"."""
-        size = {BOX: "", CYLINDER: ""}.get(self.kind, f" {len(self.parts)} x " if self.kind == COMPOUND else " ")
-        if self.kind in (CONVEX, COMPOUND):
-            size += f"{self.n_vertices} v"
-        return (f"{self.kind}{size.rstrip()} (fills {100 * self.fit_volume:.0f} %, "
+        """One line for tables and the UI: "box (fills 94 %, 1.8 mm)", "convex 64 v (...)", "compound 3 parts
+        72 v (...)": the kind, its size, the mesh's share of its volume and the surface deviation."""
+        size = {CONVEX: f" {self.n_vertices} v", COMPOUND: f" {len(self.parts)} parts {self.n_vertices} v"}
+        return (f"{self.kind}{size.get(self.kind, '')} (fills {100 * self.fit_volume:.0f} %, "
                 f"{1e3 * self.fit_deviation:.1f} mm)")
 
     def support_points(self) -> np.ndarray:
@@ -124,6 +123,11 @@ def collision_shape_for(
     cache_dir: str | os.PathLike | None = None,
 ) -> CollisionShape:
     """Choose and build the collision shape of ``mesh`` (metres), with its measured fit.
+
+    The thresholds are measured: YCB's sugar and pudding boxes (rounded, slightly bulging) fill 87-88 % of their
+    box with a 3.4-5.8 mm deviation, the master chef can 91 % of its cylinder (3.7 mm); with these as primitives
+    the true resting scenes of ycbv-real-dev stay a median 1.3 mm from their poses with the unsimplified shapes
+    (benchmarks/true_scene_drift.py --reference).
 
     ``kind``: None chooses (see the module doc); "box", "cylinder", "convex", "compound" force that kind;
     "reference" gives the unsimplified geometry. A mesh that is not watertight has no meaningful volume: it is
