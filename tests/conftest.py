@@ -22,3 +22,17 @@ def workbench_home(tmp_path_factory) -> Path:
     home = tmp_path_factory.mktemp("workbench-home")
     os.environ["WORKBENCH_HOME"] = str(home)
     return home
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_cache(tmp_path_factory):
+    """Collision shapes and decimated render meshes are cached under $XDG_CACHE_HOME: keep the tests' own."""
+    import os
+
+    saved = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+    yield
+    if saved is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = saved

@@ -60,3 +60,14 @@ def test_depth_scale_that_puts_the_table_100_m_away_is_caught(touching_dataset, 
 def test_impossible_parameters_are_refused(touching_dataset, tmp_path):
     run = _workbench("estimate", touching_dataset, "--particles", 0, "--out", tmp_path / "r.csv")
     assert run.returncode == 2 and "particle" in run.stderr
+
+
+def test_bench_speed_measures_a_named_dataset(touching_dataset, tmp_path):
+    run = _workbench("bench", "--speed", touching_dataset, "--particles", 16, "--repeats", 1, "--workers", 1)
+    assert run.returncode == 0, run.stderr
+    assert f"bench --speed {touching_dataset}" in run.stdout
+    rows = [line for line in run.stdout.splitlines() if line.startswith("| ") and "frame" not in line]
+    assert len(rows) == 1 and float(rows[0].split("|")[5]) > 0  # one frame, evaluations/s measured
+    assert "box (fills" in run.stdout  # the generated boxes collide as boxes, fit shown
+    missing = _workbench("bench", "--speed", tmp_path / "nowhere")
+    assert missing.returncode == 2 and "workbench: error:" in missing.stderr and "nowhere" in missing.stderr

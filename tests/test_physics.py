@@ -224,8 +224,74 @@ def test_collision_shape_kinds(cache_dir):
     shape = collision_shape_for(turned)
     assert shape.kind == "box"
     np.testing.assert_allclose(np.sort(shape.half_extents), [0.02, 0.03, 0.05], atol=1e-9)
-    assert collision_shape_for(cylinder().mesh).kind == "convex"
+    assert collision_shape_for(cylinder().mesh).kind == "cylinder"
+    assert collision_shape_for(cylinder().mesh, kind="convex").kind == "convex"
     annulus = trimesh.creation.annulus(r_min=0.03, r_max=0.04, height=0.08)
     assert collision_shape_for(annulus, cache_dir=cache_dir).kind == "compound"
     assert collision_shape_for(cup_mesh(), cache_dir=cache_dir).kind == "compound"
 
+
+
+def rounded_box(extents, radius) -> trimesh.Trimesh:
+    """A box of ``extents`` with edges and corners rounded to ``radius``: the hull of spheres at the corners of
+    the inner box (YCB's food boxes look like this)."""
+    inner = np.asarray(extents) / 2 - radius
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    corners = np.array(np.meshgrid(*[[-1, 1]] * 3, indexing="ij")).reshape(3, -1).T * inner
+    return trimesh.convex.convex_hull(np.concatenate([sphere.vertices + c for c in corners]))
+
+
+def test_rounded_box_collides_as_a_box_and_rests_like_one():
+    mesh = rounded_box([0.09, 0.05, 0.17], 0.006)
+    turned = mesh.copy().apply_transform(poses([0.01, -0.02, 0.03, 0.2, -0.4, 0.7])[0])
+    for m in (mesh, turned):
+        shape = collision_shape_for(m)
+        assert shape.kind == "box"
+        np.testing.assert_allclose(np.sort(2 * shape.half_extents), [0.05, 0.09, 0.17], atol=2e-4)
+        assert 0.9 < shape.fit_volume <= 1.0 and 0 < shape.fit_deviation < 3 * MM
+    with PhysicsProjector([ObjectModel(1, turned)], TABLE) as projector:
+        out, status, _ = projector.project(poses([0, 0, 0.2, 0.3, 0.1, 0]))
+    assert status in (STATUS_REST, STATUS_STEP_CAP)
+    lowest = np.min(turned.vertices @ out[0, :3, :3].T[:, 2] + out[0, 2, 3])
+    assert abs(lowest) < 1 * MM  # on a face, touching the table
+
+
+def test_cylinder_like_mesh_collides_as_a_cylinder():
+    # A can: 24-sided, with a rim 2 mm proud of the body at top and bottom, axis along the mesh's x.
+    profile = np.array([[0, 0], [0.033, 0], [0.033, 0.006], [0.031, 0.008], [0.031, 0.092], [0.033, 0.094],
+                        [0.033, 0.1], [0, 0.1]])
+    can = trimesh.creation.revolve(profile, sections=24)
+    can.apply_transform(poses([0.0, 0.0, 0.0, 0.0, np.pi / 2, 0.0])[0])
+    shape = collision_shape_for(can)
+    assert shape.kind == "cylinder"
+    axis = shape.T_obj_shape[:3, 2]
+    assert abs(abs(axis[0]) - 1) < 1e-6  # Bullet's cylinder axis (its z) along the can's axis
+    np.testing.assert_allclose(shape.half_extents, [0.033, 0.033, 0.05], atol=2e-4)
+    model = ObjectModel(1, can)
+    with PhysicsProjector([model], TABLE) as projector:
+        # Standing on its end, it stays; lying on its side it rests there, rolling friction stops it rolling on.
+        upright, s1, _ = projector.project(poses([0, 0, 0.0002, 0.0, -np.pi / 2, 0.0]))
+        start = poses([0, 0, 0.04, 0.0, 0.0, 0.3])
+        lying, s2, _ = projector.project(start)
+
+    def lowest(T):
+        return np.min(can.vertices @ T[:3, :3].T[:, 2] + T[2, 3])
+
+    assert s1 == STATUS_REST and abs(lowest(upright[0])) < 1 * MM
+    assert abs(upright[0, :3, 0] @ [0, 0, 1]) > 0.999  # axis vertical
+    assert np.linalg.norm(upright[0, :2, 3]) < 1 * MM
+    assert s2 == STATUS_REST and abs(lowest(lying[0])) < 2 * MM  # a line contact: Bullet lets it sink a little
+    assert abs(lying[0, :3, 0] @ [0, 0, 1]) < 0.01  # on its side
+    centre = [T[:3, :3] @ [0.05, 0, 0] + T[:3, 3] for T in (start[0], lying[0])]
+    assert np.linalg.norm(centre[1][:2] - centre[0][:2]) < 0.02  # rolled no further than 2 cm
+
+
+def test_collision_kind_override_and_fit_are_data():
+    models = [cylinder(obj_id=7)]
+    config = PhysicsConfig(shape_overrides=((7, "convex"),))
+    with PhysicsProjector(models, TABLE, config) as projector:
+        (shape,) = projector.shapes
+    assert shape.kind == "convex" and len(shape.parts[0]) <= 64
+    assert "convex" in shape.describe() and np.isfinite(shape.fit_volume) and np.isfinite(shape.fit_deviation)
+    with pytest.raises(InputError):
+        PhysicsConfig(shape_overrides=((7, "sphere"),))

@@ -10,7 +10,7 @@ import trimesh
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
-from workbench.render import BACKENDS, DepthRenderer, RenderConfig, render_depth
+from workbench.render import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
 from workbench.scene import Camera
 
 BOX = np.array([0.10, 0.06, 0.04])
@@ -182,3 +182,23 @@ def test_egl_matches_osmesa(renderer, meshes):
         raise
     assert np.count_nonzero(depth) > 0
     np.testing.assert_allclose(depth, renderer.render(particle[None])[0], atol=1e-5, rtol=0)
+
+
+def test_decimated_render_stays_within_the_depth_bound():
+    # A finely tessellated bottle-like solid of revolution (~16k faces), turned and seen from the test camera.
+    z = np.linspace(0.0, 0.12, 64)
+    r = 0.03 + 0.008 * np.sin(z / 0.12 * 2 * np.pi)
+    profile = np.concatenate([[[0.0, 0.0]], np.stack([r, z], axis=1), [[0.0, 0.12]]])
+    full = trimesh.creation.revolve(profile, sections=128)
+    bound = 1e-3
+    simple = render_mesh(full, bound)
+    assert len(simple.faces) <= len(full.faces) / 4  # it did simplify
+    poses = pose_from_xyz_rpy(np.array([[[0.0, 0.0, 0.0, 0.0, 0.0, 0.0]], [[0.02, 0.03, 0.035, 1.2, 0.3, 0.5]]]))
+    with DepthRenderer(CAMERA, [full], RenderConfig(max_depth_error=0.0)) as exact, \
+            DepthRenderer(CAMERA, [full], RenderConfig(max_depth_error=bound)) as decimated:
+        assert len(decimated.meshes[0].faces) == len(simple.faces)
+        a, b = exact.render(poses), decimated.render(poses)
+    inside = np.stack([eroded(x > 0) for x in a]) & (b > 0)  # silhouette pixels straddle an edge
+    assert inside.sum() > 1000
+    error = np.abs(a - b)[inside]
+    assert np.percentile(error, 99) <= bound and np.max(error) < 3 * bound

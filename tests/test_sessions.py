@@ -85,8 +85,11 @@ def test_resumed_session_steps_bit_identically(loaded, tmp_path, kind, method):
 def test_session_before_the_first_step_and_every_setting_roundtrip(loaded, tmp_path):
     _, problem, ref = loaded
     problem_config = ProblemConfig(
-        max_render_pixels=4000, physics=PhysicsConfig(timestep=1 / 500, max_steps=321),
-        likelihood=LikelihoodConfig(model="ssd", sigma=0.007), render=RenderConfig(max_framebuffer=1024))
+        max_render_pixels=4000,
+        physics=PhysicsConfig(timestep=1 / 500, max_steps=321, cone_friction=False,
+                              shape_overrides=((problem.models[0].obj_id, "convex"),)),
+        likelihood=LikelihoodConfig(model="ssd", sigma=0.007),
+        render=RenderConfig(max_framebuffer=1024, max_depth_error=2e-3))
     config = EstimatorConfig(method="mcpf", particles=24, iterations=9, sigma=Sigma(roll=0.1), state="xyzyaw",
                              seed=3, target_ess=0.5, converge_patience=5)
     fresh = Estimator(replace(problem, config=problem_config), config, evaluator=None)  # never stepped here

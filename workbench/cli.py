@@ -144,7 +144,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.speed:
         from workbench.speed import run_speed_benchmark
 
-        run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats)
+        if args.dataset is not None and not args.dataset.is_dir():
+            raise InputError(args.dataset, "no such dataset folder")
+        run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats,
+                            dataset=args.dataset)
         return 0
     from workbench.tables import run_benchmark
 
@@ -219,7 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="Tables I and II (accuracy, convergence) or --speed")
     p.add_argument("dataset", type=Path, nargs="?")
-    p.add_argument("--speed", action="store_true", help="particle evaluations per second and peak memory")
+    p.add_argument("--speed", action="store_true",
+                   help="particle evaluations per second and peak memory, on DATASET or generated frames")
     p.add_argument("--quick", action="store_true", help="few scenes, small budget (CI)")
     p.add_argument("--methods", default="icp,pipf,mcpf")
     p.add_argument("--proposals", choices=PROPOSALS, default="default", help="the filters' search (default|paper)")

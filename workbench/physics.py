@@ -30,7 +30,7 @@ import numpy as np
 import pybullet
 import trimesh
 
-from workbench.collision import BOX, COMPOUND, CollisionShape, collision_shape_for
+from workbench.collision import BOX, COMPOUND, CYLINDER, KINDS, CollisionShape, collision_shape_for
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, matrix_to_quat_wxyz, wxyz_to_xyzw
 from workbench.scene import ObjectModel, Table
@@ -50,7 +50,14 @@ class PhysicsConfig:
     (rad/s), or a centre more than ``max_distance`` beyond the table's edges or above it, means the simulation blew
     up. Before simulating, penetrations deeper than ``penetration_tolerance`` are pushed apart in up to
     ``separation_iterations`` passes. ``table_friction`` multiplies each object's own friction: Bullet's combined
-    friction is the product of the two.
+    friction is the product of the two. ``rolling_friction`` (m) and ``spinning_friction`` (m) of the objects
+    resist rolling and turning in place (Bullet limits the contact torque to about them times the normal force,
+    combined as r_a * f_b + r_b * f_a with the lateral frictions f): without them a can or marker on its side
+    rolls on for as long as it is simulated.
+    ``linear_damping`` and ``angular_damping`` are Bullet's velocity damping (the fraction of speed lost per
+    second). ``solver_residual``: the contact solver stops iterating below it; ``cone_friction``: Bullet's cone
+    friction instead of its pyramid. ``shape_overrides``:
+    (obj_id, kind) pairs forcing an object's collision shape kind (see ``collision``).
     """
 
     # 1/120 s with 30 solver iterations settles a 4-box particle in half the time of 1/240 s with 60, with
@@ -58,8 +65,10 @@ class PhysicsConfig:
     timestep: float = 1.0 / 120.0
     solver_iterations: int = 30
     max_steps: int = 300
-    rest_linear: float = 0.01
-    rest_angular: float = 0.1
+    # Measured on real meshes (benchmarks/real_physics.py): half these thresholds costs 20 % more steps for the
+    # same resting poses against the unsimplified shapes.
+    rest_linear: float = 0.02
+    rest_angular: float = 0.2
     check_every: int = 4
     rest_checks: int = 2
     gravity: float = 9.81
@@ -71,16 +80,32 @@ class PhysicsConfig:
     max_distance: float = 2.0
     penetration_tolerance: float = 5e-4
     separation_iterations: int = 10
+    # The solver stops iterating once its residual is below this: a third off the cost of a step on real meshes,
+    # resting poses within 0.1 mm (median) of Bullet's default 1e-7 (benchmarks/real_physics.py). Bullet's
+    # pyramid friction would save another quarter, but moved true resting scenes twice as far from those with
+    # the unsimplified shapes (benchmarks/true_scene_drift.py --reference: median 3.1 mm against 1.4).
+    solver_residual: float = 1e-4
+    cone_friction: bool = True
+    rolling_friction: float = 0.002
+    spinning_friction: float = 0.002
+    linear_damping: float = 0.04
+    angular_damping: float = 0.04
+    shape_overrides: tuple[tuple[int, str], ...] = ()
 
     def __post_init__(self):
-        positive = ("timestep", "solver_iterations", "max_steps", "rest_linear", "rest_angular", "check_every",
+        positive = ("timestep", "solver_iterations", "solver_residual", "max_steps", "rest_linear", "rest_angular", "check_every",
                     "rest_checks", "table_thickness", "max_speed", "max_angular", "max_distance",
                     "penetration_tolerance", "separation_iterations")
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"PhysicsConfig.{name}", f"must be a positive finite number, got {value!r}")
-        for name in ("gravity", "table_friction"):
+        for obj_id, kind in self.shape_overrides:
+            if kind not in KINDS:
+                raise InputError("PhysicsConfig.shape_overrides",
+                                 f"object {obj_id}: kind must be one of {', '.join(KINDS)}, not {kind!r}")
+        for name in ("gravity", "table_friction", "rolling_friction", "spinning_friction", "linear_damping",
+                     "angular_damping"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"PhysicsConfig.{name}", f"must be a finite number >= 0, got {value!r}")
@@ -101,12 +126,17 @@ class _BodyFrame:
 
 
 def _body_frame(mesh: trimesh.Trimesh, shape: CollisionShape, mass: float) -> _BodyFrame:
-    """A box collides, and so moves, as a uniform box: its own frame. Anything else keeps the mass distribution of
-    the mesh (of its hull when the mesh is not watertight, matching ``ObjectModel.mass``)."""
+    """A box or cylinder collides, and so moves, as a uniform box or cylinder: its own frame (a Bullet primitive
+    cannot be offset from its body without wrapping it in a compound). Anything else keeps the mass distribution
+    of the mesh (of its hull when the mesh is not watertight, matching ``ObjectModel.mass``)."""
     if shape.kind == BOX:
         T_obj_body = shape.T_obj_shape.copy()
         e2 = (2.0 * shape.half_extents) ** 2
         inertia = mass / 12.0 * np.array([e2[1] + e2[2], e2[0] + e2[2], e2[0] + e2[1]])
+    elif shape.kind == CYLINDER:
+        T_obj_body = shape.T_obj_shape.copy()
+        r2, h2 = shape.half_extents[0] ** 2, (2.0 * shape.half_extents[2]) ** 2
+        inertia = mass * np.array([(3 * r2 + h2) / 12.0, (3 * r2 + h2) / 12.0, r2 / 2.0])
     else:
         src = mesh if mesh.is_watertight else mesh.convex_hull
         I = np.asarray(src.moment_inertia, dtype=np.float64) * (mass / abs(float(src.mass)))
@@ -117,6 +147,14 @@ def _body_frame(mesh: trimesh.Trimesh, shape: CollisionShape, mass: float) -> _B
     T_body_obj = invert_pose(T_obj_body)
     support = shape.support_points() @ T_body_obj[:3, :3].T + T_body_obj[:3, 3]
     return _BodyFrame(T_obj_body, np.maximum(inertia, 1e-12), support)
+
+
+def collision_shapes(models: list[ObjectModel], config: PhysicsConfig = PhysicsConfig(),
+                     cache_dir: str | os.PathLike | None = None) -> list[CollisionShape]:
+    """Each model's collision shape, chosen by fit (``collision.collision_shape_for``) unless
+    ``config.shape_overrides`` names a kind for its ``obj_id``."""
+    overrides = dict(config.shape_overrides)
+    return [collision_shape_for(m.mesh, kind=overrides.get(m.obj_id), cache_dir=cache_dir) for m in models]
 
 
 class PhysicsProjector:
@@ -136,7 +174,7 @@ class PhysicsProjector:
         cache_dir: str | os.PathLike | None = None,
     ):
         if shapes is None:
-            shapes = [collision_shape_for(m.mesh, cache_dir=cache_dir) for m in models]
+            shapes = collision_shapes(models, config, cache_dir)
         if len(shapes) != len(models):
             raise InputError("shapes", f"{len(shapes)} collision shapes for {len(models)} models")
         if not (table.x_min < table.x_max and table.y_min < table.y_max):
@@ -177,13 +215,17 @@ class PhysicsProjector:
         pybullet.setGravity(0.0, 0.0, -cfg.gravity, physicsClientId=cid)
         pybullet.setPhysicsEngineParameter(
             fixedTimeStep=cfg.timestep, numSolverIterations=cfg.solver_iterations, numSubSteps=0,
+            solverResidualThreshold=cfg.solver_residual, enableConeFriction=int(cfg.cone_friction),
             physicsClientId=cid)
         half = [(tb.x_max - tb.x_min) / 2, (tb.y_max - tb.y_min) / 2, cfg.table_thickness / 2]
         table_shape = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half, physicsClientId=cid)
         self._table_body = pybullet.createMultiBody(
             0.0, table_shape, basePosition=[(tb.x_min + tb.x_max) / 2, (tb.y_min + tb.y_max) / 2, -half[2]],
             physicsClientId=cid)
-        pybullet.changeDynamics(self._table_body, -1, lateralFriction=cfg.table_friction, physicsClientId=cid)
+        # Bullet combines rolling (and spinning) friction as r_a * f_b + r_b * f_a (f: lateral friction), so the
+        # table has none of its own: an object's contact with it gets rolling_friction * table_friction.
+        pybullet.changeDynamics(self._table_body, -1, lateralFriction=cfg.table_friction, rollingFriction=0.0,
+                                spinningFriction=0.0, physicsClientId=cid)
         self._shape_ids = []
         for k, (model, shape, frame) in enumerate(zip(self._models, self._shapes, self._frames)):
             shape_id = self._create_shape(k, shape, frame)
@@ -198,7 +240,8 @@ class PhysicsProjector:
             # Sleeping off: Bullet would freeze a body that has moved slowly (< 0.8 m/s) for 2 s, resting or not.
             pybullet.changeDynamics(
                 body, -1, mass=mass, localInertiaDiagonal=self._inertia[k], lateralFriction=model.friction,
-                collisionMargin=0.0, activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
+                rollingFriction=cfg.rolling_friction, spinningFriction=cfg.spinning_friction,
+                linearDamping=cfg.linear_damping, angularDamping=cfg.angular_damping, collisionMargin=0.0, activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
             self._bodies.append(body)
 
     def _create_shape(self, k: int, shape: CollisionShape, frame: _BodyFrame) -> int:
@@ -208,6 +251,9 @@ class PhysicsProjector:
             # The body frame is the box frame, so the box needs no offset (an offset would wrap it in a compound).
             return pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=shape.half_extents.tolist(),
                                                  physicsClientId=cid)
+        if shape.kind == CYLINDER:  # likewise; Bullet's cylinder axis is the body's z
+            return pybullet.createCollisionShape(pybullet.GEOM_CYLINDER, radius=float(shape.half_extents[0]),
+                                                 height=float(2.0 * shape.half_extents[2]), physicsClientId=cid)
         parts = [p @ T_body_shape[:3, :3].T + T_body_shape[:3, 3] for p in shape.parts]
         if shape.kind != COMPOUND:
             return pybullet.createCollisionShape(pybullet.GEOM_MESH, vertices=parts[0].tolist(), physicsClientId=cid)
@@ -222,6 +268,11 @@ class PhysicsProjector:
                 f.writelines(f"f {a + offset} {b + offset} {c + offset}\n" for a, b, c in hull.faces)
                 offset += len(hull.vertices)
         return pybullet.createCollisionShape(pybullet.GEOM_MESH, fileName=path, physicsClientId=cid)
+
+    @property
+    def shapes(self) -> list[CollisionShape]:
+        """The collision shape of each model, in model order (what each collides as, with its measured fit)."""
+        return list(self._shapes)
 
     def close(self) -> None:
         if self._client is not None:

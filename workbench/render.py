@@ -20,10 +20,13 @@ workers, each creating its own ``DepthRenderer``.
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import math
 import os
 import sys
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -57,10 +60,125 @@ os.environ.setdefault("PYOPENGL_PLATFORM", default_backend())
 @dataclass
 class RenderConfig:
     """``backend``: "auto" (the process's backend, see the module docstring) | "osmesa" | "egl".
-    ``max_framebuffer``: pixels per side of the tiled framebuffer; larger batches take several passes."""
+    ``max_framebuffer``: pixels per side of the tiled framebuffer; larger batches take several passes.
+    ``max_depth_error``: metres; each mesh is drawn as its coarsest quadric decimation whose surface stays this
+    close to the full mesh (``render_mesh``), 0 draws the full meshes."""
 
     backend: str = "auto"
     max_framebuffer: int = 2048
+    max_depth_error: float = 1e-3
+
+
+# Decimation halves the face count until the surface leaves the bound: a few decimations (~50 ms each for 16k
+# faces), never below _MIN_FACES.
+_MIN_FACES = 64
+_DEVIATION_PERCENTILE = 99.0
+_SAMPLES = 20000
+_MESH_CACHE: dict[str, trimesh.Trimesh] = {}
+
+
+def default_cache_dir() -> Path:
+    """Where decimated render meshes are kept between runs: ``$XDG_CACHE_HOME/workbench/render``."""
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "workbench" / "render"
+
+
+def depth_deviation(full: trimesh.Trimesh, simple: trimesh.Trimesh) -> float:
+    """Metres: the ``_DEVIATION_PERCENTILE`` percentile of the depth difference between two meshes along
+    ``_SAMPLES`` seeded rays from all around (from a sphere of twice the mesh's size towards random points of its
+    bounding box), over the rays that hit both. Rays that hit only one lie on a silhouette, where a pixel
+    straddles an edge at any resolution."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(0)
+    lo, hi = full.bounds
+    centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    towards = rng.uniform(lo, hi, size=(_SAMPLES, 3))
+    origins = rng.normal(size=(_SAMPLES, 3))
+    origins = centre + 2.0 * size * origins / np.linalg.norm(origins, axis=1, keepdims=True)
+    directions = towards - origins
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    rays = o3d.core.Tensor(np.concatenate([origins, directions], axis=1).astype(np.float32))
+
+    def hit(mesh):
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                            o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+        return scene.cast_rays(rays)["t_hit"].numpy()
+
+    a, b = hit(full), hit(simple)
+    both = np.isfinite(a) & np.isfinite(b)
+    if not both.any():
+        return float("inf")
+    return float(np.percentile(np.abs(a[both] - b[both]), _DEVIATION_PERCENTILE))
+
+
+def render_mesh(mesh: trimesh.Trimesh, max_error: float = 1e-3, cache_dir: str | os.PathLike | None = None
+                ) -> trimesh.Trimesh:
+    """The mesh to draw for ``mesh`` (metres): its coarsest quadric decimation (open3d) found whose
+    ``depth_deviation`` from the full mesh is at most ``max_error``; the full mesh itself
+    when none is, or when ``max_error`` is 0. Cached in memory and under ``cache_dir`` (default
+    ``default_cache_dir()``), keyed by the mesh and the bound. The full mesh stays the one for display and
+    metrics."""
+    if max_error <= 0 or len(mesh.faces) <= 2 * _MIN_FACES:
+        return mesh
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    h.update(repr((max_error, _MIN_FACES, _DEVIATION_PERCENTILE, _SAMPLES, "rays")).encode())
+    key = h.hexdigest()
+    if key in _MESH_CACHE:
+        return _MESH_CACHE[key]
+    path = Path(cache_dir or default_cache_dir()) / f"{key}.npz"
+    simple = None
+    if path.exists():
+        try:
+            with np.load(path) as data:
+                simple = trimesh.Trimesh(data["vertices"], data["faces"], process=False)
+        except (OSError, KeyError, ValueError):
+            simple = None  # damaged: recompute and overwrite
+    if simple is None:
+        simple = _decimate_within(mesh, max_error)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")  # write then rename: workers race here
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, vertices=simple.vertices, faces=simple.faces)
+        os.replace(tmp, path)
+    _MESH_CACHE[key] = simple
+    return simple
+
+
+def _decimate_within(mesh: trimesh.Trimesh, max_error: float) -> trimesh.Trimesh:
+    """Halve the face count while the result stays within the bound, then bisect between the last face count
+    that passed and the first that failed (3 more decimations)."""
+    import open3d as o3d
+
+    source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
+                                       o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)))
+
+    def within(target: int) -> trimesh.Trimesh | None:
+        simple = source.simplify_quadric_decimation(target_number_of_triangles=target)
+        candidate = trimesh.Trimesh(np.asarray(simple.vertices), np.asarray(simple.triangles), process=False)
+        ok = len(candidate.faces) > 0 and depth_deviation(mesh, candidate) <= max_error
+        return candidate if ok else None
+
+    best, good, bad = mesh, len(mesh.faces), None
+    target = len(mesh.faces) // 2
+    while target >= _MIN_FACES:
+        candidate = within(target)
+        if candidate is None:
+            bad = target
+            break
+        best, good = candidate, target
+        target //= 2
+    for _ in range(3 if bad is not None else 0):
+        target = (good + bad) // 2
+        candidate = within(target)
+        if candidate is None:
+            bad = target
+        else:
+            best, good = candidate, target
+    return best
 
 
 _VERTEX_SHADER = """
@@ -198,7 +316,8 @@ class DepthRenderer:
     """Renders batches of particle scenes of fixed meshes from one camera.
 
     ``camera``: K, width, height and ``T_cam_world`` (table frame -> camera), usually a region of interest
-    (``Camera.cropped`` / ``Camera.scaled``). ``meshes``: the K objects in metres, each in its own frame.
+    (``Camera.cropped`` / ``Camera.scaled``). ``meshes``: the K objects in metres, each in its own frame; they
+    are drawn as ``render_mesh`` of each (``self.meshes``), within ``config.max_depth_error`` of them.
     Holds a GL context: call ``close()`` (or use as a context manager). Not thread-safe.
     """
 
@@ -236,7 +355,9 @@ class DepthRenderer:
             for name in ("projection", "tile_size", "rows", "framebuffer_size")
         }
         self._instance_vbo = GL.glGenBuffers(1)
-        self._meshes = [self._upload_mesh(GL, mesh) for mesh in meshes]
+        # Drawn as decimated meshes within the depth bound: the cost of a batch grows with the faces drawn.
+        self.meshes = [render_mesh(mesh, config.max_depth_error) for mesh in meshes]
+        self._meshes = [self._upload_mesh(GL, mesh) for mesh in self.meshes]
         self._fbo = GL.glGenFramebuffers(1)
         self._colour_rb, self._depth_rb = GL.glGenRenderbuffers(2)
         # One fixed tile layout: a particle's pixels then depend only on its place in the batch, never on the batch

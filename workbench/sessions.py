@@ -620,6 +620,14 @@ def config_from_dict(cls, data, where: str):
             kwargs[name] = _int(v, at)
         elif tp is str:
             kwargs[name] = _str(v, at)
+        elif tp is bool:
+            if not isinstance(v, bool):
+                raise ValueError(f"{at} must be true or false, got {v!r}")
+            kwargs[name] = v
+        elif tp == tuple[tuple[int, str], ...]:  # e.g. PhysicsConfig.shape_overrides: (obj_id, kind) pairs
+            if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 for p in v):
+                raise ValueError(f"{at} must be a list of [integer, string] pairs, got {v!r}")
+            kwargs[name] = tuple((_int(a, at), _str(b, at)) for a, b in v)
         else:
             raise ValueError(f"{at}: settings of type {tp} cannot be restored")
     return cls(**kwargs)
