@@ -9,7 +9,7 @@ from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose
 from workbench.inference import datadriven, gaussian, refine, resting, stacking
 from workbench.inference.moves import MoveKind, MoveMix
-from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points
+from workbench.inference.scenepoints import clusters, object_badness
 from workbench.particles import Sigma, random_relocations
 from workbench.pipeline import load_bop_problem
 
