@@ -15,8 +15,9 @@ VIRIDIS = np.array(
 )
 # Diverging blue-white-red for signed residuals: white means "explained".
 DIVERGING = np.array([[33, 102, 172], [103, 169, 207], [247, 247, 247], [239, 138, 98], [178, 24, 43]], np.float64)
-# Particle weights: pale grey (negligible) to saturated orange (heavy), so the solid best scene stands out.
-WEIGHT = np.array([[190, 190, 200], [255, 190, 110], [240, 100, 20]], dtype=np.float64)
+# Particle weights: slate blue (negligible) to saturated orange (heavy). Not white: many faint white particles
+# read as a haze over the objects.
+WEIGHT = np.array([[120, 135, 170], [255, 190, 110], [240, 100, 20]], dtype=np.float64)
 # Per-pixel fit: black-red where the scene explains the pixel badly, fading to the table's quiet grey where it
 # explains it well, so the errors stand out and the scene still reads like the observation.
 MISFIT = np.array([[25, 10, 45], [125, 30, 95], [215, 65, 50], [240, 160, 70], [205, 205, 210]], dtype=np.float64)
@@ -60,9 +61,55 @@ def legend_html(title: str, lo: str, hi: str, stops: np.ndarray = VIRIDIS, note:
     )
 
 
-# Distinct solid colours for objects 0, 1, 2, ... (the best scene, the chosen particle).
-OBJECT_COLORS = [(66, 135, 245), (46, 184, 92), (232, 170, 20), (200, 80, 200), (40, 190, 200), (230, 90, 70)]
+# Distinct solid colours for objects 0, 1, 2, ... (the best scene, the chosen particle). None of them is the
+# label's magenta, the "before physics" red-orange or the ground truth's near-black.
+OBJECT_COLORS = [(66, 135, 245), (46, 184, 92), (232, 170, 20), (140, 90, 200), (40, 190, 200), (150, 100, 60)]
+BEFORE_COLOR = (235, 90, 60)  # the chosen particle as proposed, before physics
+MOVE_COLOR = (255, 60, 60)  # how physics moved each object
+LABEL_COLOR = (230, 40, 200)
+GROUND_TRUTH_COLOR = (30, 30, 30)
+REGION_COLOR = (255, 140, 0)
+TABLE_COLOR = (200, 190, 170)
+SENSOR_COLOR = (40, 40, 40)
 
 
 def object_color(k: int) -> tuple[int, int, int]:
     return OBJECT_COLORS[k % len(OBJECT_COLORS)]
+
+
+def _swatch(rgb, style: str = "solid") -> str:
+    """A small square of colour for a legend row: solid fill, an outline ("wire") or a line ("line")."""
+    r, g, b = (int(c) for c in rgb)
+    c = f"rgb({r},{g},{b})"
+    if style == "wire":
+        css = f"border:2px dashed {c}"
+    elif style == "line":
+        css = f"height:0;border-top:3px solid {c};margin-top:6px"
+    else:
+        css = f"background:{c}"
+    return f'<span style="display:inline-block;width:12px;height:12px;{css};vertical-align:middle"></span>'
+
+
+def view_legend_html(names: list[str], observation: str, heatmap: str = "") -> str:
+    """The one legend of the 3D view: every colour and glyph it can show, with the objects by name.
+    ``observation``: what the observed points' colours mean; ``heatmap``: a note while a heatmap replaces them."""
+    weight = ", ".join(f"rgb({int(r)},{int(g)},{int(b)})" for r, g, b in WEIGHT)
+    rows = [
+        (f'<span style="display:inline-block;width:12px;height:12px;vertical-align:middle;'
+         f'background:linear-gradient(to right, {weight})"></span>',
+         "particles, faint slate (unlikely) to orange (likely); click one to inspect it"),
+        (" ".join(_swatch(object_color(k)) for k in range(len(names))) or _swatch(OBJECT_COLORS[0]),
+         "most likely scene, and the inspected particle after physics: "
+         + (", ".join(f'<b style="color:rgb{object_color(k)}">{n}</b>' for k, n in enumerate(names)) or "—")),
+        (_swatch(BEFORE_COLOR, "wire"), "inspected particle before physics (solid when shown alone)"),
+        (_swatch(MOVE_COLOR, "line"), "how physics moved each object"),
+        (_swatch(LABEL_COLOR), "label (Label tab); its gizmo shows while you label"),
+        (_swatch(GROUND_TRUTH_COLOR, "wire"), "ground truth (Inspect → Ground truth)"),
+        (_swatch(REGION_COLOR, "line"), "object region, where particles start"),
+        (_swatch(TABLE_COLOR), "table top (z = 0)"),
+        (_swatch(SENSOR_COLOR, "line"), "depth sensor"),
+        (_swatch((150, 150, 150)), heatmap or f"observed points: {observation}"),
+    ]
+    body = "".join(f'<div style="display:flex;gap:0.5em;align-items:flex-start"><span style="flex:none">{s}</span>'
+                   f"<span>{text}</span></div>" for s, text in rows)
+    return f'<div style="font-size:0.78em;line-height:1.35;padding:0 0.5em" data-legend="3d-view">{body}</div>'
