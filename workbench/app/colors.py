@@ -91,25 +91,31 @@ def _swatch(rgb, style: str = "solid") -> str:
 
 
 def view_legend_html(names: list[str], observation: str, heatmap: str = "") -> str:
-    """The one legend of the 3D view: every colour and glyph it can show, with the objects by name.
-    ``observation``: what the observed points' colours mean; ``heatmap``: a note while a heatmap replaces them."""
+    """The one legend of the 3D view: every colour and glyph it can show, with the objects by name, as a compact
+    two-column grid. ``observation``: what the observed points' colours mean; ``heatmap``: a note while a heatmap
+    replaces them."""
     weight = ", ".join(f"rgb({int(r)},{int(g)},{int(b)})" for r, g, b in WEIGHT)
-    rows = [
-        (f'<span style="display:inline-block;width:12px;height:12px;vertical-align:middle;'
-         f'background:linear-gradient(to right, {weight})"></span>',
-         "particles, faint slate (unlikely) to orange (likely); click one to inspect it"),
-        (" ".join(_swatch(object_color(k)) for k in range(len(names))) or _swatch(OBJECT_COLORS[0]),
-         "most likely scene, and the inspected particle after physics: "
-         + (", ".join(f'<b style="color:rgb{object_color(k)}">{n}</b>' for k, n in enumerate(names)) or "—")),
-        (_swatch(BEFORE_COLOR, "wire"), "inspected particle before physics (solid when shown alone)"),
-        (_swatch(MOVE_COLOR, "line"), "how physics moved each object"),
-        (_swatch(LABEL_COLOR), "label (Label tab); its gizmo shows while you label"),
-        (_swatch(GROUND_TRUTH_COLOR, "wire"), "ground truth (Inspect → Ground truth)"),
-        (_swatch(REGION_COLOR, "line"), "object region, where particles start"),
-        (_swatch(TABLE_COLOR), "table top (z = 0)"),
+    gradient = (f'<span style="display:inline-block;width:12px;height:12px;vertical-align:middle;'
+                f'background:linear-gradient(to right, {weight})"></span>')
+    objects = ", ".join(f'<b style="color:rgb{object_color(k)}">{n}</b>' for k, n in enumerate(names)) or "—"
+    solid = " ".join(_swatch(object_color(k)) for k in range(len(names))) or _swatch(OBJECT_COLORS[0])
+    wide = [(solid, f"most likely scene (and the inspected particle after physics): {objects}")]
+    cells = [
+        (gradient, "particles: unlikely → likely"),
+        (_swatch(BEFORE_COLOR, "wire"), "inspected, before physics"),
+        (_swatch(MOVE_COLOR, "line"), "physics moved it"),
+        (_swatch(LABEL_COLOR), "label"),
+        (_swatch(GROUND_TRUTH_COLOR, "wire"), "ground truth"),
+        (_swatch(REGION_COLOR, "line"), "object region"),
+        (_swatch(TABLE_COLOR), "table top"),
         (_swatch(SENSOR_COLOR, "line"), "depth sensor"),
-        (_swatch((150, 150, 150)), heatmap or f"observed points: {observation}"),
     ]
-    body = "".join(f'<div style="display:flex;gap:0.5em;align-items:flex-start"><span style="flex:none">{s}</span>'
-                   f"<span>{text}</span></div>" for s, text in rows)
-    return f'<div style="font-size:0.78em;line-height:1.35;padding:0 0.5em" data-legend="3d-view">{body}</div>'
+    wide.append((_swatch((150, 150, 150)), heatmap or f"observed points: {observation}"))
+
+    def cell(swatch: str, text: str, span: bool = False) -> str:
+        style = "display:flex;gap:0.4em;align-items:flex-start" + (";grid-column:1 / -1" if span else "")
+        return f'<div style="{style}"><span style="flex:none">{swatch}</span><span>{text}</span></div>'
+
+    body = cell(*wide[0], span=True) + "".join(cell(*c) for c in cells) + cell(*wide[1], span=True)
+    return (f'<div style="font-size:0.75em;line-height:1.3;padding:0 0.5em;display:grid;'
+            f'grid-template-columns:1fr 1fr;column-gap:0.6em;row-gap:0.1em" data-legend="3d-view">{body}</div>')

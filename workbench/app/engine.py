@@ -39,7 +39,7 @@ from workbench.errors import InputError
 log = logging.getLogger(__name__)
 
 DEMO_DIR = Path(__file__).resolve().parents[2] / "assets" / "demo"
-DEFAULT_DISPLAY = 128  # particles per snapshot; the rest are the least likely and add haze, and cost software WebGL
+DEFAULT_DISPLAY = 64  # particles per snapshot; the rest are the least likely and add haze, and cost software WebGL
 CRASH_ERRORS = (EOFError, BrokenPipeError, ConnectionError)
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import viser
 
+from workbench.app.camera import FRAME_OBJECTS, FROM_SENSOR
 from workbench.app.engine import DEFAULT_DISPLAY
 from workbench.app.labelling import LabelTab, build_label_tab
 from workbench.app.plots import Plots
@@ -144,15 +145,16 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
     title = gui.add_markdown("**workbench** · nothing loaded")
     error = gui.add_markdown("", visible=False)
     status = gui.add_markdown("No iterations yet.")
-    with gui.add_folder("View", expand_by_default=True):
-        camera = gui.add_button_group("Camera", ("Frame objects", "From the sensor"))
-        view_legend = gui.add_html("")
     step = gui.add_button("Step", icon=viser.Icon.PLAYER_TRACK_NEXT, hint="one iteration")
     run = gui.add_button("Run", icon=viser.Icon.PLAYER_PLAY, color="green",
                          hint="iterate until the budget, convergence or Pause")
     pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True, hint="stop after this iteration")
     reset = gui.add_button("Reset", icon=viser.Icon.REFRESH, color="gray",
                            hint="new random particles (seed and likelihood model apply here)")
+    # The 3D view's camera presets and its one legend, under the actions so that those stay at the top.
+    with gui.add_folder("View", expand_by_default=True):
+        camera = gui.add_button_group("Camera", (FRAME_OBJECTS, FROM_SENSOR))
+        view_legend = gui.add_html("")
     tabs = gui.add_tab_group()
 
     with tabs.add_tab("Estimator", viser.Icon.ADJUSTMENTS):

@@ -270,8 +270,7 @@ class App:
         """A new tab (or a reload) starts where the last camera was left, not back at the default view."""
         def moved(camera: viser.CameraHandle) -> None:
             with self.lock:
-                self._camera_moved = CameraPose(tuple(camera.position), tuple(camera.look_at), tuple(camera.up_direction),
-                                                float(camera.fov))
+                self._camera_moved = CameraPose(tuple(camera.position), tuple(camera.look_at))
                 due = self._camera_timer is None
                 if due:  # remembered once the camera has rested a moment: a drag reports ~30 poses a second
                     self._camera_timer = threading.Timer(CAMERA_REST_S, self._remember_camera)
