@@ -23,7 +23,7 @@ import viser
 from workbench.app import protocol as p
 from workbench.app.colors import LABEL_COLOR
 from workbench.app.quiet import Quiet
-from workbench.app.views import HEATMAP_MODES, HeatmapLayer, Nodes, split_pose
+from workbench.app.views import HEATMAP_MODES, NO_SHADOW, HeatmapLayer, Nodes, split_pose
 from workbench.geometry import euler_to_matrix, make_pose, matrix_to_euler, quat_wxyz_to_matrix, rot_x, rot_y, rot_z
 
 POSITION_FIELDS = ("x (cm)", "y (cm)", "z (cm)")
@@ -215,8 +215,7 @@ class Labelling:
                 gizmo.on_update(lambda event, k=k: self.gizmo_moved(k, event))
                 self.gizmos.append(gizmo)
                 self.meshes.append(self.nodes.add(scene.add_mesh_simple(
-                    f"/label_mesh/{k}", m.vertices, m.faces, color=LABEL_COLOR, opacity=0.75, visible=False,
-                )))
+                    f"/label_mesh/{k}", m.vertices, m.faces, color=LABEL_COLOR, opacity=0.75, visible=False, **NO_SHADOW)))
             with self.quiet:
                 self.tab.object.options = tuple(self.names) or (NO_OBJECT,)
                 self.tab.object.value = self.tab.object.options[0]

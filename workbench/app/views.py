@@ -18,6 +18,9 @@ from workbench.app.protocol import Chosen, MeshData, ObservationView, ParticleCl
 
 SCENE_MODES = ("after physics", "before physics", "before + after", "side by side", "hidden")
 HEATMAP_MODES = ("log-likelihood", "residual", "off")
+# No shadows anywhere: a shadow map is another pass over the scene in every frame, and software WebGL draws a frame
+# at least once a second (viser's idle heartbeat), so every pass costs CPU for as long as a tab is open.
+NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
 
 
 def wxyz_from_matrices(R: np.ndarray) -> np.ndarray:
@@ -96,8 +99,8 @@ class ObservationLayer:
         # The table slab's top a millimetre below z = 0, so the table's own points stay visible on it.
         add(scene.add_box(
             "/observation/table", color=colors.TABLE_COLOR, dimensions=(x1 - x0, y1 - y0, 0.004),
-            position=((x0 + x1) / 2, (y0 + y1) / 2, -0.003), opacity=0.5, cast_shadow=False,
-        ))
+            position=((x0 + x1) / 2, (y0 + y1) / 2, -0.003), **NO_SHADOW,
+        ))  # opaque: a blended slab this large costs a full pass of blending; it also hides the floor below it
         rx0, rx1, ry0, ry1 = view.region
         corners = np.array([[rx0, ry0, 0], [rx1, ry0, 0], [rx1, ry1, 0], [rx0, ry1, 0]], dtype=np.float32)
         add(scene.add_line_segments(
@@ -117,8 +120,7 @@ class ObservationLayer:
                     q, t = split_pose(T)
                     self.gt.append(add(scene.add_mesh_simple(
                         f"/observation/ground_truth/{k}", mesh.vertices, mesh.faces, color=colors.GROUND_TRUTH_COLOR,
-                        wireframe=True, wxyz=q, position=t, visible=show_gt,
-                    )))
+                        wireframe=True, wxyz=q, position=t, visible=show_gt, **NO_SHADOW)))
 
     def set_visible(self, cloud: bool, gt: bool) -> None:
         for h in self.clouds:
@@ -129,8 +131,9 @@ class ObservationLayer:
 
 @dataclass
 class ParticleLayer:
-    """Every published particle as one instanced mesh per object, coloured (and faded) by normalised weight, and
-    the most likely scene drawn solid. Clicking an instance calls ``on_pick(rank)`` (instances are in rank order)."""
+    """Every published particle as one instanced wireframe per object, coloured (and faded) by normalised weight,
+    and the most likely scene drawn solid. Wireframes: solid translucent particles piled up into a haze over the
+    objects, and filling them cost software WebGL most of a core. Clicking an instance calls ``on_pick(rank)`` (instances are in rank order)."""
 
     server: viser.ViserServer
     on_pick: Callable[[int], None]
@@ -166,7 +169,7 @@ class ParticleLayer:
                     handle = self.nodes.add(scene.add_batched_meshes_simple(
                         f"/particles/{k}", mesh.vertices, mesh.faces, batched_wxyzs=wxyz[:, k],
                         batched_positions=pos[:, k], batched_colors=tint, batched_opacities=opacity,
-                        lod="off", cast_shadow=False, receive_shadow=False, visible=self.show_cloud,
+                        lod="off", wireframe=True, visible=self.show_cloud, **NO_SHADOW,
                     ))
                     handle.on_click(self._clicked)
                     self.batches.append(handle)
@@ -177,8 +180,7 @@ class ParticleLayer:
                 if len(self.best) <= k:
                     self.best.append(self.nodes.add(scene.add_mesh_simple(
                         f"/best/{k}", mesh.vertices, mesh.faces, color=colors.object_color(k), wxyz=wxyz[0, k],
-                        position=pos[0, k], visible=self.show_best,
-                    )))
+                        position=pos[0, k], visible=self.show_best, **NO_SHADOW)))
                 else:
                     self.best[k].wxyz, self.best[k].position = wxyz[0, k], pos[0, k]
 
@@ -222,14 +224,14 @@ class ChosenLayer:
         scene = self.server.scene
         self.before = [
             self.nodes.add(scene.add_mesh_simple(f"/chosen/before/{k}", m.vertices, m.faces, color=colors.BEFORE_COLOR,
-                                                 visible=False))
+                                                 visible=False, **NO_SHADOW))
             for k, m in enumerate(view.meshes)
         ]
         # "After" wears the objects' own colours, like the most likely scene: when the chosen particle is the most
         # likely one the two coincide, and equal colours hide the z-fighting.
         self.after = [
             self.nodes.add(scene.add_mesh_simple(f"/chosen/after/{k}", m.vertices, m.faces,
-                                                 color=colors.object_color(k), visible=False))
+                                                 color=colors.object_color(k), visible=False, **NO_SHADOW))
             for k, m in enumerate(view.meshes)
         ]
 
