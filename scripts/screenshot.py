@@ -1,6 +1,10 @@
-"""Save the README screenshot (docs/screenshot.png): the workbench on the demo frame, mid-run, in headless Chromium.
+"""Save the README screenshots, in headless Chromium on the demo frame:
 
-    python scripts/screenshot.py [--out docs/screenshot.png] [--particles 128] [--iterations 6]
+- docs/screenshot.png: mid-run, the Plots tab beside the 3D view with its legend;
+- docs/inspect.png: the Inspect tab, one particle before (wireframe) and after physics, and how physics moved it.
+
+    python scripts/screenshot.py [--out docs/screenshot.png] [--inspect-out docs/inspect.png] [--particles 128]
+                                 [--iterations 15] [--rank 5]
 """
 
 from __future__ import annotations
@@ -26,11 +30,28 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def save(page, out: Path, app) -> bool:
+    """Screenshot the page into ``out`` unless the 3D view looks blank."""
+    time.sleep(2.0)  # let SwiftShader catch up with the last updates
+    dismiss_notifications(page, wait_ms=3_000)
+    png = page.screenshot()
+    std, drawn = image_stats(png)
+    if drawn < 0.05:
+        print(f"the view looks blank (std {std:.1f}, drawn {drawn:.2f}); {out} not saved", file=sys.stderr)
+        return False
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(png)
+    print(f"wrote {out} at iteration {app.state.iteration}")
+    return True
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "screenshot.png")
+    ap.add_argument("--inspect-out", type=Path, default=ROOT / "docs" / "inspect.png")
     ap.add_argument("--particles", type=int, default=128)
-    ap.add_argument("--iterations", type=int, default=6, help="iterations to run before the picture")
+    ap.add_argument("--iterations", type=int, default=15, help="iterations to run before the pictures")
+    ap.add_argument("--rank", type=int, default=5, help="the particle shown before and after physics")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
 
@@ -43,23 +64,20 @@ def main() -> int:
             return 1
         with chromium() as browser:
             page = open_workbench(browser, handle.url)
-            page.get_by_role("tab", name="Inspect").click()
-            app.point_cameras(app.state.view, zoom=1.8)
-            app.panel.heatmap_mode.value = "log-likelihood"  # shared GUI state: the page follows
             page.get_by_role("button", name="Run").click()
             app.wait_for(lambda s: s.iteration >= args.iterations, 300)
-            app.send(p.Pause())  # hold still for the picture; the panel still shows the last running state
+            app.send(p.Pause())  # hold still for the pictures
             app.wait_for(lambda s: not s.running, 60)
-            time.sleep(2.0)  # let SwiftShader catch up with the last updates
-            dismiss_notifications(page, wait_ms=10_000)
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            png = page.screenshot()
-            std, drawn = image_stats(png)
-            if drawn < 0.05:
-                print(f"the view looks blank (std {std:.1f}, drawn {drawn:.2f}); not saved", file=sys.stderr)
+            page.get_by_role("tab", name="Plots").click()
+            if not save(page, args.out, app):
                 return 1
-            args.out.write_bytes(png)
-            print(f"wrote {args.out} at iteration {app.state.iteration}")
+            page.get_by_role("tab", name="Inspect").click()
+            app.panel.scene_mode.value = "before + after"  # shared GUI state: the page follows
+            app.panel.show_particles.value = False  # the chosen particle alone, over the observation
+            app.pick(args.rank)
+            app.wait_for(lambda s: s.chosen is not None and s.chosen.rank == args.rank, 60)
+            if not save(page, args.inspect_out, app):
+                return 1
     finally:
         handle.stop()
     return 0

@@ -266,3 +266,95 @@ def test_engine_labels_files_and_a_changed_dataset_asks_before_loading(tmp_path)
         assert inbox.of(p.SessionRestored)[-1].warnings == question.warnings
     finally:
         engine.close()
+
+
+def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
+    """models_info.json's ``name`` where present, else obj_000006; a repeated model gets " #2" in the scene."""
+    import json
+    import shutil
+
+    from workbench import bop
+    from workbench.app.engine import demo_dataset
+    from workbench.app.observation import display_names
+    from workbench.errors import InputError
+
+    src = demo_dataset(lambda: tmp_path)
+    data = tmp_path / "named"
+    shutil.copytree(src / "models", data / "models")
+    info_path = data / "models" / "models_info.json"
+    info = json.loads(info_path.read_text())
+    first, second = sorted(info, key=int)[:2]
+    info[first]["name"] = "  cracker box "
+    info_path.write_text(json.dumps(info))
+    models = bop.load_models(data)
+    assert models[int(first)].name == "cracker box"
+    assert models[int(second)].name == f"obj_{int(second):06d}"
+    assert display_names([models[int(first)], models[int(second)], models[int(first)]]) == \
+        ["cracker box", f"obj_{int(second):06d}", "cracker box #2"]
+    info[first]["name"] = 7
+    info_path.write_text(json.dumps(info))
+    try:
+        bop.load_models(data)
+    except InputError as err:
+        assert str(err.path) == str(info_path) and "name" in err.problem
+    else:
+        raise AssertionError("a non-text name was accepted")
+
+
+def test_plots_columns_and_acceptance_by_move_kind():
+    from workbench.app.plots import CHARTS, legend_html
+
+    def report(i, moves=None, accept=float("nan")):
+        r = {"iteration": i, "best_loglik": -100.0 + i, "mean_loglik": -150.0 + i, "beta": 0.01 * (i + 1),
+             "best_move_m": 0.02, "best_move_deg": 1.0, "accept_rate": accept, "distinct_after_resampling": 30.0 + i,
+             "reference": "truth", "reference_loglik": -90.0}
+        if moves is not None:
+            r["moves"] = moves
+        return r
+
+    ctx = {"converge_m": 0.01, "converge_deg": 3.0, "particles": [64, 64, 64]}
+    charts = {c.key: c for c in CHARTS}
+    plain = [report(i) for i in range(3)]
+    assert charts["acceptance"].columns(plain, ctx) is None  # PI-PF, no move kinds: no chart
+    x, best, mean, truth = charts["loglik"].columns(plain, ctx)
+    assert list(x) == [0, 1, 2] and list(truth) == [-90.0] * 3
+    assert [ln.label for ln in charts["loglik"].lines(plain)] == ["best", "mean", "truth"]
+    x, distinct, n = charts["distinct"].columns(plain, ctx)
+    assert list(distinct) == [30.0, 31.0, 32.0] and list(n) == [64.0] * 3
+    moves = [report(i, {"diffuse": {"proposed": 60, "accepted": 30}, "turn": {"proposed": 4, "accepted": i}},
+                    accept=0.5) for i in range(3)]
+    assert [ln.label for ln in charts["acceptance"].lines(moves)] == ["all", "diffuse", "turn"]
+    x, overall, diffuse, turn = charts["acceptance"].columns(moves, ctx)
+    assert list(diffuse) == [0.5] * 3 and list(turn) == [0.0, 0.25, 0.5]
+    assert "turn" in legend_html(charts["acceptance"], charts["acceptance"].lines(moves))
+
+
+def test_expected_distinct_particles_matches_systematic_resampling():
+    from workbench.app.engine import expected_distinct
+    from workbench.resampling import systematic_resample
+
+    rng = np.random.default_rng(3)
+    logw = rng.normal(0.0, 2.0, 200)
+    w = np.exp(logw - logw.max())
+    w /= w.sum()
+    counts = [len(np.unique(systematic_resample(logw, rng, 200))) for _ in range(400)]
+    assert abs(np.mean(counts) - expected_distinct(w, 200)) < 0.5
+    assert expected_distinct(np.full(10, 0.1), 10) == 10.0  # even weights: every particle kept
+
+
+def test_turns_and_laying_on_a_face_keep_the_object_on_the_table():
+    import trimesh
+
+    from workbench.app.labelling import FACES, laid_on, turned
+    from workbench.geometry import make_pose
+
+    box = np.asarray(trimesh.creation.box(extents=(0.1, 0.06, 0.02)).vertices)
+    T = make_pose(np.eye(3), [0.05, -0.02, 0.01])  # resting on its largest face
+    up = turned(T, rot_x(np.pi / 2), box)
+    assert np.isclose(np.min((box @ up[:3, :3].T)[:, 2]) + up[2, 3], 0.0)  # still on the table
+    assert np.isclose(up[2, 3], 0.03) and np.allclose(up[:2, 3], T[:2, 3])
+    for name, face in FACES.items():
+        L = laid_on(up, face, box)
+        assert np.allclose(L[:3, :3] @ np.array(face, float), [0, 0, -1], atol=1e-9), name
+        assert np.isclose(np.min((box @ L[:3, :3].T)[:, 2]) + L[2, 3], 0.0), name
+        assert np.allclose(L[:2, 3], T[:2, 3])

@@ -9,7 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from workbench.app.headless import canvas_png, chromium_path, gui_input, image_stats, open_workbench
+from workbench.app.protocol import Failure
+from workbench.app.headless import canvas_png, chromium_path, color_extent, gui_input, image_stats, open_workbench
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -77,6 +78,25 @@ def step(page, app) -> int:
     return nxt
 
 
+BEST_LINE = (0xE8, 0x59, 0x0C)  # plots.py: the best log-likelihood's colour
+
+
+def assert_plots_draw_lines(page, app) -> None:
+    """The Plots tab's first chart (log-likelihood) draws its "best" line across most of its width."""
+    page.get_by_role("tab", name="Plots").click()
+    chart = page.locator(".uplot").first
+    chart.wait_for(timeout=TIMEOUT_MS)
+    deadline = time.monotonic() + 60
+    while True:  # software WebGL and uPlot's layout take a moment
+        count, span = color_extent(chart.screenshot(), BEST_LINE)
+        if (count > 30 and span > 0.5) or time.monotonic() > deadline:
+            break
+        time.sleep(0.5)
+    assert count > 30 and span > 0.5, (count, span, len(app.state.reports))
+    expect(page.get_by_text("tempering exponent β")).to_be_visible(timeout=TIMEOUT_MS)
+    expect(page.get_by_text("distinct particles after resampling")).to_be_visible(timeout=TIMEOUT_MS)
+
+
 def test_page_shows_the_demo_scene(page, workbench):
     page.get_by_text(re.compile(r"demo · scene \d+ · frame \d+")).wait_for(timeout=TIMEOUT_MS)
     time.sleep(1.0)  # let SwiftShader draw a few frames
@@ -135,6 +155,53 @@ def test_run_then_pause_stops_within_one_iteration(page, workbench):
     assert app.state.iteration == stopped  # nothing ran after the pause
 
 
+def test_plots_draw_lines_after_reset(page, workbench):
+    app = workbench.app
+    page.get_by_role("tab", name="Estimator").click()
+    page.get_by_role("button", name="Reset").click()
+    assert app.wait_for(lambda s: s.iteration == -1 and s.last_state is not None and s.last_state.reason == "reset", 60)
+    page.get_by_text(re.compile(r"No iterations yet")).first.wait_for(timeout=TIMEOUT_MS)
+    for _ in range(4):
+        step(page, app)
+    assert_plots_draw_lines(page, app)
+    page.get_by_role("tab", name="Estimator").click()
+
+
+def test_the_legend_names_every_colour_and_the_objects(page, workbench):
+    legend = page.locator('[data-legend="3d-view"]')
+    expect(legend).to_be_visible(timeout=TIMEOUT_MS)
+    for text in ("particles", "most likely scene", "before physics", "label", "ground truth", "object region",
+                 "depth sensor", "observed points"):
+        expect(legend).to_contain_text(text)
+    for name in (m.name for m in workbench.app.state.view.meshes):
+        expect(legend).to_contain_text(name)
+
+
+def test_error_banners_clear_once_the_input_is_corrected(page, workbench):
+    app = workbench.app
+    page.get_by_role("tab", name="Estimator").click()
+    field = gui_input(page, "Particles")
+    field.fill("abc")
+    field.press("Enter")
+    banner = page.get_by_text(re.compile(r"Particles.*whole number.*'abc'"))
+    banner.first.wait_for(timeout=TIMEOUT_MS)
+    field.fill(str(app.config.particles))
+    field.press("Enter")
+    expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
+    # The diffusion's error speaks the fields' units (cm), as another tab would have typed it.
+    app.panel.sigma_z.value = -1.0
+    banner = page.get_by_text(re.compile(r"σ elevation \(cm\).*>= 0 cm, got -1"))
+    banner.first.wait_for(timeout=TIMEOUT_MS)
+    app.panel.sigma_z.value = 1.0
+    expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
+    # An error from the engine clears once an iteration goes through.
+    app.report(Failure("Input error", "a test problem"))
+    banner = page.get_by_text("a test problem")
+    banner.first.wait_for(timeout=TIMEOUT_MS)
+    step(page, app)
+    expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
+
+
 def test_bad_dataset_path_shows_an_error_and_the_page_keeps_working(page, workbench):
     app = workbench.app
     bad = "/nonexistent/bop_dataset_xyz"
@@ -180,7 +247,7 @@ def test_label_snap_save_session_reload_and_load_it(page, workbench):
     """Label an object by typing, snap it, save the session; spoil the label, reload the page, load the session:
     the label (and the run) come back as saved."""
     app = workbench.app
-    if app.state.iteration < 0:
+    while app.state.iteration < 2:  # a history of a few iterations, for the plots to draw as lines
         step(page, app)
     page.get_by_role("tab", name="Label").click()
     z = gui_input(page, "z (cm)")
@@ -222,6 +289,7 @@ def test_label_snap_save_session_reload_and_load_it(page, workbench):
     page.get_by_role("tab", name="Label").click()
     for field_name, value in shown.items():
         expect(gui_input(page, field_name)).to_have_value(value, timeout=TIMEOUT_MS)
+    assert_plots_draw_lines(page, app)  # the restored history
     nxt = step(page, app)  # and the restored run goes on
     assert nxt == saved_iteration + 1
 
@@ -253,3 +321,22 @@ def test_a_damaged_session_shows_its_problem_and_the_run_goes_on(page, workbench
     page.get_by_text(re.compile(r"damaged\.json: corrupt session file")).first.wait_for(timeout=TIMEOUT_MS)
     assert any(f.topic == "session" and f.path.endswith("damaged.json") for f in app.state.failures)
     step(page, app)
+
+
+def test_every_place_shows_the_objects_by_name(page, workbench):
+    """Legend (above), Inspect's physics table, the Label tab's object list and its error table: one name each."""
+    app = workbench.app
+    names = [m.name for m in app.state.view.meshes]
+    assert all(re.fullmatch(r"obj_\d{6}", n) for n in names), names  # the demo's models_info.json has no names
+    if app.state.iteration < 0:
+        step(page, app)
+    page.get_by_role("tab", name="Inspect").click()
+    for name in names:
+        page.get_by_role("cell", name=name, exact=True).first.wait_for(timeout=TIMEOUT_MS)
+    page.get_by_role("tab", name="Label").click()
+    assert list(app.labelling.tab.object.options) == names
+    page.get_by_role("button", name="Use best estimate as label").click()
+    page.get_by_text("Best estimate vs label").wait_for(timeout=TIMEOUT_MS)
+    for name in names:
+        page.get_by_role("cell", name=name, exact=True).first.wait_for(timeout=TIMEOUT_MS)
+    assert not page.get_by_text(re.compile(r"\bobj \d+\b")).count()  # the old "obj 6" form is gone

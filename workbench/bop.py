@@ -373,6 +373,17 @@ def _image_file(folder: Path, im_id: int, exts: tuple[str, ...]) -> Path | None:
 # Models
 
 
+def _model_name(info: dict, path: Path, obj_id: int) -> str:
+    """The object's ``name`` in models_info.json (not a BOP field, but some datasets carry one), else
+    ``obj_000006``: what the workbench calls the object everywhere."""
+    name = info.get("name") if isinstance(info, dict) else None
+    if name is None:
+        return f"obj_{obj_id:06d}"
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(path, f"object {obj_id}: \"name\" must be a non-empty string, got {name!r}")
+    return name.strip()
+
+
 def _symmetries(info: dict, path: Path, obj_id: int) -> np.ndarray:
     """models_info entry -> (S, 4, 4) metres, identity first: discrete ones, each combined with the continuous
     ones discretised into CONTINUOUS_SYMMETRY_STEPS rotations (as bop_toolkit's get_symmetry_transformations)."""
@@ -428,7 +439,7 @@ def load_models(
         models[obj_id] = ObjectModel(
             obj_id=obj_id,
             mesh=mesh,
-            name=f"obj_{obj_id:06d}",
+            name=_model_name(info[str(obj_id)], info_path, obj_id),
             density=density,
             friction=friction,
             symmetries=_symmetries(info[str(obj_id)], info_path, obj_id),

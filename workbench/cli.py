@@ -89,20 +89,30 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    from workbench.app.server import serve
+    from dataclasses import replace
+
+    from workbench.app.server import DEFAULT_CONFIG, serve
 
     dataset = DEMO_DATASET if args.demo or args.dataset is None else args.dataset
     check_count(args.port, "--port", low=1, high=65535)
+    run = {k: v for k, v in (("method", args.method), ("particles", args.particles),
+                             ("iterations", args.iterations)) if v is not None}
     if args.session is not None:
         from workbench.sessions import load_session
 
         load_session(args.session)  # a bad session file is an input error here, before any server starts
         if args.dataset is not None or args.demo:
             raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
+        if run:
+            raise InputError("--session", "a session brings its own run settings: give no "
+                             + ", ".join(f"--{k}" for k in run) + " with it")
     elif dataset != DEMO_DATASET:
         _check_frame_exists(dataset, args.scene, args.frame)
+    config = replace(DEFAULT_CONFIG, **run)
+    config.validate()  # before any server starts
+    check_estimator_config(config)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
-          session=args.session, sessions_dir=args.sessions_dir)
+          session=args.session, sessions_dir=args.sessions_dir, config=config)
     return 0
 
 
@@ -202,6 +212,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue a saved session (its .json file); bit for bit with the same worker count (2)")
     p.add_argument("--sessions-dir", type=Path, default=None,
                    help="where sessions are saved and listed (default: the --session's folder, else ./sessions)")
+    # The initial run (the panel changes them later); defaults: the app's DEFAULT_CONFIG.
+    p.add_argument("--method", choices=("pipf", "mcpf"), default=None, help="estimator of the initial run (pipf)")
+    p.add_argument("--particles", type=int, default=None, help="particles of the initial run (128)")
+    p.add_argument("--iterations", type=int, default=None, help="iteration budget Run stops at (60)")
     p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("make-scenes", help="generate a BOP dataset of scene categories")

@@ -50,6 +50,7 @@ class ObjectModel:
     """One known object. ``mesh`` is in metres in the object's own frame (BOP model frame).
 
     ``symmetries``: (S, 4, 4) object-frame transforms under which the object looks the same (identity first).
+    ``name``: what the user sees (models_info.json's ``name``, else ``obj_000006``).
     """
 
     obj_id: int
@@ -59,6 +60,10 @@ class ObjectModel:
     friction: float = 0.75
     symmetries: np.ndarray = field(default_factory=lambda: np.eye(4)[None])
     source: Path | None = None
+
+    def __post_init__(self) -> None:
+        if not self.name:
+            self.name = f"obj_{self.obj_id:06d}"
 
     @property
     def mass(self) -> float:

@@ -15,8 +15,9 @@ VIRIDIS = np.array(
 )
 # Diverging blue-white-red for signed residuals: white means "explained".
 DIVERGING = np.array([[33, 102, 172], [103, 169, 207], [247, 247, 247], [239, 138, 98], [178, 24, 43]], np.float64)
-# Particle weights: pale grey (negligible) to saturated orange (heavy), so the solid best scene stands out.
-WEIGHT = np.array([[190, 190, 200], [255, 190, 110], [240, 100, 20]], dtype=np.float64)
+# Particle weights: slate blue (negligible) to saturated orange (heavy). Not white: many faint white particles
+# read as a haze over the objects.
+WEIGHT = np.array([[120, 135, 170], [255, 190, 110], [240, 100, 20]], dtype=np.float64)
 # Per-pixel fit: black-red where the scene explains the pixel badly, fading to the table's quiet grey where it
 # explains it well, so the errors stand out and the scene still reads like the observation.
 MISFIT = np.array([[25, 10, 45], [125, 30, 95], [215, 65, 50], [240, 160, 70], [205, 205, 210]], dtype=np.float64)
@@ -60,9 +61,61 @@ def legend_html(title: str, lo: str, hi: str, stops: np.ndarray = VIRIDIS, note:
     )
 
 
-# Distinct solid colours for objects 0, 1, 2, ... (the best scene, the chosen particle).
-OBJECT_COLORS = [(66, 135, 245), (46, 184, 92), (232, 170, 20), (200, 80, 200), (40, 190, 200), (230, 90, 70)]
+# Distinct solid colours for objects 0, 1, 2, ... (the best scene, the chosen particle). None of them is the
+# label's magenta, the "before physics" red-orange or the ground truth's near-black.
+OBJECT_COLORS = [(66, 135, 245), (46, 184, 92), (232, 170, 20), (140, 90, 200), (40, 190, 200), (150, 100, 60)]
+BEFORE_COLOR = (235, 90, 60)  # the chosen particle as proposed, before physics
+MOVE_COLOR = (255, 60, 60)  # how physics moved each object
+LABEL_COLOR = (230, 40, 200)
+GROUND_TRUTH_COLOR = (30, 30, 30)
+REGION_COLOR = (255, 140, 0)
+TABLE_COLOR = (200, 190, 170)
+SENSOR_COLOR = (40, 40, 40)
 
 
 def object_color(k: int) -> tuple[int, int, int]:
     return OBJECT_COLORS[k % len(OBJECT_COLORS)]
+
+
+def _swatch(rgb, style: str = "solid") -> str:
+    """A small square of colour for a legend row: solid fill, an outline ("wire") or a line ("line")."""
+    r, g, b = (int(c) for c in rgb)
+    c = f"rgb({r},{g},{b})"
+    if style == "wire":
+        css = f"border:2px dashed {c}"
+    elif style == "line":
+        css = f"height:0;border-top:3px solid {c};margin-top:6px"
+    else:
+        css = f"background:{c}"
+    return f'<span style="display:inline-block;width:12px;height:12px;{css};vertical-align:middle"></span>'
+
+
+def view_legend_html(names: list[str], observation: str, heatmap: str = "") -> str:
+    """The one legend of the 3D view: every colour and glyph it can show, with the objects by name, as a compact
+    two-column grid. ``observation``: what the observed points' colours mean; ``heatmap``: a note while a heatmap
+    replaces them."""
+    weight = ", ".join(f"rgb({int(r)},{int(g)},{int(b)})" for r, g, b in WEIGHT)
+    gradient = (f'<span style="display:inline-block;width:12px;height:12px;vertical-align:middle;'
+                f'background:linear-gradient(to right, {weight})"></span>')
+    objects = ", ".join(f'<b style="color:rgb{object_color(k)}">{n}</b>' for k, n in enumerate(names)) or "—"
+    solid = " ".join(_swatch(object_color(k)) for k in range(len(names))) or _swatch(OBJECT_COLORS[0])
+    wide = [(solid, f"most likely scene (and the inspected particle after physics): {objects}")]
+    cells = [
+        (gradient, "particles: unlikely → likely"),
+        (_swatch(BEFORE_COLOR, "wire"), "inspected, before physics"),
+        (_swatch(MOVE_COLOR, "line"), "physics moved it"),
+        (_swatch(LABEL_COLOR), "label"),
+        (_swatch(GROUND_TRUTH_COLOR, "wire"), "ground truth"),
+        (_swatch(REGION_COLOR, "line"), "object region"),
+        (_swatch(TABLE_COLOR), "table top"),
+        (_swatch(SENSOR_COLOR, "line"), "depth sensor"),
+    ]
+    wide.append((_swatch((150, 150, 150)), heatmap or f"observed points: {observation}"))
+
+    def cell(swatch: str, text: str, span: bool = False) -> str:
+        style = "display:flex;gap:0.4em;align-items:flex-start" + (";grid-column:1 / -1" if span else "")
+        return f'<div style="{style}"><span style="flex:none">{swatch}</span><span>{text}</span></div>'
+
+    body = cell(*wide[0], span=True) + "".join(cell(*c) for c in cells) + cell(*wide[1], span=True)
+    return (f'<div style="font-size:0.75em;line-height:1.3;padding:0 0.5em;display:grid;'
+            f'grid-template-columns:1fr 1fr;column-gap:0.6em;row-gap:0.1em" data-legend="3d-view">{body}</div>')

@@ -39,7 +39,7 @@ from workbench.errors import InputError
 log = logging.getLogger(__name__)
 
 DEMO_DIR = Path(__file__).resolve().parents[2] / "assets" / "demo"
-DEFAULT_DISPLAY = 512  # particles per snapshot; the rest are the least likely and add only clutter
+DEFAULT_DISPLAY = 64  # particles per snapshot; the rest are the least likely and add haze, and cost software WebGL
 CRASH_ERRORS = (EOFError, BrokenPipeError, ConnectionError)
 
 
@@ -114,6 +114,13 @@ def title_of(source: p.Source, frame) -> str:
     return f"{name} · scene {frame.scene_id} · frame {frame.im_id}"
 
 
+def expected_distinct(weights: np.ndarray, n: int) -> float:
+    """How many distinct particles systematic resampling of ``weights`` (N,) (normalised) into ``n`` keeps, on
+    average. Particle i's share n * w_i of the n evenly spaced pointers holds at least one of them with
+    probability min(1, n * w_i) (one uniform offset for all), so the expectation is the sum of those."""
+    return float(np.minimum(1.0, n * np.asarray(weights, dtype=np.float64)).sum())
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # The engine
 
@@ -139,6 +146,9 @@ class Engine:
         self.labels: list[np.ndarray | None] = []
         self.label_heatmap = False
         self.label_dirty = False  # labels changed: heatmap and errors to recompute once the queue is drained
+        # The log-likelihood of the known scene the Plots tab compares the estimate with: (kind, value) or None
+        # while not yet computed; dropped whenever the labels, the frame or the likelihood change.
+        self.reference: tuple[str | None, float] | None = None
 
     # -- commands
 
@@ -226,6 +236,7 @@ class Engine:
             self.evaluator = self.make_evaluator()
         self.estimator = Estimator(self.problem, self.config, self.evaluator)
         self.order = np.zeros(0, int)
+        self.reference = None
         self.send_state("reset")
 
     def make_evaluator(self, crash: BaseException | None = None):
@@ -315,9 +326,33 @@ class Engine:
             loglik=est.loglik[top],
             status=est.status[top],
         )
-        self.results.put(p.Snapshot(report.as_dict(), cloud, self.running, self.config.particles))
+        row = report.as_dict()
+        row["distinct_after_resampling"] = expected_distinct(weights, self.config.particles)
+        row["reference"], row["reference_loglik"] = self.reference_loglik()
+        self.results.put(p.Snapshot(row, cloud, self.running, self.config.particles))
         self.publish_chosen()
         self.publish_label_errors()
+
+    def reference_loglik(self) -> tuple[str | None, float]:
+        """("label" or "truth", the log-likelihood of that scene as given) for the Plots tab, or (None, nan):
+        the labels when every object is labelled, else the frame's ground truth when it has one for every object.
+        One render, cached until the labels, frame or likelihood change."""
+        if self.reference is None:
+            kind, scene = None, None
+            if self.labels and all(T is not None for T in self.labels):
+                kind, scene = "label", np.stack(self.labels)
+            elif self.frame is not None and self.frame.gt_T_cam_obj is not None:
+                from workbench.geometry import invert_pose
+
+                gt = invert_pose(self.problem.camera.T_cam_world)[None] @ self.frame.gt_T_cam_obj
+                if len(gt) == self.problem.n_objects and np.all(np.isfinite(gt)):
+                    kind, scene = "truth", gt
+            value = float("nan")
+            if scene is not None:
+                pixels, _ = self.explain(scene)
+                value = float(pixels.sum(dtype=np.float64))
+            self.reference = (kind, value)
+        return self.reference
 
     def publish_chosen(self) -> None:
         if self.estimator is None or len(self.order) == 0:
@@ -401,6 +436,7 @@ class Engine:
                     where = labelling.labels_path(Path(ref.dataset), frame.scene_id, ref.split)
                     note = f"{n} label(s) read from `{where}`"
         self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in labels]
+        self.reference = None
         self.results.put(p.Labels(list(self.labels), reason, note))
         self.label_dirty = True
 
@@ -408,6 +444,7 @@ class Engine:
         if self.problem is None or len(cmd.labels) != self.problem.n_objects:
             return  # edits of a frame that has since been replaced
         self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in cmd.labels]
+        self.reference = None
         self.label_heatmap = cmd.heatmap
         self.label_dirty = True
 
@@ -443,11 +480,14 @@ class Engine:
     def adopt_labels(self, scene: np.ndarray, which: list[int], reason: str, note: str) -> None:
         for k in which:
             self.labels[k] = np.array(scene[k], dtype=np.float64)
+        self.reference = None
         self.results.put(p.Labels(list(self.labels), reason, note))
         self.label_dirty = True
 
     def object_name(self, k: int) -> str:
-        return f"obj {self.problem.models[k].obj_id}"
+        from workbench.app.observation import display_names
+
+        return display_names(self.problem.models)[k]
 
     def snap_labels(self) -> None:
         from workbench import labels as labelling

@@ -100,3 +100,15 @@ def gui_input(page, label: str):
     return page.locator(
         f"xpath=//label[normalize-space(text())='{label}']/ancestor::div[contains(@class,'mantine-Flex-root')][1]//input"
     ).first
+
+
+def color_extent(png: bytes, rgb: tuple[int, int, int], tolerance: int = 40) -> tuple[int, float]:
+    """-> (how many pixels are within ``tolerance`` of ``rgb``, the share of the image's width they span). A
+    chart's line in that colour spans most of the width; a blank or stale chart has none of it."""
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+    hit = np.abs(img - np.array(rgb, dtype=np.int16)).max(axis=2) <= tolerance
+    cols = np.nonzero(hit.any(axis=0))[0]
+    span = (cols[-1] - cols[0] + 1) / img.shape[1] if cols.size else 0.0
+    return int(hit.sum()), float(span)

@@ -21,15 +21,48 @@ import numpy as np
 import viser
 
 from workbench.app import protocol as p
+from workbench.app.colors import LABEL_COLOR
 from workbench.app.quiet import Quiet
-from workbench.app.views import HEATMAP_MODES, HeatmapLayer, Nodes, split_pose
-from workbench.geometry import euler_to_matrix, make_pose, matrix_to_euler, quat_wxyz_to_matrix
+from workbench.app.views import HEATMAP_MODES, NO_SHADOW, HeatmapLayer, Nodes, split_pose
+from workbench.geometry import euler_to_matrix, make_pose, matrix_to_euler, quat_wxyz_to_matrix, rot_x, rot_y, rot_z
 
-LABEL_COLOR = (230, 40, 200)
 POSITION_FIELDS = ("x (cm)", "y (cm)", "z (cm)")
 ANGLE_FIELDS = ("roll (°)", "pitch (°)", "yaw (°)")
 SEND_INTERVAL_S = 0.05  # gizmo drags report ~60 poses/s; the engine only ever renders the latest anyway
 NO_OBJECT = "(nothing loaded)"
+TURNS = ("−90°", "+90°")
+AXES = {"x": rot_x, "y": rot_y, "z": rot_z}  # the table's axes
+# The object's own axis that goes down onto the table, as the "Lay on face" buttons name it.
+FACES = {"−z": (0, 0, -1), "+z": (0, 0, 1), "−x": (-1, 0, 0), "+x": (1, 0, 0), "−y": (0, -1, 0), "+y": (0, 1, 0)}
+GIMBAL_DEG = 80.0  # |pitch| beyond this: roll and yaw nearly turn about one axis and typing them stops helping
+
+
+def turned(T: np.ndarray, R: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Pose ``T`` (4, 4) rotated by ``R`` (3, 3, about the table's axes) about the object's origin, then raised or
+    lowered so that its lowest point (of ``vertices`` (V, 3), object frame) stays at the same height: an object
+    resting on the table stays on it."""
+    low = float(np.min(vertices @ T[:3, :3].T[:, 2]))
+    out = make_pose(R @ T[:3, :3], T[:3, 3])
+    out[2, 3] += low - float(np.min(vertices @ out[:3, :3].T[:, 2]))
+    return out
+
+
+def laid_on(T: np.ndarray, face: tuple[float, float, float], vertices: np.ndarray) -> np.ndarray:
+    """Pose ``T`` turned so that the object's own axis ``face`` points down, keeping its place on the table and as
+    much of its heading as the turn allows, resting on the table (lowest point at z = 0)."""
+    d = T[:3, :3] @ np.asarray(face, dtype=np.float64)  # that axis now, in the table frame
+    down = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(d, down)
+    s, c = np.linalg.norm(axis), float(np.dot(d, down))
+    if s < 1e-9:  # already down, or straight up: a half turn about the table's x
+        R = np.eye(3) if c > 0 else rot_x(np.pi)
+    else:  # the shortest rotation taking d onto down (Rodrigues)
+        k = axis / s
+        Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        R = np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+    out = make_pose(R @ T[:3, :3], T[:3, 3])
+    out[2, 3] = -float(np.min(vertices @ out[:3, :3].T[:, 2]))  # lowest point on the table top
+    return out
 
 
 @dataclass
@@ -38,6 +71,8 @@ class LabelTab:
     state: viser.GuiMarkdownHandle
     position: tuple[viser.GuiNumberHandle, viser.GuiNumberHandle, viser.GuiNumberHandle]  # cm, table frame
     angles: tuple[viser.GuiNumberHandle, viser.GuiNumberHandle, viser.GuiNumberHandle]  # roll, pitch, yaw (deg)
+    turns: tuple[viser.GuiButtonGroupHandle, viser.GuiButtonGroupHandle, viser.GuiButtonGroupHandle]  # x, y, z
+    lay: viser.GuiButtonGroupHandle
     show_gizmo: viser.GuiCheckboxHandle
     clear: viser.GuiButtonHandle
     use_best: viser.GuiButtonHandle
@@ -59,7 +94,14 @@ def build_label_tab(gui: viser.GuiApi) -> LabelTab:
                                     "top; the object's origin") for name in POSITION_FIELDS)
     angles = tuple(gui.add_number(name, 0.0, step=0.01, hint="about the table's axes: R = Rz(yaw) Ry(pitch) Rx(roll)")
                    for name in ANGLE_FIELDS)
-    show_gizmo = gui.add_checkbox("Gizmo", True, hint="drag the selected object in the 3D view")
+    turns = tuple(gui.add_button_group(f"Turn about {a}", TURNS, hint=f"a quarter turn about the table's {a} axis, "
+                                       "through the object's origin; it keeps its lowest point's height")
+                  for a in AXES)
+    lay = gui.add_button_group("Lay on face", tuple(FACES), hint="the object's own axis that goes down: it is "
+                               "turned that way and put on the table where it is")
+    # Off until the user labels: the gizmo would otherwise sit over the scene on every tab.
+    show_gizmo = gui.add_checkbox("Gizmo", False, hint="drag the selected object in the 3D view; turns on when you "
+                                  "choose an object or edit its pose")
     clear = gui.add_button("Clear label", icon=viser.Icon.ERASER, color="gray", hint="the selected object's")
     use_best = gui.add_button("Use best estimate as label", icon=viser.Icon.STAR, hint="every object")
     snap = gui.add_button("Snap to plausible", icon=viser.Icon.ARROW_BAR_TO_DOWN,
@@ -76,19 +118,20 @@ def build_label_tab(gui: viser.GuiApi) -> LabelTab:
                                                "otherwise labels go to scene_gt_labels.json beside it")
     save = gui.add_button("Save labels", icon=viser.Icon.DEVICE_FLOPPY)
     saved = gui.add_markdown("")
-    return LabelTab(object=obj, state=state, position=position, angles=angles, show_gizmo=show_gizmo, clear=clear,
+    return LabelTab(object=obj, state=state, position=position, angles=angles, turns=turns, lay=lay,
+                    show_gizmo=show_gizmo, clear=clear,
                     use_best=use_best, snap=snap, fit=fit, result=result, heatmap=heatmap, legend=legend,
                     errors=errors, overwrite_original=overwrite_original, save=save, saved=saved)
 
 
-def errors_markdown(msg: p.LabelErrors) -> str:
-    """The estimate's errors against the labels, one row per object."""
+def errors_markdown(msg: p.LabelErrors, names: list[str]) -> str:
+    """The estimate's errors against the labels, one row per object (``names``: the objects' display names)."""
     rows = []
-    for e in msg.errors:
+    for name, e in zip(names, msg.errors):
         if e["position_error_m"] is None:
-            rows.append(f"| obj {e['obj_id']} | — | — | — |")
+            rows.append(f"| {name} | — | — | — |")
         else:
-            rows.append(f"| obj {e['obj_id']} | {e['position_error_m'] * 100:.2f} | {e['rotation_error_deg']:.1f} | "
+            rows.append(f"| {name} | {e['position_error_m'] * 100:.2f} | {e['rotation_error_deg']:.1f} | "
                         f"{e['add_s_m'] * 1000:.1f} |")
     if all(e["position_error_m"] is None for e in msg.errors):
         return ""
@@ -112,6 +155,7 @@ class Labelling:
     labels: list = field(default_factory=list)
     estimate: np.ndarray | None = None  # the most likely scene (K, 4, 4): where unlabelled objects are shown
     names: list[str] = field(default_factory=list)
+    vertices: list = field(default_factory=list)  # per object (V, 3), object frame
     homes: np.ndarray | None = None  # (K, 4, 4): where an object sits before there is any estimate
     gizmos: list = field(default_factory=list)
     meshes: list = field(default_factory=list)
@@ -127,7 +171,10 @@ class Labelling:
             h.on_update(lambda _, i=i: self._guard(lambda: self.field_edited(position_axis=i)))
         for h in t.angles:
             h.on_update(lambda _: self._guard(lambda: self.field_edited(position_axis=None)))
-        t.show_gizmo.on_update(lambda _: self._guard(self.selection_changed))
+        t.show_gizmo.on_update(lambda _: self._guard(self.redraw))
+        for axis, h in zip(AXES, t.turns):
+            h.on_click(lambda event, axis=axis: self._guard(lambda: self.turn(axis, event.target.value)))
+        t.lay.on_click(lambda event: self._guard(lambda: self.lay_on(event.target.value)))
         t.clear.on_click(lambda _: self._guard(self.clear_selected))
         t.use_best.on_click(lambda _: self.act(p.UseBestAsLabel(), "Taking the best estimate …"))
         t.snap.on_click(lambda _: self.act(p.SnapLabels(), "Snapping …"))
@@ -152,7 +199,8 @@ class Labelling:
             scene = self.server.scene
             K = len(view.meshes)
             self.labels, self.estimate = [None] * K, None
-            self.names = [f"{k}: {m.name}" for k, m in enumerate(view.meshes)]
+            self.names = [m.name for m in view.meshes]  # unique per scene (observation.display_names)
+            self.vertices = [np.asarray(m.vertices, dtype=np.float64) for m in view.meshes]
             x0, x1, y0, y1 = view.region
             self.homes = np.stack([
                 make_pose(np.eye(3), [(x0 + x1) / 2, (y0 + y1) / 2, -float(np.min(m.vertices[:, 2]))])
@@ -167,8 +215,7 @@ class Labelling:
                 gizmo.on_update(lambda event, k=k: self.gizmo_moved(k, event))
                 self.gizmos.append(gizmo)
                 self.meshes.append(self.nodes.add(scene.add_mesh_simple(
-                    f"/label_mesh/{k}", m.vertices, m.faces, color=LABEL_COLOR, opacity=0.75, visible=False,
-                )))
+                    f"/label_mesh/{k}", m.vertices, m.faces, color=LABEL_COLOR, opacity=0.75, visible=False, **NO_SHADOW)))
             with self.quiet:
                 self.tab.object.options = tuple(self.names) or (NO_OBJECT,)
                 self.tab.object.value = self.tab.object.options[0]
@@ -213,7 +260,7 @@ class Labelling:
     def show_errors(self, msg: p.LabelErrors) -> None:
         with self.lock:
             if len(msg.errors) == len(self.labels):
-                self.tab.errors.content = errors_markdown(msg)
+                self.tab.errors.content = errors_markdown(msg, self.names)
 
     def show_saved(self, msg: p.Saved) -> None:
         with self.lock:
@@ -262,19 +309,52 @@ class Labelling:
         rpy = np.degrees(matrix_to_euler(T[:3, :3]))
         for h, v in zip((*t.position, *t.angles), (*xyz, *rpy)):
             h.value = float(v)
+        if abs(rpy[1]) > GIMBAL_DEG:
+            gimbal = (f" Pitch is {rpy[1]:.0f}°: roll and yaw now turn about nearly the same axis, so use **Turn**, "
+                      "**Lay on face** or the gizmo rather than typing angles.")
+        else:
+            gimbal = ""
         if self.labels[sel] is not None:
-            state = f"**{self.names[sel]}** is labelled."
+            state = f"**{self.names[sel]}** is labelled.{gimbal}"
         else:
             shown = "the best estimate" if self.estimate is not None else "a starting place"
             state = (f"**{self.names[sel]}** is not labelled: the fields show {shown}. Type a value or drag the gizmo "
-                     "to label it.")
+                     f"to label it.{gimbal}")
         if t.state.content != state:  # markdown is re-sent on every assignment, changed or not
             t.state.content = state
 
     # -- edits
 
     def selection_changed(self) -> None:
+        self.start_editing()
         self.redraw()
+
+    def start_editing(self) -> None:
+        """The user is labelling: show the selected object's gizmo (off until now, see ``build_label_tab``)."""
+        if not self.tab.show_gizmo.value:
+            with self.quiet:
+                self.tab.show_gizmo.value = True
+
+    def turn(self, axis: str, which: str) -> None:
+        """A ``Turn about`` button: a quarter turn of the selected object about the table's ``axis``."""
+        k = self.selected()
+        if k is None:
+            return
+        angle = np.pi / 2 if which == TURNS[1] else -np.pi / 2
+        self.set_label(k, turned(self.pose(k), AXES[axis](angle), self.vertices[k]))
+
+    def lay_on(self, face: str) -> None:
+        """A ``Lay on face`` button: the selected object turned onto that face of its own, on the table."""
+        k = self.selected()
+        if k is None:
+            return
+        self.set_label(k, laid_on(self.pose(k), FACES[face], self.vertices[k]))
+
+    def set_label(self, k: int, T: np.ndarray) -> None:
+        self.start_editing()
+        self.labels[k] = np.asarray(T, dtype=np.float64)
+        self.redraw()
+        self.send_labels()
 
     def field_edited(self, position_axis: int | None) -> None:
         """A typed value: a position field changes that coordinate only; an angle field sets the rotation from
@@ -287,9 +367,7 @@ class Labelling:
             T[position_axis, 3] = float(self.tab.position[position_axis].value) / 100.0
         else:
             T[:3, :3] = euler_to_matrix(np.radians([float(h.value) for h in self.tab.angles]))
-        self.labels[k] = T
-        self.redraw()
-        self.send_labels()
+        self.set_label(k, T)
 
     def gizmo_moved(self, k: int, event: viser.TransformControlsEvent) -> None:
         with self.lock:

@@ -7,12 +7,17 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.app.colors import VIRIDIS, apply_map, robust_range
-from workbench.app.protocol import MeshData, ObservationView
+from workbench.app.protocol import MeshData, ObservationView, PointSet
 from workbench.geometry import invert_pose, transform_points
 from workbench.problem import Problem
 from workbench.scene import Camera, Frame
 
-MAX_CLOUD_POINTS = 60_000  # enough to read the scene, small enough to orbit smoothly in software WebGL
+# Software WebGL pays for every pixel a point covers. Near the objects the cloud keeps enough points to read their
+# shape; the rest of the table and the background only give context, drawn four times coarser per axis.
+NEAR_POINTS = 20_000
+FAR_STRIDE = 4  # times the near stride
+NEAR_MARGIN = 0.05  # m around the object region still drawn finely
+POINT_FILL = 0.9  # a point's diameter over the spacing of its pixels at its depth: the surface reads as closed
 MAX_IMAGE_WIDTH = 320  # the panel is ~20 em wide
 
 
@@ -29,10 +34,28 @@ def backproject(camera: Camera, depth: np.ndarray, stride: int = 1) -> tuple[np.
     return np.stack([x, y, z], axis=-1), v * d.shape[1] + u
 
 
-def height_colors(z: np.ndarray) -> tuple[np.ndarray, str]:
-    """Colour by height above the table: the table itself grey, objects from viridis' dark (low) to yellow
-    (high), points below the table darker grey."""
-    top = max(0.05, float(np.percentile(z[z > 0.005], 99))) if np.any(z > 0.005) else 0.05
+def display_names(models) -> list[str]:
+    """One name per object of the scene, as every part of the workbench shows it: the model's name, with
+    " #2", " #3", ... on further instances of the same model."""
+    seen: dict[str, int] = {}
+    out = []
+    for m in models:
+        base = m.name or f"obj_{m.obj_id:06d}"
+        seen[base] = seen.get(base, 0) + 1
+        out.append(base if seen[base] == 1 else f"{base} #{seen[base]}")
+    return out
+
+
+def height_top(z: np.ndarray) -> float:
+    """The height (m) coloured yellow: the 99th percentile of the points above the table, at least 5 cm."""
+    return max(0.05, float(np.percentile(z[z > 0.005], 99))) if np.any(z > 0.005) else 0.05
+
+
+def height_colors(z: np.ndarray, top: float | None = None) -> tuple[np.ndarray, str]:
+    """Colour by height above the table: the table itself grey, objects from viridis' dark (low) to yellow (at
+    ``top``, default the 99th percentile of ``z`` above the table, at least 5 cm), points below the table darker
+    grey -> ((P, 3) uint8, what the colours mean)."""
+    top = height_top(z) if top is None else top
     colors = apply_map(z, 0.0, top, VIRIDIS)
     colors[np.abs(z) <= 0.005] = (150, 150, 150)
     colors[z < -0.005] = (90, 90, 90)
@@ -47,17 +70,54 @@ def depth_image(depth: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
     return apply_map(np.where(d > 0, d, np.nan), lo, hi), (lo, hi)
 
 
+def point_size(camera: Camera, depth: np.ndarray, stride: int) -> float:
+    """Diameter (m) of a point that covers its pixel block of ``stride`` at the median depth: the data's spacing."""
+    z = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
+    return POINT_FILL * stride * z / float(camera.K[0, 0])
+
+
+def split_near(points: np.ndarray, region: tuple[float, float, float, float], margin: float) -> np.ndarray:
+    """(P, 3) table-frame points -> (P,) bool: within ``margin`` of the object region (x0, x1, y0, y1)."""
+    x0, x1, y0, y1 = region
+    return ((points[:, 0] >= x0 - margin) & (points[:, 0] <= x1 + margin)
+            & (points[:, 1] >= y0 - margin) & (points[:, 1] <= y1 + margin))
+
+
+def cloud_points(frame: Frame, camera: Camera, T_world_cam: np.ndarray, stride: int,
+                 keep) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's pixels at ``stride`` where ``keep(points)`` holds -> (table-frame points (P, 3), flat pixel
+    indices (P,) into depth[::stride, ::stride])."""
+    p_cam, flat = backproject(camera, frame.depth, stride)
+    points = transform_points(T_world_cam, p_cam)
+    mask = keep(points)
+    return points[mask], flat[mask]
+
+
 def build_view(frame: Frame, problem: Problem, title: str) -> ObservationView:
     camera = problem.camera
     T_world_cam = invert_pose(camera.T_cam_world)
-    stride = max(1, int(np.ceil(np.sqrt(np.count_nonzero(frame.depth) / MAX_CLOUD_POINTS))))
-    p_cam, flat = backproject(camera, frame.depth, stride)
-    points = transform_points(T_world_cam, p_cam)
+    t = problem.table
+    region = (t.region_min[0], t.region_max[0], t.region_min[1], t.region_max[1])
+    # The near stride from a first count at full resolution; the far one a fixed multiple of it.
+    p_all, _ = backproject(camera, frame.depth, 1)
+    n_near = int(np.count_nonzero(split_near(transform_points(T_world_cam, p_all), region, NEAR_MARGIN)))
+    stride = max(1, int(np.ceil(np.sqrt(n_near / NEAR_POINTS))))
+    near_pts, near_flat = cloud_points(frame, camera, T_world_cam, stride,
+                                       lambda pts: split_near(pts, region, NEAR_MARGIN))
+    # The far stride is a multiple of the near one, so both sample the same pixel lattice.
+    far_stride = stride * FAR_STRIDE
+    far_pts, far_flat = cloud_points(frame, camera, T_world_cam, far_stride,
+                                     lambda pts: ~split_near(pts, region, NEAR_MARGIN))
     if frame.rgb is not None:
-        colors = frame.rgb[::stride, ::stride].reshape(-1, 3)[flat].astype(np.uint8)
+        near_rgb = frame.rgb[::stride, ::stride].reshape(-1, 3)[near_flat].astype(np.uint8)
+        far_rgb = frame.rgb[::far_stride, ::far_stride].reshape(-1, 3)[far_flat].astype(np.uint8)
         legend = "the frame's colour image"
     else:
-        colors, legend = height_colors(points[:, 2])
+        top = height_top(near_pts[:, 2])  # the objects are near: they set the scale of both
+        near_rgb, legend = height_colors(near_pts[:, 2], top)
+        far_rgb, _ = height_colors(far_pts[:, 2], top)
+    near = PointSet(near_pts.astype(np.float32), near_rgb, point_size(camera, frame.depth, stride))
+    far = PointSet(far_pts.astype(np.float32), far_rgb, point_size(camera, frame.depth, far_stride))
 
     grid_cam, _ = backproject(problem.render_camera, problem.observed)
     grid_points = transform_points(T_world_cam, grid_cam)
@@ -66,24 +126,24 @@ def build_view(frame: Frame, problem: Problem, title: str) -> ObservationView:
     gt = None
     if frame.gt_T_cam_obj is not None:
         gt = T_world_cam[None] @ frame.gt_T_cam_obj
-    t = problem.table
     return ObservationView(
         title=title,
-        points=points.astype(np.float32),
-        colors=colors,
+        near=near,
+        far=far,
         color_legend=legend,
         depth_image=image,
         depth_range=drange,
         table=(t.x_min, t.x_max, t.y_min, t.y_max),
-        region=(t.region_min[0], t.region_max[0], t.region_min[1], t.region_max[1]),
+        region=region,
         meshes=[
-            MeshData(m.name or f"obj_{m.obj_id}", np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32))
-            for m in problem.models
+            MeshData(name, np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32))
+            for name, m in zip(display_names(problem.models), problem.models)
         ],
         T_world_cam=T_world_cam,
         K=np.asarray(camera.K, np.float64),
         image_size=(camera.width, camera.height),
         grid_points=grid_points.astype(np.float32),
+        grid_point_size=point_size(problem.render_camera, problem.observed, 1),
         grid_mask=problem.observed > 0,
         gt_T_world_obj=gt,
     )

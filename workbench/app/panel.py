@@ -8,6 +8,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import viser
 
+from workbench.app.camera import FRAME_OBJECTS, FROM_SENSOR
+from workbench.app.engine import DEFAULT_DISPLAY
 from workbench.app.labelling import LabelTab, build_label_tab
 from workbench.app.plots import Plots
 from workbench.app.sessions_panel import SessionsTab, build_sessions_tab
@@ -18,6 +20,7 @@ from workbench.particles import Sigma
 
 METHOD_LABELS = {"PI-PF": "pipf", "PI-MCPF": "mcpf"}
 LIKELIHOODS = ("robust", "ssd")
+DEFAULT_DRAWN = DEFAULT_DISPLAY
 
 
 @dataclass
@@ -25,14 +28,16 @@ class Panel:
     title: viser.GuiMarkdownHandle
     error: viser.GuiMarkdownHandle
     status: viser.GuiMarkdownHandle
+    view_legend: viser.GuiHtmlHandle
+    camera: viser.GuiButtonGroupHandle
     step: viser.GuiButtonHandle
     run: viser.GuiButtonHandle
     pause: viser.GuiButtonHandle
     reset: viser.GuiButtonHandle
     # Estimator
     method: viser.GuiDropdownHandle
-    particles: viser.GuiNumberHandle
-    iterations: viser.GuiNumberHandle
+    particles: viser.GuiTextHandle  # text, not number: a number input silently empties itself on "abc"
+    iterations: viser.GuiTextHandle
     sigma_xy: viser.GuiVector2Handle
     sigma_z: viser.GuiNumberHandle
     sigma_angles: viser.GuiVector3Handle
@@ -71,6 +76,7 @@ class Panel:
     def estimator_config(self, base: EstimatorConfig) -> EstimatorConfig:
         """The controls' values over ``base`` (which keeps the settings the panel does not show)."""
         s = base.sigma
+        check_sigmas(self.sigma_xy.value, self.sigma_z.value, self.sigma_angles.value)
         # A sigma shown as it was set keeps base's exact value: cm and degrees do not round-trip to the last bit,
         # and a restored session must step with exactly its saved sigma.
         exact = lambda shown, value, scale: value if shown == value * scale else shown / scale  # noqa: E731
@@ -80,8 +86,8 @@ class Panel:
         config = replace(
             base,
             method=METHOD_LABELS[self.method.value],
-            particles=int(self.particles.value),
-            iterations=int(self.iterations.value),
+            particles=whole_number(self.particles.value, "Particles", 1, 100_000),
+            iterations=whole_number(self.iterations.value, "Iterations", 0, 100_000),
             sigma=Sigma(x=exact(sx, s.x, 100.0), y=exact(sy, s.y, 100.0), z=exact(self.sigma_z.value, s.z, 100.0),
                         roll=exact(roll, s.roll, deg), pitch=exact(pitch, s.pitch, deg), yaw=exact(yaw, s.yaw, deg)),
             seed=int(self.seed.value),
@@ -93,8 +99,8 @@ class Panel:
         """Put ``config`` into the controls (call inside ``Quiet``: these writes fire the controls' callbacks)."""
         s, deg = config.sigma, 180.0 / np.pi
         self.method.value = {v: k for k, v in METHOD_LABELS.items()}[config.method]
-        self.particles.value = config.particles
-        self.iterations.value = config.iterations
+        self.particles.value = str(config.particles)
+        self.iterations.value = str(config.iterations)
         self.sigma_xy.value = (s.x * 100.0, s.y * 100.0)
         self.sigma_z.value = s.z * 100.0
         self.sigma_angles.value = (s.roll * deg, s.pitch * deg, s.yaw * deg)
@@ -113,6 +119,27 @@ class Panel:
         return out[0], out[1]
 
 
+def whole_number(text: str, field: str, lo: int, hi: int) -> int:
+    """A typed whole number in [lo, hi]; InputError naming the field otherwise."""
+    try:
+        value = int(str(text).strip())
+    except ValueError:
+        raise InputError(field, f"must be a whole number from {lo} to {hi}, got {str(text)!r}") from None
+    if not lo <= value <= hi:
+        raise InputError(field, f"must be a whole number from {lo} to {hi}, got {value}")
+    return value
+
+
+def check_sigmas(xy_cm, z_cm, angles_deg) -> None:
+    """The diffusion fields in the units they show (cm, degrees): each finite and >= 0."""
+    for field, values, unit in (("σ x, y (cm)", xy_cm, "cm"), ("σ elevation (cm)", (z_cm,), "cm"),
+                                ("σ roll, pitch, yaw (°)", angles_deg, "°")):
+        for v in values:
+            if not np.isfinite(v) or v < 0:
+                shown = ", ".join(f"{float(x):g}" for x in values)
+                raise InputError(field, f"each value must be a number >= 0 {unit}, got {shown}")
+
+
 def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> Panel:
     gui.configure_theme(control_width="large", dark_mode=False, show_logo=False, show_share_button=False)
     title = gui.add_markdown("**workbench** · nothing loaded")
@@ -124,14 +151,17 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
     pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True, hint="stop after this iteration")
     reset = gui.add_button("Reset", icon=viser.Icon.REFRESH, color="gray",
                            hint="new random particles (seed and likelihood model apply here)")
+    # The 3D view's camera presets and its one legend, under the actions so that those stay at the top.
+    with gui.add_folder("View", expand_by_default=True):
+        camera = gui.add_button_group("Camera", (FRAME_OBJECTS, FROM_SENSOR))
+        view_legend = gui.add_html("")
     tabs = gui.add_tab_group()
 
     with tabs.add_tab("Estimator", viser.Icon.ADJUSTMENTS):
         method = gui.add_dropdown("Method", tuple(METHOD_LABELS),
                                   initial_value={v: k for k, v in METHOD_LABELS.items()}[config.method])
-        particles = gui.add_number("Particles", config.particles, min=1, max=100_000, step=1,
-                                   hint="takes effect at the next step")
-        iterations = gui.add_number("Iterations", config.iterations, min=0, max=100_000, step=1)
+        particles = gui.add_text("Particles", str(config.particles), hint="1 to 100000; takes effect at the next step")
+        iterations = gui.add_text("Iterations", str(config.iterations), hint="the budget Run stops at")
         s = config.sigma
         sigma_xy = gui.add_vector2("σ x, y (cm)", (s.x * 100, s.y * 100), min=(0.0, 0.0), step=0.05,
                                    hint="diffusion of the position on the table")
@@ -161,11 +191,10 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         show_particles = gui.add_checkbox("Particle cloud", True)
         show_best = gui.add_checkbox("Most likely scene", True)
         show_gt = gui.add_checkbox("Ground truth", False)
-        max_particles = gui.add_number("Particles drawn", 512, min=1, max=20_000, step=1,
-                                       hint="the most likely first")
+        max_particles = gui.add_number("Particles drawn", DEFAULT_DRAWN, min=1, max=20_000, step=1,
+                                       hint="the most likely first; fewer are clearer and cheaper to draw")
 
-    with tabs.add_tab("Plots", viser.Icon.CHART_LINE):
-        plots = Plots(gui)
+    plots = Plots(gui, tabs.add_tab("Plots", viser.Icon.CHART_LINE))
 
     with tabs.add_tab("Data", viser.Icon.DATABASE):
         dataset = gui.add_text("Dataset", "", hint="a BOP dataset folder (root or split)")
@@ -184,7 +213,7 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         sessions = build_sessions_tab(gui)
 
     return Panel(
-        title=title, error=error, status=status, step=step, run=run, pause=pause, reset=reset,
+        title=title, error=error, status=status, view_legend=view_legend, camera=camera, step=step, run=run, pause=pause, reset=reset,
         method=method, particles=particles, iterations=iterations, sigma_xy=sigma_xy, sigma_z=sigma_z,
         sigma_angles=sigma_angles, likelihood=like, seed=seed, stop_on_convergence=stop, timings=timings,
         rank=rank, best=best, scene_mode=scene_mode, physics_change=physics_change, heatmap_mode=heatmap_mode,

@@ -166,16 +166,27 @@ class MeshData:
 
 
 @dataclass
+class PointSet:
+    """Observed points drawn as one cloud: (P, 3) float32 table frame, (P, 3) uint8 colours, and the points'
+    diameter (m), the spacing of the pixels they were sampled from at the frame's median depth."""
+
+    points: np.ndarray
+    colors: np.ndarray
+    point_size: float
+
+
+@dataclass
 class ObservationView:
     """Everything static about the loaded frame, in the table frame.
 
-    ``points``/``colors``: the whole depth frame as a (downsampled) cloud; ``grid_points``: the observed points of
-    the problem's pixel grid where ``grid_mask`` (h, w) is true, in row-major order, onto which heatmaps go."""
+    ``near``/``far``: the depth frame as points, finely sampled around the objects and coarsely elsewhere (the
+    rest of the table and the background only give context); ``grid_points``: the observed points of the
+    problem's pixel grid where ``grid_mask`` (h, w) is true, in row-major order, onto which heatmaps go."""
 
     title: str
-    points: np.ndarray  # (P, 3) float32
-    colors: np.ndarray  # (P, 3) uint8
-    color_legend: str  # what the cloud's colours mean
+    near: PointSet
+    far: PointSet
+    color_legend: str  # what the clouds' colours mean
     depth_image: np.ndarray  # (H', W', 3) uint8, coloured depth for the panel
     depth_range: tuple[float, float]  # metres, the depth image's colour scale
     table: tuple[float, float, float, float]  # x_min, x_max, y_min, y_max
@@ -185,6 +196,7 @@ class ObservationView:
     K: np.ndarray  # (3, 3)
     image_size: tuple[int, int]  # width, height
     grid_points: np.ndarray  # (G, 3) float32
+    grid_point_size: float  # m: the grid's pixel spacing at the median depth
     grid_mask: np.ndarray  # (h, w) bool
     gt_T_world_obj: np.ndarray | None  # (K, 4, 4), NaN rows where unknown; None without ground truth
 

@@ -22,7 +22,8 @@ import numpy as np
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.colors import VIRIDIS, legend_html
+from workbench.app.camera import FRAME_OBJECTS, CameraPose, apply_camera, frame_objects, from_sensor
+from workbench.app.colors import VIRIDIS, legend_html, view_legend_html
 from workbench.app.engine import DEMO_DIR, EngineClient
 from workbench.app.labelling import Labelling
 from workbench.app.panel import Panel, build_panel
@@ -39,6 +40,7 @@ log = logging.getLogger(__name__)
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
 SESSIONS_DIR = Path("sessions")
 STATUS_NAMES = {0: "rest", 1: "step cap", 2: "unstable", 3: "off the table"}  # physics.STATUS_*
+CAMERA_REST_S = 0.5  # a tab's camera is remembered (for reloads and new tabs) once it rested this long
 
 
 @dataclass
@@ -70,6 +72,10 @@ class App:
         self.config = config
         self.source: p.Source | None = None  # the last frame the engine loaded
         self.state = RunView()
+        self.names: list[str] = []  # the loaded objects' display names, as every part of the panel shows them
+        self.camera_pose: CameraPose | None = None  # where new and reloaded tabs start
+        self._camera_moved: CameraPose | None = None
+        self._camera_timer: threading.Timer | None = None
         self.changed = threading.Condition(self.lock)  # notified on every engine message (tests wait on it)
         self.panel: Panel = build_panel(server.gui, config, likelihood)
         self.observation = ObservationLayer(server)
@@ -108,17 +114,29 @@ class App:
             h.on_update(lambda _: self.particles.set_visible(P.show_particles.value, P.show_best.value))
         P.max_particles.on_update(lambda _: self.send(p.SetDisplay(int(P.max_particles.value))))
         P.load.on_click(lambda _: self.load_typed())
+        P.camera.on_click(lambda event: self.camera_preset(event.target.value, event.client))
+        self.server.on_client_connect(self.client_connected)
         P.demo.on_click(lambda _: self.load(p.Source(demo=True)))
 
     def send(self, cmd) -> None:
         self.engine.send(cmd)
 
     def guarded(self, action) -> None:
-        """Run a panel action; bad input becomes a message in the panel, never a dead callback."""
+        """Run a panel action; bad input becomes a message in the panel, never a dead callback. An action that
+        goes through clears the banner of an earlier bad input: the user corrected it."""
         try:
             action()
         except InputError as err:
             self.report(p.Failure("Input error", err.problem, err.path))
+        else:
+            self.clear_error()
+
+    def clear_error(self) -> None:
+        """Hide the error banner, unless the estimator is gone for good (only a restart helps then)."""
+        with self.lock:
+            last = self.state.failures[-1] if self.state.failures else None
+            if self.panel.error.visible and not (last is not None and last.fatal):
+                self.panel.error.visible = False
 
     def config_changed(self) -> None:
         if self.quiet.active:
@@ -218,24 +236,56 @@ class App:
             P.legend.content = ""
             P.physics_change.content = ""
             P.plots.clear()
-        self.point_cameras(view)
+            self.names = [m.name for m in view.meshes]
+            self.show_view_legend()
+        self.camera_preset(FRAME_OBJECTS, None)
 
-    def point_cameras(self, view: p.ObservationView, zoom: float = 1.0) -> None:
-        """Start every viewer on the sensor's side, looking at the objects' region, which it places left of centre
-        (the panel covers the right of the page). Not too close by default: software WebGL pays for every pixel a
-        point covers."""
-        rx0, rx1, ry0, ry1 = view.region
-        target = np.array([(rx0 + rx1) / 2, (ry0 + ry1) / 2, 0.0])
-        toward_sensor = view.T_world_cam[:3, 3] - target
-        distance = max(0.3, 3.0 * max(rx1 - rx0, ry1 - ry0)) / zoom
-        right = view.T_world_cam[:3, 0] * np.array([1.0, 1.0, 0.0])
-        aim = target + 0.25 * distance * right / max(np.linalg.norm(right), 1e-9)
-        eye = aim + toward_sensor / np.linalg.norm(toward_sensor) * distance
-        self.server.initial_camera.position = tuple(eye)
-        self.server.initial_camera.look_at = tuple(aim)
-        for client in self.server.get_clients().values():
-            client.camera.position = tuple(eye)
-            client.camera.look_at = tuple(aim)
+    def show_view_legend(self) -> None:
+        view = self.state.view
+        if view is None:
+            return
+        heat = self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
+        note = "observed points replaced by a heatmap: its colours are explained beside it" if heat else ""
+        content = view_legend_html(self.names, view.color_legend, note)
+        if self.panel.view_legend.content != content:
+            self.panel.view_legend.content = content
+
+    def camera_preset(self, which: str, client: viser.ClientHandle | None) -> None:
+        """Point the camera at the objects (``FRAME_OBJECTS``) or put it where the depth sensor was; for one
+        browser tab (``client``) or every tab and every later one."""
+        view = self.state.view
+        if view is None:
+            return
+        pose = frame_objects(view) if which == FRAME_OBJECTS else from_sensor(view)
+        self.set_initial_camera(pose)
+        clients = [client] if client is not None else list(self.server.get_clients().values())
+        for c in clients:
+            apply_camera(c.camera, pose)
+
+    def set_initial_camera(self, pose: CameraPose) -> None:
+        """Where a new or reloaded tab starts."""
+        with self.lock:
+            self.camera_pose = pose
+        apply_camera(self.server.initial_camera, pose)
+
+    def client_connected(self, client: viser.ClientHandle) -> None:
+        """A new tab (or a reload) starts where the last camera was left, not back at the default view."""
+        def moved(camera: viser.CameraHandle) -> None:
+            with self.lock:
+                self._camera_moved = CameraPose(tuple(camera.position), tuple(camera.look_at))
+                due = self._camera_timer is None
+                if due:  # remembered once the camera has rested a moment: a drag reports ~30 poses a second
+                    self._camera_timer = threading.Timer(CAMERA_REST_S, self._remember_camera)
+                    self._camera_timer.daemon = True
+                    self._camera_timer.start()
+
+        client.camera.on_update(moved)
+
+    def _remember_camera(self) -> None:
+        with self.lock:
+            pose, self._camera_timer = self._camera_moved, None
+        if pose is not None:
+            self.set_initial_camera(pose)
 
     def on_snapshot(self, msg: p.Snapshot) -> None:
         s, P = self.state, self.panel
@@ -247,6 +297,7 @@ class App:
         if len(msg.cloud.poses):
             self.labelling.show_estimate(msg.cloud.poses[0])
         P.rank.max = max(1, msg.cloud.n_total - 1)
+        self.clear_error()  # an iteration went through: whatever failed before was dealt with
         P.plots.add(msg.report, msg.cloud.n_total, self.config.converge_position, self.config.converge_degrees)
         P.timings.content = timings_markdown(msg.report)
         P.status.content = self.status_markdown()
@@ -264,7 +315,7 @@ class App:
             if image is not None:
                 P.heat_image.image = image
             P.heat_image.visible = image is not None
-            P.physics_change.content = physics_markdown(c) if c is not None else ""
+            P.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
 
     def heatmap_mode_changed(self) -> None:
         # The heatmap is drawn on the observed points: showing both would bury one under the other. So would the
@@ -273,6 +324,7 @@ class App:
             self.panel.label.heatmap.value = "off"
         self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
             self.panel.label.heatmap.value == "off"
+        self.show_view_legend()
         self.redraw_chosen()
 
     def label_heatmap_mode_changed(self) -> None:
@@ -280,6 +332,7 @@ class App:
             self.panel.heatmap_mode.value = "off"
         self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
             self.panel.label.heatmap.value == "off"
+        self.show_view_legend()
 
     def on_run_state(self, msg: p.RunState) -> None:
         s, P = self.state, self.panel
@@ -330,6 +383,8 @@ class App:
             self.sessions.on_saved(msg)
         else:
             self.labelling.show_saved(msg)
+        # Also where it is seen: the tab's own message can be below the fold of a long panel.
+        self.notify(f"Saved {msg.kind}", f"{msg.path}{' · ' + msg.note if msg.note else ''}", color="green")
 
     def on_session_restored(self, msg: p.SessionRestored) -> None:
         """Show the restored run's settings and history (its frame came in ``Loaded`` just before)."""
@@ -366,23 +421,38 @@ class App:
 
     def status_markdown(self) -> str:
         s, cfg = self.state, self.config
-        state = "running" if s.running else "paused"
         if not s.reports:
+            state = "running" if s.running else "paused"
             return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."
         r = s.reports[-1]
-        calm = 0
-        for row in reversed(s.reports):
-            if row["best_move_m"] < cfg.converge_position and row["best_move_deg"] < cfg.converge_degrees:
-                calm += 1
-            else:
-                break
-        conv = "**converged**" if r["converged"] else f"calm {min(calm, cfg.converge_patience)} of {cfg.converge_patience}"
+        it = r["iteration"]
+        if s.running:
+            state = "running"
+        elif r["converged"]:
+            state = "**finished**: converged"
+        elif it >= cfg.iterations:
+            state = "**finished**: iteration budget reached"
+        else:
+            state = "paused"
+        counter = f"Iteration {it} of {cfg.iterations}" if it <= cfg.iterations else \
+            f"Iteration {it}, {it - cfg.iterations} past the budget of {cfg.iterations}"
+        rule = f"< {cfg.converge_position * 100:g} cm and < {cfg.converge_degrees:g}°"
+        if r["converged"]:
+            conv = f"**converged**: the best scene moved {rule} for {cfg.converge_patience} iterations"
+        else:
+            calm = 0
+            for row in reversed(s.reports):
+                if row["best_move_m"] < cfg.converge_position and row["best_move_deg"] < cfg.converge_degrees:
+                    calm += 1
+                else:
+                    break
+            last = "" if not np.isfinite(r["best_move_m"]) else \
+                f"; last it moved {r['best_move_m'] * 100:.1f} cm, {r['best_move_deg']:.1f}°"
+            conv = f"calm {min(calm, cfg.converge_patience)} of {cfg.converge_patience} (calm: best moves {rule}{last})"
         accept = "" if np.isnan(r["accept_rate"]) else f" · accepted {r['accept_rate'] * 100:.0f} %"
-        n = s.cloud.n_total if s.cloud is not None else cfg.particles
         return (
-            f"**Iteration {r['iteration']} of {cfg.iterations}** · {state}  \n"
-            f"{conv} (best moves < {cfg.converge_position * 100:g} cm and < {cfg.converge_degrees:g}°)  \n"
-            f"best log-lik {r['best_loglik']:.1f} · ESS {r['ess']:.1f} of {n} · failed physics {r['n_failed']}{accept}"
+            f"**{counter}** · {state}  \n{conv}  \n"
+            f"best log-lik {r['best_loglik']:.1f} · β {r['beta']:.3g} · failed physics {r['n_failed']}{accept}"
         )
 
     # -- lifetime
@@ -410,11 +480,11 @@ def timings_markdown(report: dict) -> str:
             "\n\n<small>projection, render and likelihood are summed over the workers; total is wall time</small>")
 
 
-def physics_markdown(c: p.Chosen) -> str:
-    """How far physics moved each object of the chosen particle."""
+def physics_markdown(c: p.Chosen, names: list[str]) -> str:
+    """How far physics moved each object of the chosen particle (``names``: the objects' display names)."""
     moved = np.linalg.norm(c.after[:, :3, 3] - c.before[:, :3, 3], axis=-1)
     turned = np.degrees(rotation_angle(np.swapaxes(c.before[:, :3, :3], -1, -2) @ c.after[:, :3, :3]))
-    rows = "\n".join(f"| {k} | {m * 100:.1f} | {a:.1f} |" for k, (m, a) in enumerate(zip(moved, turned)))
+    rows = "\n".join(f"| {name} | {m * 100:.1f} | {a:.1f} |" for name, m, a in zip(names, moved, turned))
     return (
         f"Rank **{c.rank}** (particle {c.index}) · log-lik {c.loglik:.1f} · weight {c.weight:.3g} · "
         f"physics: {STATUS_NAMES.get(c.status, c.status)}\n\n"

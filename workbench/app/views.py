@@ -18,7 +18,9 @@ from workbench.app.protocol import Chosen, MeshData, ObservationView, ParticleCl
 
 SCENE_MODES = ("after physics", "before physics", "before + after", "side by side", "hidden")
 HEATMAP_MODES = ("log-likelihood", "residual", "off")
-BEFORE_COLOR = (235, 90, 60)
+# No shadows anywhere: a shadow map is another pass over the scene in every frame, and software WebGL draws a frame
+# at least once a second (viser's idle heartbeat), so every pass costs CPU for as long as a tab is open.
+NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
 
 
 def wxyz_from_matrices(R: np.ndarray) -> np.ndarray:
@@ -75,37 +77,41 @@ class Nodes:
 
 @dataclass
 class ObservationLayer:
-    """The frame as seen: point cloud, table, object region, camera frustum, ground truth (hidden by default)."""
+    """The frame as seen: point clouds (fine near the objects, coarse elsewhere), table, object region, camera
+    frustum, ground truth (hidden by default)."""
 
     server: viser.ViserServer
     nodes: Nodes = field(default_factory=Nodes)
-    cloud: viser.PointCloudHandle | None = None
+    clouds: list = field(default_factory=list)
     gt: list = field(default_factory=list)
 
     def draw(self, view: ObservationView, show_cloud: bool, show_gt: bool) -> None:
         scene, add = self.server.scene, self.nodes.add
         self.nodes.clear()
-        self.cloud = add(scene.add_point_cloud(
-            "/observation/points", view.points, view.colors, point_size=0.0025, point_shape="rounded",
-            visible=show_cloud,
-        ))
+        # Square points: "rounded" ones cost a fragment-shader discard per pixel in software WebGL, and at the
+        # data's spacing the squares tile the surface.
+        self.clouds = [
+            add(scene.add_point_cloud(f"/observation/{name}", c.points, c.colors, point_size=c.point_size,
+                                      point_shape="square", visible=show_cloud))
+            for name, c in (("points", view.near), ("surroundings", view.far)) if len(c.points)
+        ]
         x0, x1, y0, y1 = view.table
         # The table slab's top a millimetre below z = 0, so the table's own points stay visible on it.
         add(scene.add_box(
-            "/observation/table", color=(200, 190, 170), dimensions=(x1 - x0, y1 - y0, 0.004),
-            position=((x0 + x1) / 2, (y0 + y1) / 2, -0.003), opacity=0.5, cast_shadow=False,
-        ))
+            "/observation/table", color=colors.TABLE_COLOR, dimensions=(x1 - x0, y1 - y0, 0.004),
+            position=((x0 + x1) / 2, (y0 + y1) / 2, -0.003), **NO_SHADOW,
+        ))  # opaque: a blended slab this large costs a full pass of blending; it also hides the floor below it
         rx0, rx1, ry0, ry1 = view.region
         corners = np.array([[rx0, ry0, 0], [rx1, ry0, 0], [rx1, ry1, 0], [rx0, ry1, 0]], dtype=np.float32)
         add(scene.add_line_segments(
             "/observation/region", np.stack([corners, np.roll(corners, -1, axis=0)], axis=1),
-            colors=(255, 140, 0), thickness=1.5, thickness_units="screen",
+            colors=colors.REGION_COLOR, thickness=1.5, thickness_units="screen",
         ))
         w, h = view.image_size
         wxyz, pos = split_pose(view.T_world_cam)
         add(scene.add_camera_frustum(
             "/observation/camera", fov=2 * np.arctan2(h / 2, view.K[1, 1]), aspect=w / h, scale=0.1,
-            thickness=1.5, thickness_units="screen", color=(40, 40, 40), wxyz=wxyz, position=pos,
+            thickness=1.5, thickness_units="screen", color=colors.SENSOR_COLOR, wxyz=wxyz, position=pos,
         ))
         self.gt = []
         if view.gt_T_world_obj is not None:
@@ -113,21 +119,21 @@ class ObservationLayer:
                 if np.all(np.isfinite(T)):
                     q, t = split_pose(T)
                     self.gt.append(add(scene.add_mesh_simple(
-                        f"/observation/ground_truth/{k}", mesh.vertices, mesh.faces, color=(120, 220, 120),
-                        wireframe=True, wxyz=q, position=t, visible=show_gt,
-                    )))
+                        f"/observation/ground_truth/{k}", mesh.vertices, mesh.faces, color=colors.GROUND_TRUTH_COLOR,
+                        wireframe=True, wxyz=q, position=t, visible=show_gt, **NO_SHADOW)))
 
     def set_visible(self, cloud: bool, gt: bool) -> None:
-        if self.cloud is not None:
-            self.cloud.visible = cloud
+        for h in self.clouds:
+            h.visible = cloud
         for h in self.gt:
             h.visible = gt
 
 
 @dataclass
 class ParticleLayer:
-    """Every published particle as one instanced mesh per object, coloured (and faded) by normalised weight, and
-    the most likely scene drawn solid. Clicking an instance calls ``on_pick(rank)`` (instances are in rank order)."""
+    """Every published particle as one instanced wireframe per object, coloured (and faded) by normalised weight,
+    and the most likely scene drawn solid. Wireframes: solid translucent particles piled up into a haze over the
+    objects, and filling them cost software WebGL most of a core. Clicking an instance calls ``on_pick(rank)`` (instances are in rank order)."""
 
     server: viser.ViserServer
     on_pick: Callable[[int], None]
@@ -150,7 +156,9 @@ class ParticleLayer:
         w = np.asarray(cloud.weights, dtype=np.float64)
         rel = w / w.max() if w.max() > 0 else np.ones_like(w)
         tint = colors.apply_map(rel, 0.0, 1.0, colors.WEIGHT)
-        opacity = (0.1 + 0.5 * rel).astype(np.float32)  # faint, so the solid most likely scene shows through
+        # Faint, so the solid most likely scene shows through; the unlikely ones almost gone, so that many of them
+        # do not add up to a haze.
+        opacity = (0.04 + 0.5 * rel).astype(np.float32)
         if self.batches and len(self.batches[0].batched_positions) != len(w):
             for b in self.batches:  # the instance count changed: viser wants all per-instance arrays resized at once
                 self.nodes.remove(b)
@@ -161,7 +169,7 @@ class ParticleLayer:
                     handle = self.nodes.add(scene.add_batched_meshes_simple(
                         f"/particles/{k}", mesh.vertices, mesh.faces, batched_wxyzs=wxyz[:, k],
                         batched_positions=pos[:, k], batched_colors=tint, batched_opacities=opacity,
-                        lod="off", cast_shadow=False, receive_shadow=False, visible=self.show_cloud,
+                        lod="off", wireframe=True, visible=self.show_cloud, **NO_SHADOW,
                     ))
                     handle.on_click(self._clicked)
                     self.batches.append(handle)
@@ -172,8 +180,7 @@ class ParticleLayer:
                 if len(self.best) <= k:
                     self.best.append(self.nodes.add(scene.add_mesh_simple(
                         f"/best/{k}", mesh.vertices, mesh.faces, color=colors.object_color(k), wxyz=wxyz[0, k],
-                        position=pos[0, k], visible=self.show_best,
-                    )))
+                        position=pos[0, k], visible=self.show_best, **NO_SHADOW)))
                 else:
                     self.best[k].wxyz, self.best[k].position = wxyz[0, k], pos[0, k]
 
@@ -216,15 +223,15 @@ class ChosenLayer:
         self.shifts = {"before": -reach * right, "after": reach * right}
         scene = self.server.scene
         self.before = [
-            self.nodes.add(scene.add_mesh_simple(f"/chosen/before/{k}", m.vertices, m.faces, color=BEFORE_COLOR,
-                                                 visible=False))
+            self.nodes.add(scene.add_mesh_simple(f"/chosen/before/{k}", m.vertices, m.faces, color=colors.BEFORE_COLOR,
+                                                 visible=False, **NO_SHADOW))
             for k, m in enumerate(view.meshes)
         ]
         # "After" wears the objects' own colours, like the most likely scene: when the chosen particle is the most
         # likely one the two coincide, and equal colours hide the z-fighting.
         self.after = [
             self.nodes.add(scene.add_mesh_simple(f"/chosen/after/{k}", m.vertices, m.faces,
-                                                 color=colors.object_color(k), visible=False))
+                                                 color=colors.object_color(k), visible=False, **NO_SHADOW))
             for k, m in enumerate(view.meshes)
         ]
 
@@ -257,7 +264,7 @@ class ChosenLayer:
             if c is not None and mode == "before + after":
                 segments = np.stack([c.before[:, :3, 3], c.after[:, :3, 3]], axis=1).astype(np.float32)
                 self.extras.add(self.server.scene.add_line_segments(
-                    "/chosen/moves", segments, colors=(255, 60, 60), thickness=3.0, thickness_units="screen"
+                    "/chosen/moves", segments, colors=colors.MOVE_COLOR, thickness=3.0, thickness_units="screen"
                 ))
 
 
@@ -303,8 +310,8 @@ class HeatmapLayer:
             note = f"total {loglik:.1f}; dark = poorly explained, pale = well explained"
         rgb = colors.apply_map(values, lo, hi, stops)  # (h, w, 3)
         self.nodes.add(self.server.scene.add_point_cloud(
-            self.path, self.view.grid_points, rgb[mask], point_size=0.003, point_shape="rounded",
-            precision="float32",
+            self.path, self.view.grid_points, rgb[mask], point_size=self.view.grid_point_size,
+            point_shape="square", precision="float32",
         ))
         legend = colors.legend_html(f"{mode} ({unit}), {subject}", f"{lo:.2f}", f"{hi:.2f}", stops, note)
         image = np.where(mask[..., None], rgb, 0).astype(np.uint8)
