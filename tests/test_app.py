@@ -278,7 +278,7 @@ def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
     from workbench.app.observation import display_names
     from workbench.errors import InputError
 
-    src = demo_dataset(lambda: tmp_path)
+    src = demo_dataset()
     data = tmp_path / "named"
     shutil.copytree(src / "models", data / "models")
     info_path = data / "models" / "models_info.json"

@@ -35,6 +35,7 @@ import numpy as np
 
 from workbench.app import protocol as p
 from workbench.errors import InputError
+from workbench.inference.moves import MoveKind
 
 log = logging.getLogger(__name__)
 
@@ -369,6 +370,7 @@ class Engine:
             loglik=float(est.loglik[i]),
             weight=float(est.weights()[i]),
             status=int(est.status[i]),
+            move=MoveKind(int(est.kinds[i])).label,
             before=est.hypotheses[i].copy(),
             after=after.copy(),
             pixel_loglik=pixels.astype(np.float32),

@@ -233,6 +233,7 @@ class Chosen:
     loglik: float
     weight: float
     status: int
+    move: str  # the move kind that proposed it (inference.moves.MoveKind label)
     before: np.ndarray  # (K, 4, 4) as proposed
     after: np.ndarray  # (K, 4, 4) as projected by physics (what was rendered and weighed)
     pixel_loglik: np.ndarray  # (h, w) float32, 0 where the observation has no reading

@@ -452,7 +452,8 @@ class App:
         accept = "" if np.isnan(r["accept_rate"]) else f" · accepted {r['accept_rate'] * 100:.0f} %"
         return (
             f"**{counter}** · {state}  \n{conv}  \n"
-            f"best log-lik {r['best_loglik']:.1f} · β {r['beta']:.3g} · failed physics {r['n_failed']}{accept}"
+            f"best log-lik {r['best_loglik']:.1f} (from a {r.get('best_kind') or 'start'} move) · β {r['beta']:.3g}"
+            f" · failed physics {r['n_failed']}{accept}"
         )
 
     # -- lifetime
@@ -487,7 +488,7 @@ def physics_markdown(c: p.Chosen, names: list[str]) -> str:
     rows = "\n".join(f"| {name} | {m * 100:.1f} | {a:.1f} |" for name, m, a in zip(names, moved, turned))
     return (
         f"Rank **{c.rank}** (particle {c.index}) · log-lik {c.loglik:.1f} · weight {c.weight:.3g} · "
-        f"physics: {STATUS_NAMES.get(c.status, c.status)}\n\n"
+        f"proposed by: {c.move} move · physics: {STATUS_NAMES.get(c.status, c.status)}\n\n"
         f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}"
     )
 
