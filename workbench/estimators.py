@@ -27,6 +27,7 @@ from workbench.problem import Problem
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 
 METHODS = ("pipf", "mcpf")
+REFIT_BADNESS = 0.2  # objects of the estimate whose visible surface the sensor sees through more than this are refitted
 
 
 @dataclass(frozen=True)
@@ -236,7 +237,7 @@ class Estimator:
 
     def load_state(self, state: dict) -> None:
         """Continue from a ``state_dict()``. The caller vouches that it belongs to this problem and config
-        (``sessions.load_session`` checks a saved one). Raises ValueError for a malformed ``search`` entry."""
+        (``sessions.load_session`` checks a saved one, ``search`` included)."""
         self.rng.bit_generator.state = state["rng"]  # raises ValueError for another kind of generator
         self.iteration = int(state["iteration"])
         for name in ("hypotheses", "projected", "loglik", "status"):
@@ -245,22 +246,11 @@ class Estimator:
         self.best_history = [np.array(b) for b in state["best_history"]]
         self._beta = float(state["beta"])
         self._calm = int(state["calm"])
-        search = state.get("search") or {}
-        K, N = self.problem.n_objects, 0 if self.loglik is None else len(self.loglik)
-        kinds = search.get("kinds")
-        self.kinds = None if self.loglik is None else (
-            np.full(N, int(MoveKind.START), np.int8) if kinds is None else _array(kinds, (N,), np.int8, "kinds"))
-        m = search.get("map")
-        self._map = None if m is None else _array(m, (K, 4, 4), np.float64, "map")
-        ll = search.get("map_loglik")
-        self._map_loglik = float("-inf") if ll is None else float(ll)
-        self._map_kind = MoveKind(int(search.get("map_kind", 0)))
-        lib = search.get("library")
-        self._library = None if lib is None else datadriven.Library(
-            [_array(p, (len(p), 4, 4), np.float64, "library") if len(p) else np.zeros((0, 4, 4)) for p in lib["poses"]],
-            [np.asarray(w, dtype=np.float64) for w in lib["weights"]])
-        if self._library is not None and len(self._library.poses) != K:
-            raise ValueError(f"search.library lists {len(self._library.poses)} objects, the problem has {K}")
+        N = 0 if self.loglik is None else len(self.loglik)
+        search = parse_search(state.get("search"), self.problem.n_objects, N)
+        self.kinds = None if self.loglik is None else search["kinds"]
+        self._map, self._map_loglik = search["map"], search["map_loglik"]
+        self._map_kind, self._library = search["map_kind"], search["library"]
 
     # ---------------------------------------------------------------------------------------------- proposals
     def _context(self):
@@ -282,11 +272,19 @@ class Estimator:
 
     def _refit_library(self) -> None:
         """Candidates from the clusters of observed points the estimate does not explain (all of them before
-        the first estimate), merged with the earlier candidates."""
+        the first estimate), merged with the earlier candidates. Refits fit only the objects the estimate explains
+        badly: fitting costs seconds, and a well-placed object needs no new places."""
         ctx = self._context()
         loose = unexplained(self.problem, ctx.points, self._map, ctx.samples)
         groups = clusters(ctx.points.points[loose])
-        fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
+        objects = None
+        if self._map is not None:
+            bad = object_badness(self.problem, self._map, ctx.samples)
+            objects = [k for k in range(self.problem.n_objects) if bad[k] > REFIT_BADNESS]
+            if not objects:
+                return
+        fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls,
+                                         objects)
         self._library = fresh if self._library is None else self._library.merged(fresh)
 
     def _start(self) -> tuple[np.ndarray, np.ndarray]:
@@ -428,8 +426,44 @@ class _Search:
 def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:
     a = np.asarray(value, dtype=dtype)
     if a.shape != shape or not np.all(np.isfinite(a)):
-        raise ValueError(f"search.{where} must be finite numbers of shape {shape}, got {a.shape}")
+        raise ValueError(f"search.{where} must be finite numbers of shape {shape}, got shape {a.shape}")
     return a
+
+
+def parse_search(search, K: int, N: int) -> dict:
+    """The ``search`` entry of a ``state_dict`` (plain JSON lists) for K objects and N particles -> arrays:
+    ``kinds`` (N,) int8, ``map`` (K, 4, 4) or None, ``map_loglik``, ``map_kind`` (MoveKind), ``library``
+    (datadriven.Library or None). None (a state saved before the search existed) gives the neutral values.
+    Raises ValueError naming what is malformed."""
+    if search is None:
+        search = {}
+    if not isinstance(search, dict):
+        raise ValueError("search must be an object")
+    try:
+        kinds = search.get("kinds")
+        kinds = np.full(N, int(MoveKind.START), np.int8) if kinds is None else _array(kinds, (N,), np.int8, "kinds")
+        if np.any((kinds < 0) | (kinds > max(MoveKind))):
+            raise ValueError("search.kinds holds unknown move kinds")
+        m = search.get("map")
+        ll = search.get("map_loglik")
+        lib = search.get("library")
+        library = None
+        if lib is not None:
+            poses = [_array(p, (len(p), 4, 4), np.float64, "library.poses") if len(p) else np.zeros((0, 4, 4))
+                     for p in lib["poses"]]
+            weights = [_array(w, (len(p),), np.float64, "library.weights") for w, p in zip(lib["weights"], poses)]
+            if len(poses) != K or len(weights) != K:
+                raise ValueError(f"search.library must list {K} objects")
+            library = datadriven.Library(poses, weights)
+        return {
+            "kinds": kinds,
+            "map": None if m is None else _array(m, (K, 4, 4), np.float64, "map"),
+            "map_loglik": float("-inf") if ll is None else float(_array(ll, (), np.float64, "map_loglik")),
+            "map_kind": MoveKind(int(search.get("map_kind", 0))),
+            "library": library,
+        }
+    except (TypeError, KeyError, IndexError, OverflowError) as e:
+        raise ValueError(f"malformed search entry ({type(e).__name__}: {e})") from e
 
 
 def object_confidence(problem: Problem, projected: np.ndarray, weights: np.ndarray, best: np.ndarray,

@@ -48,7 +48,7 @@ from workbench import bop
 from workbench.bop import _atomic_write
 from workbench.checks import check_estimator_config, check_problem_config, check_rigid
 from workbench.errors import InputError
-from workbench.estimators import Estimator, EstimatorConfig, IterationReport
+from workbench.estimators import Estimator, EstimatorConfig, IterationReport, parse_search
 from workbench.evaluation import Evaluator
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
@@ -367,6 +367,11 @@ def load_session(path: Path) -> SessionState:
     state, arrays_entry = _parse(path)
     arrays = _read_arrays(path, arrays_entry)
     _check_arrays(path, state, arrays, arrays_entry["shapes"])
+    N = len(arrays["loglik"]) if "loglik" in arrays else 0
+    try:
+        parse_search(state.estimator["search"], len(state.frame.object_ids), N)
+    except ValueError as e:
+        raise InputError(path, f"estimator.{e}") from e
     for name in PARTICLE_ARRAYS:
         state.estimator[name] = arrays.get(name)
     state.estimator["best_history"] = list(arrays["best_history"])
