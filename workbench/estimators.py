@@ -27,7 +27,6 @@ from workbench.problem import Problem
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 
 METHODS = ("pipf", "mcpf")
-REFIT_BADNESS = 0.2  # objects of the estimate whose visible surface the sensor sees through more than this are refitted
 
 
 @dataclass(frozen=True)
@@ -272,19 +271,11 @@ class Estimator:
 
     def _refit_library(self) -> None:
         """Candidates from the clusters of observed points the estimate does not explain (all of them before
-        the first estimate), merged with the earlier candidates. Refits fit only the objects the estimate explains
-        badly: fitting costs seconds, and a well-placed object needs no new places."""
+        the first estimate), merged with the earlier candidates."""
         ctx = self._context()
         loose = unexplained(self.problem, ctx.points, self._map, ctx.samples)
         groups = clusters(ctx.points.points[loose])
-        objects = None
-        if self._map is not None:
-            bad = object_badness(self.problem, self._map, ctx.samples)
-            objects = [k for k in range(self.problem.n_objects) if bad[k] > REFIT_BADNESS]
-            if not objects:
-                return
-        fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls,
-                                         objects)
+        fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
         self._library = fresh if self._library is None else self._library.merged(fresh)
 
     def _start(self) -> tuple[np.ndarray, np.ndarray]:

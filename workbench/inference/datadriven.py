@@ -91,19 +91,17 @@ def fit_score(problem: Problem, T: np.ndarray, samples: ModelSamples) -> float:
 
 
 def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.ndarray,
-                  rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray],
-                  objects: list[int] | None = None) -> Library:
-    """Candidate poses for the ``objects`` (default: all) from the ``clusters`` (list of (P_i, 3), largest first);
-    ICP against ``all_points`` (P, 3) near each start. -> Library (empty entries for the other objects)."""
+                  rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray]) -> Library:
+    """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
+    ``all_points`` (P, 3) near each start. -> Library."""
     K = len(rest)
-    objects = list(range(K)) if objects is None else objects
     found: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(K)]
     reach = np.array([np.max(np.linalg.norm(h[:, :2], axis=1)) for h in hulls])
     clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP][:MAX_CLUSTERS]
     for cluster in clusters:
         top = float(np.percentile(cluster[:, 2], 95))
         heading = principal_heading(cluster)
-        for k in objects:
+        for k in range(K):
             footprint = 2.0 * reach[k]
             for centre in spread_centres(cluster, 0.6 * footprint, MAX_CENTRES):
                 at_centre: list[tuple[float, np.ndarray]] = []
