@@ -19,7 +19,7 @@ import numpy as np
 
 from workbench import bop
 from workbench.estimators import Estimator, EstimatorConfig
-from workbench.evaluation import make_evaluator
+from workbench.evaluation import LocalEvaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.likelihood import scene_loglik
 from workbench.metrics import position_error, rotation_error
@@ -40,7 +40,6 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         seconds = time.perf_counter() - t0
     finally:
         evaluator.close()
-    from workbench.evaluation import LocalEvaluator
     local = LocalEvaluator(problem)
     try:
         raw = float(scene_loglik(problem.observed, problem.background, local.renderer.render(gt[None]),

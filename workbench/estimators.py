@@ -20,7 +20,7 @@ from workbench.evaluation import STAGES, Evaluation, Evaluator
 from workbench.geometry import rotation_angle
 from workbench.inference import datadriven, gaussian, refine, resting, stacking
 from workbench.inference.proposal import Proposal
-from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix, kind_counts
+from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix
 from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points, unexplained
 from workbench.particles import STATES, Sigma, initial_particles, random_relocations
 from workbench.problem import Problem
@@ -365,10 +365,10 @@ class Estimator:
         the next resampling (PI-PF: N times the tempered weight of that kind's particles)."""
         out = {}
         w = self.weights()
-        for label, count in kind_counts(kinds).items():
-            sel = np.array([MoveKind(int(k)).label == label for k in kinds])
+        for kind in np.unique(kinds):
+            sel = kinds == kind
             kept = float(accepted[sel].sum()) if accepted is not None else float(len(kinds) * w[sel].sum())
-            out[label] = {"proposed": float(count), "accepted": kept}
+            out[MoveKind(int(kind)).label] = {"proposed": float(sel.sum()), "accepted": kept}
         return out
 
     def _report(self, ev: Evaluation, t_resample: float, t_total: float, accept_rate: float,

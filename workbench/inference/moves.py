@@ -29,7 +29,7 @@ class MoveKind(IntEnum):
     STACK = 6  # one object onto another object, or off it
     DATA = 7  # one object to a data-driven candidate
     ICP = 8  # one object refined by ICP
-    RELOCATE = 9  # one object to a random place (the paper's moves, plus turns: PAPER_TURN)
+    RELOCATE = 9  # one object to a random place in the object region, dropped onto whatever is below
 
     @property
     def label(self) -> str:
@@ -50,9 +50,6 @@ class MoveMix:
     icp: float = 0.10
     relocate: float = 0.05
 
-    KINDS = {"joint": MoveKind.JOINT, "single": MoveKind.SINGLE, "face": MoveKind.FACE, "turn": MoveKind.TURN,
-             "stack": MoveKind.STACK, "data": MoveKind.DATA, "icp": MoveKind.ICP, "relocate": MoveKind.RELOCATE}
-
     @staticmethod
     def paper() -> "MoveMix":
         return MoveMix(joint=1.0, single=0.0, face=0.0, turn=0.0, stack=0.0, data=0.0, icp=0.0, relocate=0.0)
@@ -63,19 +60,14 @@ class MoveMix:
             raise InputError("moves", f"move probabilities must be >= 0 with a positive sum, got {self}")
 
     def as_array(self) -> np.ndarray:
-        """(len(KINDS),) probabilities in ``KINDS`` order (unnormalised)."""
+        """(8,) probabilities in field order (unnormalised)."""
         return np.array([getattr(self, f.name) for f in fields(self)], dtype=np.float64)
 
     def kinds(self) -> np.ndarray:
-        return np.array([int(self.KINDS[f.name]) for f in fields(self)])
+        """(8,) the MoveKind of each field, in field order: each field is named after its kind."""
+        return np.array([int(MoveKind[f.name.upper()]) for f in fields(self)])
 
     def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """One move kind per particle -> (n,) int8 MoveKind values."""
         p = self.as_array()
         return self.kinds()[rng.choice(len(p), size=n, p=p / p.sum())].astype(np.int8)
-
-
-def kind_counts(kinds: np.ndarray) -> dict[str, int]:
-    """(N,) MoveKind values -> {label: count} for the kinds present."""
-    values, counts = np.unique(kinds, return_counts=True)
-    return {MoveKind(int(v)).label: int(c) for v, c in zip(values, counts)}
