@@ -71,25 +71,46 @@ def _grid_points(depth: np.ndarray, K: np.ndarray, max_points: int) -> tuple[np.
 def _ransac_planes(points: np.ndarray, cfg: SupportConfig) -> list[tuple[np.ndarray, float, np.ndarray]]:
     """Largest planes first: (normal (3,) towards the camera, offset d > 0 with n.p + d = 0, inlier indices)."""
     threshold = max(cfg.ransac_threshold, 2.5 * float(depth_noise_sigma(np.median(points[:, 2]))))
-    o3d.utility.random.seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
     remaining = np.arange(len(points))
     planes = []
     min_inliers = max(3, int(cfg.min_plane_fraction * len(points)))
     for _ in range(cfg.max_planes):
         if len(remaining) < min_inliers:
             break
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[remaining]))
-        model, idx = cloud.segment_plane(threshold, 3, cfg.ransac_iterations)
+        n, d = _ransac_plane(points[remaining], threshold, cfg.ransac_iterations, rng)
+        idx = np.flatnonzero(np.abs(points[remaining] @ n + d) < threshold)
         if len(idx) < min_inliers:
             break
-        n, d = np.asarray(model[:3], dtype=np.float64), float(model[3])
-        scale = np.linalg.norm(n)
-        n, d = n / scale, d / scale
         if d < 0:  # the camera (origin) must be on the positive side
             n, d = -n, -d
         planes.append((n, d, remaining[idx]))
         remaining = np.delete(remaining, idx)
     return planes
+
+
+def _ransac_plane(points: np.ndarray, threshold: float, iterations: int, rng: np.random.Generator,
+                  chunk: int = 64) -> tuple[np.ndarray, float]:
+    """The plane (unit normal (3,), offset d with n.p + d = 0) through three of the ``points`` (N, 3) with the
+    most points within ``threshold`` (m), of ``iterations`` random triples. Plain numpy with the caller's
+    generator: open3d's multi-threaded RANSAC gave a different table on every run, so no seeded run on a frame
+    without a table pose could be repeated."""
+    best, best_count = (np.array([0.0, 0.0, 1.0]), 0.0), -1
+    for start in range(0, iterations, chunk):
+        m = min(chunk, iterations - start)
+        tri = points[rng.integers(0, len(points), size=(m, 3))]  # (m, 3, 3)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(n, axis=1)
+        ok = norm > 1e-12  # degenerate (collinear) triples propose nothing
+        n = n[ok] / norm[ok, None]
+        d = -np.einsum("md,md->m", n, tri[ok, 0])
+        if not len(n):
+            continue
+        counts = (np.abs(points @ n.T + d) < threshold).sum(axis=0)
+        i = int(np.argmax(counts))
+        if counts[i] > best_count:
+            best, best_count = (n[i], float(d[i])), int(counts[i])
+    return best
 
 
 def _central_weight(pix: np.ndarray, camera: Camera) -> np.ndarray:

@@ -17,6 +17,7 @@ from workbench.inference.scenepoints import ModelSamples
 STAGES = (0.04, 0.02, 0.01)  # m; correspondence distances, coarse to fine
 JITTER_POS = 0.003  # m
 MAX_POINTS = 400
+STILL_M, STILL_RAD = 1e-4, 1e-3  # a step this small (0.1 mm, 0.06 degrees) ends a stage
 JITTER_ANG = np.radians(1.5)
 
 
@@ -28,39 +29,77 @@ def crop(points: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
 def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations: int = 8
         ) -> tuple[np.ndarray, int]:
     """Fit the model (samples in its object frame) at ``T_init`` (4, 4, table frame) to the observed points
-    ``scene`` (P, 3): scene-to-model point-to-plane ICP, coarse to fine over ``STAGES`` -> (refined pose (4, 4),
-    scene points within the last stage's distance of the model). Points of other objects in the crop find no
-    model surface within the correspondence distance. Plain numpy and a k-d tree: bit-reproducible, unlike a
+    ``scene`` (P, 3) -> (refined pose (4, 4), scene points within the last stage's distance of the model).
+    One start of ``icp_batch``."""
+    T, inliers = icp_batch([scene], samples, T_init[None], iterations)
+    return T[0], int(inliers[0])
+
+
+def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarray, iterations: int = 8,
+              max_points: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Fit one model (samples in its object frame) from S starts at once: start s at ``T_init[s]`` (4, 4, table
+    frame) against its observed points ``scenes[s]`` (P_s, 3). Scene-to-model point-to-plane ICP, coarse to
+    fine over ``STAGES``; a start leaves a stage when its step is negligible and stops where fewer than 6 points
+    find the model. -> (refined poses (S, 4, 4), inliers (S,): scene points within the last stage's distance).
+
+    Points of other objects in a crop find no model surface within the correspondence distance. All starts share
+    one k-d tree query and one batched solve per step, so a library of thousands of starts costs a few dozen
+    numpy calls per step instead of thousands. Plain numpy and a k-d tree: bit-reproducible, unlike a
     multi-threaded ICP, so seeded runs stay identical."""
-    if len(scene) < 10:
-        return T_init.copy(), 0
-    if len(scene) > MAX_POINTS:  # evenly thinned: a few hundred points pin a pose down as well as thousands
-        scene = scene[np.linspace(0, len(scene) - 1, MAX_POINTS).astype(int)]
+    S = len(scenes)
+    T_obj_world = invert_pose(np.asarray(T_init, dtype=np.float64)).reshape(S, 4, 4).copy()
+    # Evenly thinned: a few hundred points pin a pose down as well as thousands.
+    thin = [sc[np.linspace(0, len(sc) - 1, max_points).astype(int)] if len(sc) > max_points else sc
+            for sc in scenes]
+    sizes = np.array([len(sc) for sc in thin])
+    inliers = np.zeros(S, dtype=int)
+    alive = sizes >= 10  # fewer points cannot pin a pose: such starts stay where they are
+    if not alive.any():
+        return invert_pose(T_obj_world), inliers
+    points = np.concatenate([sc for sc in thin if len(sc)]) if sizes.sum() else np.zeros((0, 3))
+    owner = np.repeat(np.arange(S), sizes)
     tree = cKDTree(samples.points)
-    T_obj_world = invert_pose(T_init)  # scene points are moved into the object frame; the model stays put
-    inliers = 0
     for dist in STAGES:
+        moving = alive.copy()
         for _ in range(iterations):
-            p = scene @ T_obj_world[:3, :3].T + T_obj_world[:3, 3]
+            if not moving.any():
+                break
+            sel = moving[owner]
+            own = owner[sel]
+            R, t = T_obj_world[own, :3, :3], T_obj_world[own, :3, 3]
+            p = np.einsum("nij,nj->ni", R, points[sel]) + t
+            # One thread: cKDTree's multi-threaded query was measured to change the results from run to run.
             d, j = tree.query(p, distance_upper_bound=dist)
             ok = np.isfinite(d)
-            inliers = int(ok.sum())
-            if inliers < 6:
-                return invert_pose(T_obj_world), inliers
-            delta = _point_to_plane_step(p[ok], samples.points[j[ok]], samples.normals[j[ok]])
-            T_obj_world = delta @ T_obj_world
-            if np.linalg.norm(delta[:3, 3]) < 1e-5 and rotation_angle(delta[:3, :3]) < 1e-4:
+            count = np.bincount(own[ok], minlength=S)
+            inliers[moving] = count[moving]
+            lost = moving & (count < 6)
+            alive &= ~lost
+            moving &= ~lost
+            keep = ok & moving[own]
+            if not keep.any():
                 break
+            delta = _point_to_plane_steps(p[keep], samples.points[j[keep]], samples.normals[j[keep]], own[keep], S)
+            T_obj_world[moving] = delta[moving] @ T_obj_world[moving]
+            small = (np.linalg.norm(delta[:, :3, 3], axis=1) < STILL_M) & (rotation_angle(delta[:, :3, :3]) < STILL_RAD)
+            moving &= ~small
     return invert_pose(T_obj_world), inliers
 
 
-def _point_to_plane_step(p: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """The small rigid motion (4, 4) that best moves points p (M, 3) onto the planes through q (M, 3) with
-    normals n (M, 3), linearised: minimise sum(((R p + t - q) . n)^2) with R = I + [w]x."""
+def _point_to_plane_steps(p: np.ndarray, q: np.ndarray, n: np.ndarray, owner: np.ndarray, S: int) -> np.ndarray:
+    """Per start s, the small rigid motion (4, 4) that best moves its points p (M, 3) (those with ``owner`` (M,)
+    == s) onto the planes through q (M, 3) with normals n (M, 3), linearised: minimise sum(((R p + t - q) . n)^2)
+    with R = I + [w]x. -> (S, 4, 4); identity for starts without points."""
     A = np.concatenate([np.cross(p, n), n], axis=1)  # (M, 6)
     b = np.einsum("md,md->m", q - p, n)
-    x, *_ = np.linalg.lstsq(A.T @ A + 1e-9 * np.eye(6), A.T @ b, rcond=None)
-    return make_pose(euler_to_matrix(x[:3]), x[3:])
+    AtA = np.zeros((S, 36))
+    Atb = np.zeros((S, 6))
+    for c in range(36):  # per-start sums of the normal equations' entries
+        AtA[:, c] = np.bincount(owner, weights=A[:, c // 6] * A[:, c % 6], minlength=S)
+    for c in range(6):
+        Atb[:, c] = np.bincount(owner, weights=A[:, c] * b, minlength=S)
+    x = np.linalg.solve(AtA.reshape(S, 6, 6) + 1e-9 * np.eye(6), Atb[..., None])[..., 0]
+    return make_pose(euler_to_matrix(x[:, :3]), x[:, 3:])
 
 
 def _log_kernel(T: np.ndarray, centre: np.ndarray) -> float:
