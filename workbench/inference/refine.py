@@ -36,17 +36,20 @@ def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations
 
 
 def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarray, iterations: int = 8,
-              max_points: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
+              max_points: int = MAX_POINTS, stages: tuple[float, ...] = STAGES) -> tuple[np.ndarray, np.ndarray]:
     """Fit one model (samples in its object frame) from S starts at once: start s at ``T_init[s]`` (4, 4, table
     frame) against its observed points ``scenes[s]`` (P_s, 3). Scene-to-model point-to-plane ICP, coarse to
-    fine over ``STAGES``; a start leaves a stage when its step is negligible and stops where fewer than 6 points
-    find the model. -> (refined poses (S, 4, 4), inliers (S,): scene points within the last stage's distance).
+    fine over the correspondence distances ``stages`` (m); a start leaves a stage when its step is negligible and
+    stops where fewer than 6 points find the model. -> (refined poses (S, 4, 4), inliers (S,): scene points
+    within the last stage's distance).
 
     Points of other objects in a crop find no model surface within the correspondence distance. All starts share
     one k-d tree query and one batched solve per step, so a library of thousands of starts costs a few dozen
     numpy calls per step instead of thousands. Plain numpy and a k-d tree: bit-reproducible, unlike a
     multi-threaded ICP, so seeded runs stay identical."""
     S = len(scenes)
+    if S == 0:
+        return np.zeros((0, 4, 4)), np.zeros(0, dtype=int)
     T_obj_world = invert_pose(np.asarray(T_init, dtype=np.float64)).reshape(S, 4, 4).copy()
     # Evenly thinned: a few hundred points pin a pose down as well as thousands.
     thin = [sc[np.linspace(0, len(sc) - 1, max_points).astype(int)] if len(sc) > max_points else sc
@@ -59,7 +62,7 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
     points = np.concatenate([sc for sc in thin if len(sc)]) if sizes.sum() else np.zeros((0, 3))
     owner = np.repeat(np.arange(S), sizes)
     tree = cKDTree(samples.points)
-    for dist in STAGES:
+    for dist in stages:
         moving = alive.copy()
         for _ in range(iterations):
             if not moving.any():
