@@ -52,6 +52,29 @@ def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
     )
 
 
+def _add_engine_args(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--engine", choices=("local", "ray"), default="local",
+                   help=f"local: {what} here; ray: on a Ray cluster (needs the extra: pip install 'workbench[ray]')")
+    p.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
+                   help="join this Ray cluster (auto: the one `ray start` started on this machine); default: start "
+                        "Ray on this machine for the run")
+
+
+def ray_config(args: argparse.Namespace):
+    """``--engine``/``--ray-address``/``--max-retries`` -> a distributed.RayConfig, or None for the local engine;
+    InputError, before any work, when Ray is asked for and not installed."""
+    from workbench.distributed import RayConfig, require_ray
+
+    if args.engine == "local":
+        if args.ray_address is not None:
+            raise InputError("--ray-address", "joins a Ray cluster: use it with --engine ray")
+        return None
+    require_ray()
+    retries = getattr(args, "max_retries", RayConfig.max_retries)
+    check_count(retries, "--max-retries", low=0)
+    return RayConfig(address=args.ray_address, max_retries=retries)
+
+
 def problem_config(args: argparse.Namespace) -> ProblemConfig:
     return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=LikelihoodConfig(model=args.likelihood))
 
@@ -67,6 +90,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     check_estimator_config(config)
     check_problem_config(problem)
     check_workers(args.workers)
+    ray = ray_config(args)
     results = ResultsFile(args.out, check_results_out(args.out, force=args.force, resume=args.resume))
     frames = bop.list_frames(args.dataset, split=args.split)
     if args.scene is not None:
@@ -80,11 +104,17 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         print(f"resuming: {len(frames) - len(todo)} of {len(frames)} frame(s) already in {args.out}", file=sys.stderr)
     if not todo:
         return 0
+    failures = []
     rows = estimate_frames(
         args.dataset, todo, config, problem, args.workers,
         split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop, on_frame=results.add,
+        ray=ray, on_failure=failures.append,
     )
-    print(f"wrote {len(rows)} result rows for {len(todo)} frame(s) to {args.out}", file=sys.stderr)
+    print(f"wrote {len(rows)} result rows for {len(todo) - len(failures)} frame(s) to {args.out}", file=sys.stderr)
+    if failures:
+        print(f"workbench: error: {len(failures)} of {len(todo)} frame(s) failed (each named above); the others are "
+              f"in {args.out}. Fix them and run again with --resume to estimate only those.", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -199,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace --out even if it is not a results CSV of ours")
     p.add_argument("--resume", action="store_true", help="keep the frames already in --out and estimate the rest")
     _add_estimator_args(p)
+    _add_engine_args(p, "frames one after another")
+    p.add_argument("--max-retries", type=int, default=3,
+                   help="--engine ray: times a frame is started again after its worker died (default 3)")
     p.set_defaults(func=_cmd_estimate)
 
     p = sub.add_parser("serve", help="the browser workbench")
