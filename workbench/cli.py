@@ -184,6 +184,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.speed:
         from workbench.speed import run_speed_benchmark
 
+        if args.engine != "local":
+            raise InputError("--engine", "--speed measures this machine's evaluation speed: it runs locally only")
         if args.dataset is not None and not args.dataset.is_dir():
             raise InputError(args.dataset, "no such dataset folder")
         run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats,
@@ -191,6 +193,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     from workbench.tables import run_benchmark
 
+    ray = ray_config(args)
     if args.dataset is None:
         raise InputError(None, "name a dataset made by `workbench make-scenes`, or pass --speed")
     _check_bench_out(args.out)
@@ -198,7 +201,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
                   categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop,
-                  proposals=args.proposals)
+                  proposals=args.proposals, ray=ray)
     return 0
 
 
@@ -282,6 +285,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--per-category", type=int, default=None, help="only the first N scenes of each category")
     p.add_argument("--no-early-stop", action="store_true", help="run every iteration even after convergence")
     p.add_argument("--workers", type=int, default=2)
+    _add_engine_args(p, "frames one after another (not with --speed)")
+    p.add_argument("--max-retries", type=int, default=3,
+                   help="--engine ray: times a frame is started again after its worker died (default 3)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("bench-out"))
     p.set_defaults(func=_cmd_bench)
