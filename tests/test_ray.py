@@ -139,9 +139,14 @@ def test_missing_ray_says_how_to_install_it(dataset, tmp_path, monkeypatch, caps
     assert not out.exists()
 
 
-def test_ray_address_needs_the_ray_engine(dataset, tmp_path, capsys):
-    assert main(["estimate", str(dataset), "--out", str(tmp_path / "r.csv"), "--ray-address", "auto"]) == 2
-    assert "--ray-address" in capsys.readouterr().err
+def test_ray_address_needs_the_ray_engine_and_an_answering_head(dataset, tmp_path, capsys):
+    out = str(tmp_path / "r.csv")
+    assert main(["estimate", str(dataset), "--out", out, "--ray-address", "auto"]) == 2
+    assert "--ray-address: joins a Ray cluster: use it with --engine ray" in capsys.readouterr().err
+    # Ray alone would retry an unreachable head node for many minutes; the check answers at once.
+    t0 = time.perf_counter()
+    assert main(["estimate", str(dataset), "--out", out, "--engine", "ray", "--ray-address", "127.0.0.1:1"]) == 2
+    assert "nothing answers at 127.0.0.1:1" in capsys.readouterr().err and time.perf_counter() - t0 < 30
 
 
 def test_ray_evaluator_equals_the_local_pool(cluster, dataset):
@@ -184,3 +189,32 @@ def test_bench_on_ray_reports_what_the_local_engine_reports(cluster, dataset, tm
     for method in ("icp", "pipf"):
         lines = [(tmp_path / d / f"results_{method}.csv").read_text().splitlines() for d in ("local", "ray")]
         assert _without_time(lines[0]) == _without_time(lines[1])
+
+
+def test_serve_evaluates_on_ray_actors_and_survives_a_dead_one(cluster):
+    import socket
+
+    from workbench.app import protocol as p
+    from workbench.app.server import serve
+    from workbench.estimators import EstimatorConfig
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    handle = serve(demo=True, block=False, port=port, workers=2, config=EstimatorConfig(particles=16, iterations=50),
+                   ray=RayConfig(address=cluster))
+    app = handle.app
+    try:
+        assert app.wait_for(lambda s: s.view is not None and len(s.worker_pids) == 2, 180), app.state.failures
+        actors = list(app.state.worker_pids)
+        # The evaluation runs in the cluster's actor processes: Ray titles them ray::_EvaluatorActor.
+        assert all(Path(f"/proc/{pid}/cmdline").read_bytes().startswith(b"ray::_EvaluatorActor") for pid in actors)
+        app.send(p.Step())
+        assert app.wait_for(lambda s: s.iteration == 0, 120), app.state.failures
+        os.kill(actors[0], signal.SIGKILL)
+        app.send(p.Step())
+        assert app.wait_for(lambda s: s.iteration == 1, 120), app.state.failures
+        assert app.state.restarts == 1 and actors[0] not in app.state.worker_pids
+        assert not app.state.failures
+    finally:
+        handle.stop()

@@ -63,13 +63,14 @@ def _add_engine_args(p: argparse.ArgumentParser, what: str) -> None:
 def ray_config(args: argparse.Namespace):
     """``--engine``/``--ray-address``/``--max-retries`` -> a distributed.RayConfig, or None for the local engine;
     InputError, before any work, when Ray is asked for and not installed."""
-    from workbench.distributed import RayConfig, require_ray
+    from workbench.distributed import RayConfig, check_reachable, require_ray
 
     if args.engine == "local":
         if args.ray_address is not None:
             raise InputError("--ray-address", "joins a Ray cluster: use it with --engine ray")
         return None
     require_ray()
+    check_reachable(args.ray_address)
     retries = getattr(args, "max_retries", RayConfig.max_retries)
     check_count(retries, "--max-retries", low=0)
     return RayConfig(address=args.ray_address, max_retries=retries)
@@ -125,6 +126,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     dataset = DEMO_DATASET if args.demo or args.dataset is None else args.dataset
     check_count(args.port, "--port", low=1, high=65535)
+    ray = ray_config(args)
     run = {k: v for k, v in (("method", args.method), ("particles", args.particles),
                              ("iterations", args.iterations)) if v is not None}
     if args.session is not None:
@@ -142,7 +144,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     config.validate()  # before any server starts
     check_estimator_config(config)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
-          session=args.session, sessions_dir=args.sessions_dir, config=config)
+          session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
     return 0
 
 
@@ -252,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("pipf", "mcpf"), default=None, help="estimator of the initial run (pipf)")
     p.add_argument("--particles", type=int, default=None, help="particles of the initial run (128)")
     p.add_argument("--iterations", type=int, default=None, help="iteration budget Run stops at (60)")
+    _add_engine_args(p, "particle batches on 2 worker processes")
     p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("make-scenes", help="generate a BOP dataset of scene categories")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import sys
 from dataclasses import dataclass
 from typing import Callable, TypeVar
@@ -63,6 +64,21 @@ def require_ray():
     return ray
 
 
+def check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
+    """InputError when ``address`` is HOST:PORT and nothing answers there within ``timeout_s``: Ray itself keeps
+    retrying an unreachable head node for many minutes without a word."""
+    if address is None or address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise InputError("--ray-address", f"expected auto or HOST:PORT (e.g. 10.0.0.5:6379), got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise InputError("--ray-address", f"nothing answers at {address} ({err}): is `ray start --head` running "
+                                          "there, and is the port open to this machine?") from None
+
+
 def connect(config: RayConfig):
     """Connect this process to Ray as ``config`` says (a no-op when it already is) -> the ``ray`` module. A cluster
     that cannot be reached is an InputError naming the address."""
@@ -70,6 +86,7 @@ def connect(config: RayConfig):
     if ray.is_initialized():
         return ray
     config.validate()
+    check_reachable(config.address)
     try:
         ray.init(
             address=config.address,
