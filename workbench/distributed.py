@@ -99,7 +99,9 @@ def connect(config: RayConfig):
         )
     except ConnectionError as err:
         raise InputError("--ray-address", f"no Ray cluster reachable at {config.address!r} ({err}); start one with "
-                                          "`ray start --head`, or leave out --ray-address to start Ray here") from None
+                                          "`ray start --head`, or leave out --ray-address to start Ray here. A "
+                                          "cluster with token authentication (Ray's default since 2.59) also needs "
+                                          "RAY_AUTH_MODE=token and its head's ~/.ray/auth_token here") from None
     return ray
 
 
