@@ -86,11 +86,11 @@ def _frame_task_pids() -> list[int]:
     return pids
 
 
-def test_a_worker_killed_mid_run_is_survived_with_every_frame_written(cluster, dataset, local_lines, tmp_path):
-    out = tmp_path / "ray.csv"
+def _run_killing_one_frame_task(cluster, dataset, out, *extra) -> int:
+    """Estimate on Ray while SIGKILLing the first worker seen running a frame task -> the exit code."""
     killed: list[int] = []
     codes: list[int] = []
-    run = threading.Thread(target=lambda: codes.append(_estimate_on_ray(cluster, dataset, out)))
+    run = threading.Thread(target=lambda: codes.append(_estimate_on_ray(cluster, dataset, out, *extra)))
     run.start()
     while run.is_alive() and not killed:
         pids = _frame_task_pids()
@@ -100,9 +100,23 @@ def test_a_worker_killed_mid_run_is_survived_with_every_frame_written(cluster, d
         time.sleep(0.02)
     run.join(timeout=300)
     assert killed, "no frame task was seen running: the test killed nothing"
-    assert codes == [0]
+    return codes[0]
+
+
+def test_a_worker_killed_mid_run_is_survived_with_every_frame_written(cluster, dataset, local_lines, tmp_path,
+                                                                     capsys):
+    out = tmp_path / "ray.csv"
+    assert _run_killing_one_frame_task(cluster, dataset, out) == 0
     # The killed frame ran again from scratch, on another worker, to the same result.
     assert _without_time(out.read_text().splitlines()) == _without_time(local_lines)
+
+    # Without retries the same kill loses that frame, which is reported; the others are written all the same.
+    out = tmp_path / "no-retries.csv"
+    assert _run_killing_one_frame_task(cluster, dataset, out, "--max-retries", "0") == 1
+    err = capsys.readouterr().err
+    assert "its worker died 1 time(s)" in err and "1 of 3 frame(s) failed" in err
+    lines = out.read_text().splitlines()
+    assert len(lines) == 1 + 2 * (len(FRAMES) - 1) and set(_without_time(lines)) < set(_without_time(local_lines))
 
 
 def test_resume_skips_finished_frames(cluster, dataset, local_lines, tmp_path, capsys):
