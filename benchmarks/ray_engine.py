@@ -7,9 +7,10 @@ wall time, Ray's start-up cost, and the scaling from 1 to 2 CPUs.
 Each engine estimates the same frames with the same settings (early stop off, so every frame costs its full
 budget) and, as the tests check, writes the same poses. Measured:
 - local: frames one after another, each on a pool of 2 worker processes started for it (what `estimate` does);
-- Ray, 2 CPUs and 1 CPU: ``ray.init``, then the frames twice: cold (Ray starts its worker processes, each
-  importing pybullet, pyrender and open3d once) and warm (the same workers reused). Start-up cost: ``ray.init``
-  plus cold minus warm. Overhead: wall time x CPUs against the frame tasks' time (summed, from their own clocks).
+- Ray, 2 CPUs and 1 CPU: ``ray.init`` (a Ray instance of that many CPUs on this machine), then the frames twice:
+  cold (Ray starts its worker processes, each importing pybullet, pyrender and open3d once) and warm (the same
+  workers reused). Start-up cost: ``ray.init`` plus cold minus warm. Overhead: wall time x CPUs against the frame
+  tasks' time (summed, from their own clocks).
 """
 
 from __future__ import annotations
@@ -23,9 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import ray
-
-from workbench.distributed import RayConfig
+from workbench.distributed import RayConfig, connect, disconnect
 from workbench.estimators import EstimatorConfig
 from workbench.problem import ProblemConfig
 from workbench.runner import estimate_frames
@@ -51,18 +50,18 @@ def frame_seconds(rows) -> list[float]:
 def run_on_ray(dataset: Path, frames, config: EstimatorConfig, cpus: int) -> dict:
     """Start a Ray instance of ``cpus`` CPUs, run the frames twice on it (cold: Ray starts its worker processes;
     warm: it reuses them), stop it -> seconds and overheads."""
-    init_s, _ = timed(lambda: ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False))
+    init_s, _ = timed(lambda: connect(RayConfig(num_cpus=cpus)))
     out = {"cpus": cpus, "init_s": init_s}
     try:
         for run in ("cold", "warm"):
             wall_s, rows = timed(lambda: estimate_frames(dataset, frames, config, ProblemConfig(), 2,
-                                                         early_stop=False, ray=RayConfig()))
+                                                         early_stop=False, ray=RayConfig(num_cpus=cpus)))
             tasks = frame_seconds(rows)
             out[run] = {"wall_s": wall_s, "task_s_sum": sum(tasks), "task_s_median": statistics.median(tasks),
                         # Wall time x CPUs against the frames' own time: scheduling, transfers, idle CPUs.
                         "overhead_vs_tasks": wall_s * cpus / sum(tasks) - 1}
     finally:
-        ray.shutdown()
+        disconnect()
     # What a run pays once: starting Ray, and its worker processes' start (imports) during the first frames.
     out["startup_s"] = init_s + out["cold"]["wall_s"] - out["warm"]["wall_s"]
     return out

@@ -50,7 +50,7 @@ class RayConfig:
 
     def validate(self) -> None:
         if self.num_cpus is not None and self.num_cpus < 1:
-            raise InputError("--ray-cpus", f"must be at least 1, got {self.num_cpus}")
+            raise InputError("num_cpus", f"must be at least 1, got {self.num_cpus}")
         if self.max_retries < 0:
             raise InputError("--max-retries", f"must be 0 or more, got {self.max_retries}")
 

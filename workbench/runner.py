@@ -2,9 +2,9 @@
 
 Frames run one after another here (``--engine local``) or as Ray tasks over a cluster (``--engine ray``). Results
 are written frame by frame as frames finish (``ResultsFile``, always sorted by frame whatever order they finished
-in), so a crash or Ctrl-C loses at most the frames in progress, and ``--resume`` skips the frames already written. ``check_results_out`` decides, before any work, whether the
-output path may be written: never inside a dataset's scene or models folder, never over a file that is not a
-results CSV of ours unless forced.
+in), so a crash or Ctrl-C loses at most the frames in progress, and ``--resume`` skips the frames already
+written. ``check_results_out`` decides, before any work, whether the output path may be written: never inside a
+dataset's scene or models folder, never over a file that is not a results CSV of ours unless forced.
 """
 
 from __future__ import annotations

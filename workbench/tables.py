@@ -296,7 +296,8 @@ def render_report(report: dict) -> str:
     parts = [
         f"# workbench bench: {report['dataset']}",
         "",
-        f"{report['machine']}; engine {report.get('engine', 'local')}; {report['workers']} workers; mode: {'quick' if report['quick'] else 'full'}; "
+        f"{report['machine']}; engine {report.get('engine', 'local')}; {report['workers']} workers; "
+        f"mode: {'quick' if report['quick'] else 'full'}; "
         f"early stop: {'on' if report['early_stop'] else 'off'}; "
         f"budgets (particles x max iterations, state) by object count: "
         + ", ".join(f"{k} objects {b['particles']} x {b['iterations']} {b['state']}"
