@@ -20,9 +20,9 @@ from tqdm import tqdm
 from workbench import bop
 from workbench.bop import ResultRow
 from workbench.checks import check_workers
+from workbench.distributed import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
-from workbench.distributed import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.pipeline import load_bop_problem, result_rows
 from workbench.problem import Problem, ProblemConfig
