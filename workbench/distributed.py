@@ -149,8 +149,8 @@ def run_frame_tasks(
     on_failure: Callable[[FrameFailure], None],
     desc: str = "frames",
 ) -> None:
-    """Run ``task(scene_id, im_id, *args)`` for every frame as a Ray task of one CPU, at most ``frames`` of them at
-    once as the cluster's CPUs allow; hand each result to ``on_result`` (in the driver, in the order the tasks
+    """Run ``task(scene_id, im_id, *args)`` for every frame as a Ray task of one CPU, as many at once as the
+    cluster has CPUs; hand each result to ``on_result`` (in the driver, in the order the tasks
     finish) and each frame that failed to ``on_failure``, and go on with the others. One progress bar on stderr
     counts finished frames. ``task`` must be a module-level function (workers import it by name); ``args`` are
     put into Ray's object store once, not once per frame."""
