@@ -38,16 +38,22 @@ def estimate_frame(
     split: str | None = None,
     object_ids: list[int] | None = None,
     early_stop: bool = True,
-    callback: Callable | None = None,
+    show_progress: bool = False,
 ) -> list[ResultRow]:
     """Estimate one frame with the evaluator ``evaluator_for(problem)`` (closed afterwards) -> its BOP result rows,
-    ``time`` the frame's wall seconds. ``callback(report)`` after every iteration."""
+    ``time`` the frame's wall seconds. ``show_progress``: a progress bar of its iterations on stderr, opened once
+    the frame has loaded (a bad frame fails before any bar)."""
     t0 = time.perf_counter()
     frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
     evaluator = evaluator_for(problem)
     try:
         estimator = Estimator(problem, config, evaluator)
-        best = estimator.run(stop_on_convergence=early_stop, callback=callback)
+        with tqdm(total=config.iterations + 1, desc=f"scene {scene_id} frame {im_id}", file=sys.stderr,
+                  leave=False, disable=not show_progress) as bar:
+            def progress(report):
+                bar.update(1)
+                bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
+            best = estimator.run(stop_on_convergence=early_stop, callback=progress)
     finally:
         evaluator.close()
     scores = object_confidence(problem, estimator.projected, estimator.weights(), best)
@@ -104,14 +110,9 @@ def estimate_frames(
                                                 for f in failures))
         return rows
     for scene_id, im_id in frames:
-        with tqdm(total=config.iterations + 1, desc=f"scene {scene_id} frame {im_id}", file=sys.stderr,
-                  leave=False) as bar:
-            def progress(report):
-                bar.update(1)
-                bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
-            done(estimate_frame(dataset, scene_id, im_id, config, problem_config,
-                                lambda problem: make_evaluator(problem, workers), split, object_ids, early_stop,
-                                progress))
+        done(estimate_frame(dataset, scene_id, im_id, config, problem_config,
+                            lambda problem: make_evaluator(problem, workers), split, object_ids, early_stop,
+                            show_progress=True))
     return rows
 
 
