@@ -52,6 +52,30 @@ def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
     )
 
 
+def _add_engine_args(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--engine", choices=("local", "ray"), default="local",
+                   help=f"local: {what} here; ray: on a Ray cluster (needs the extra: pip install 'workbench[ray]')")
+    p.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
+                   help="join this Ray cluster (auto: the one `ray start` started on this machine); default: start "
+                        "Ray on this machine for the run")
+
+
+def ray_config(args: argparse.Namespace):
+    """``--engine``/``--ray-address``/``--max-retries`` -> a distributed.RayConfig, or None for the local engine;
+    InputError, before any work, when Ray is asked for and not installed."""
+    from workbench.distributed import RayConfig, check_reachable, require_ray
+
+    if args.engine == "local":
+        if args.ray_address is not None:
+            raise InputError("--ray-address", "joins a Ray cluster: use it with --engine ray")
+        return None
+    require_ray()
+    check_reachable(args.ray_address)
+    retries = getattr(args, "max_retries", RayConfig.max_retries)
+    check_count(retries, "--max-retries", low=0)
+    return RayConfig(address=args.ray_address, max_retries=retries)
+
+
 def problem_config(args: argparse.Namespace) -> ProblemConfig:
     return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=LikelihoodConfig(model=args.likelihood))
 
@@ -67,6 +91,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     check_estimator_config(config)
     check_problem_config(problem)
     check_workers(args.workers)
+    ray = ray_config(args)
     results = ResultsFile(args.out, check_results_out(args.out, force=args.force, resume=args.resume))
     frames = bop.list_frames(args.dataset, split=args.split)
     if args.scene is not None:
@@ -80,11 +105,17 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         print(f"resuming: {len(frames) - len(todo)} of {len(frames)} frame(s) already in {args.out}", file=sys.stderr)
     if not todo:
         return 0
+    failures = []
     rows = estimate_frames(
         args.dataset, todo, config, problem, args.workers,
         split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop, on_frame=results.add,
+        ray=ray, on_failure=failures.append,
     )
-    print(f"wrote {len(rows)} result rows for {len(todo)} frame(s) to {args.out}", file=sys.stderr)
+    print(f"wrote {len(rows)} result rows for {len(todo) - len(failures)} frame(s) to {args.out}", file=sys.stderr)
+    if failures:
+        print(f"workbench: error: {len(failures)} of {len(todo)} frame(s) failed (each named above); the others are "
+              f"in {args.out}. Fix them and run again with --resume to estimate only those.", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -95,6 +126,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     dataset = DEMO_DATASET if args.demo or args.dataset is None else args.dataset
     check_count(args.port, "--port", low=1, high=65535)
+    ray = ray_config(args)
     run = {k: v for k, v in (("method", args.method), ("particles", args.particles),
                              ("iterations", args.iterations)) if v is not None}
     if args.session is not None:
@@ -112,7 +144,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     config.validate()  # before any server starts
     check_estimator_config(config)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
-          session=args.session, sessions_dir=args.sessions_dir, config=config)
+          session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
     return 0
 
 
@@ -154,6 +186,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.speed:
         from workbench.speed import run_speed_benchmark
 
+        if args.engine != "local":
+            raise InputError("--engine", "--speed measures this machine's evaluation speed: it runs locally only")
         if args.dataset is not None and not args.dataset.is_dir():
             raise InputError(args.dataset, "no such dataset folder")
         run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats,
@@ -161,6 +195,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     from workbench.tables import run_benchmark
 
+    ray = ray_config(args)
     if args.dataset is None:
         raise InputError(None, "name a dataset made by `workbench make-scenes`, or pass --speed")
     _check_bench_out(args.out)
@@ -168,7 +203,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
                   categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop,
-                  proposals=args.proposals)
+                  proposals=args.proposals, ray=ray)
     return 0
 
 
@@ -199,6 +234,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace --out even if it is not a results CSV of ours")
     p.add_argument("--resume", action="store_true", help="keep the frames already in --out and estimate the rest")
     _add_estimator_args(p)
+    _add_engine_args(p, "frames one after another")
+    p.add_argument("--max-retries", type=int, default=3,
+                   help="--engine ray: times a frame is started again after its worker died (default 3)")
     p.set_defaults(func=_cmd_estimate)
 
     p = sub.add_parser("serve", help="the browser workbench")
@@ -216,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("pipf", "mcpf"), default=None, help="estimator of the initial run (pipf)")
     p.add_argument("--particles", type=int, default=None, help="particles of the initial run (128)")
     p.add_argument("--iterations", type=int, default=None, help="iteration budget Run stops at (60)")
+    _add_engine_args(p, "particle batches on 2 worker processes")
     p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("make-scenes", help="generate a BOP dataset of scene categories")
@@ -249,6 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--per-category", type=int, default=None, help="only the first N scenes of each category")
     p.add_argument("--no-early-stop", action="store_true", help="run every iteration even after convergence")
     p.add_argument("--workers", type=int, default=2)
+    _add_engine_args(p, "frames one after another (not with --speed)")
+    p.add_argument("--max-retries", type=int, default=3,
+                   help="--engine ray: times a frame is started again after its worker died (default 3)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("bench-out"))
     p.set_defaults(func=_cmd_bench)

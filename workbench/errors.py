@@ -15,3 +15,7 @@ class InputError(ValueError):
         self.path = None if path is None else str(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
+
+    def __reduce__(self):
+        # Rebuilt from (path, problem), not from the joined message: Ray hands a frame task's error back pickled.
+        return type(self), (self.path, self.problem)

@@ -1,6 +1,6 @@
 """Particle evaluation behind one small interface: a batch of hypotheses in, projected poses and log-likelihoods
-out. The estimators see only ``Evaluator``; where the work runs (this process, a pool of local workers, or later a
-cluster engine such as Ray) is the evaluator's business.
+out. The estimators see only ``Evaluator``; where the work runs (this process, a pool of local workers, or Ray actors
+on a cluster: ``workbench.distributed.RayEvaluator``) is the evaluator's business.
 
 Each evaluation is independent of every other (physics rebuilds its world per particle), so splitting a batch
 across workers never changes a result.
@@ -164,6 +164,28 @@ class PoolEvaluator:
             conn.close()
 
 
-def make_evaluator(problem: Problem, workers: int) -> Evaluator:
-    """A local evaluator for ``workers`` <= 1, else a process pool."""
+class ChunkedEvaluator(LocalEvaluator):
+    """Evaluates in this process, a batch split into ``chunks`` contiguous parts evaluated one after another: the
+    same parts as a ``PoolEvaluator`` of ``chunks`` workers, each rendered from the framebuffer's first tile as a
+    worker renders it, so results are bit-identical to that pool's on one CPU. Frames run as Ray tasks use it, so
+    that a frame's result does not depend on the engine."""
+
+    def __init__(self, problem: Problem, chunks: int):
+        if chunks < 1:
+            raise ValueError(f"chunks must be >= 1, got {chunks}")
+        super().__init__(problem)
+        self.chunks = chunks
+
+    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+        parts = np.array_split(check_rigid(hypotheses, "hypotheses"), self.chunks)
+        return Evaluation.concatenate([LocalEvaluator.evaluate(self, p) for p in parts if len(p)])
+
+
+def make_evaluator(problem: Problem, workers: int, ray=None) -> Evaluator:
+    """A local evaluator for ``workers`` <= 1, else a process pool; with ``ray`` (a ``distributed.RayConfig``),
+    ``workers`` Ray actors. Results are the same for the same ``workers`` whichever it is."""
+    if ray is not None:
+        from workbench.distributed import RayEvaluator  # Ray is an optional extra
+
+        return RayEvaluator(problem, workers, ray)
     return LocalEvaluator(problem) if workers <= 1 else PoolEvaluator(problem, workers)

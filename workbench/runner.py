@@ -1,9 +1,10 @@
 """Running an estimator over dataset frames, with a progress bar on stderr, and where its results may go.
 
-Results are written frame by frame (``ResultsFile``), so a crash or Ctrl-C loses at most the frame in progress,
-and ``--resume`` skips the frames already written. ``check_results_out`` decides, before any work, whether the
-output path may be written: never inside a dataset's scene or models folder, never over a file that is not a
-results CSV of ours unless forced.
+Frames run one after another here (``--engine local``) or as Ray tasks over a cluster (``--engine ray``). Results
+are written frame by frame as frames finish (``ResultsFile``, always sorted by frame whatever order they finished
+in), so a crash or Ctrl-C loses at most the frames in progress, and ``--resume`` skips the frames already
+written. ``check_results_out`` decides, before any work, whether the output path may be written: never inside a
+dataset's scene or models folder, never over a file that is not a results CSV of ours unless forced.
 """
 
 from __future__ import annotations
@@ -19,11 +20,55 @@ from tqdm import tqdm
 from workbench import bop
 from workbench.bop import ResultRow
 from workbench.checks import check_workers
+from workbench.distributed import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
-from workbench.evaluation import make_evaluator
+from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.pipeline import load_bop_problem, result_rows
-from workbench.problem import ProblemConfig
+from workbench.problem import Problem, ProblemConfig
+
+
+def estimate_frame(
+    dataset: Path,
+    scene_id: int,
+    im_id: int,
+    config: EstimatorConfig,
+    problem_config: ProblemConfig,
+    evaluator_for: Callable[[Problem], Evaluator],
+    split: str | None = None,
+    object_ids: list[int] | None = None,
+    early_stop: bool = True,
+    show_progress: bool = False,
+) -> list[ResultRow]:
+    """Estimate one frame with the evaluator ``evaluator_for(problem)`` (closed afterwards) -> its BOP result rows,
+    ``time`` the frame's wall seconds. ``show_progress``: a progress bar of its iterations on stderr, opened once
+    the frame has loaded (a bad frame fails before any bar)."""
+    t0 = time.perf_counter()
+    frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
+    evaluator = evaluator_for(problem)
+    try:
+        estimator = Estimator(problem, config, evaluator)
+        with tqdm(total=config.iterations + 1, desc=f"scene {scene_id} frame {im_id}", file=sys.stderr,
+                  leave=False, disable=not show_progress) as bar:
+            def progress(report):
+                bar.update(1)
+                bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
+            best = estimator.run(stop_on_convergence=early_stop, callback=progress)
+    finally:
+        evaluator.close()
+    scores = object_confidence(problem, estimator.projected, estimator.weights(), best)
+    return result_rows(frame, problem, best, scores, time.perf_counter() - t0)
+
+
+def estimate_frame_task(scene_id: int, im_id: int, dataset: Path, config: EstimatorConfig,
+                        problem_config: ProblemConfig, workers: int, split: str | None,
+                        object_ids: list[int] | None, early_stop: bool) -> list[ResultRow]:
+    """One frame as a Ray task, on one CPU: its batches split as ``workers`` local processes would split them
+    (``ChunkedEvaluator``), so that its rows equal those of `--engine local` with the same ``workers``."""
+    # One llvmpipe thread, as in a local pool's workers: the other tasks keep the other cores busy.
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+    return estimate_frame(dataset, scene_id, im_id, config, problem_config,
+                          lambda problem: ChunkedEvaluator(problem, workers), split, object_ids, early_stop)
 
 
 def estimate_frames(
@@ -36,32 +81,38 @@ def estimate_frames(
     object_ids: list[int] | None = None,
     early_stop: bool = True,
     on_frame: Callable[[list[ResultRow]], None] | None = None,
+    ray: RayConfig | None = None,
+    on_failure: Callable[[FrameFailure], None] | None = None,
 ) -> list[ResultRow]:
-    """Estimate every (scene_id, im_id) frame -> BOP result rows. One worker pool per frame (the problem, hence
-    the renderer's camera and the physics table, differs per frame). ``on_frame(rows)`` gets each frame's rows as
-    soon as it is done (to write them)."""
+    """Estimate every (scene_id, im_id) frame -> BOP result rows, in the order the frames finished.
+    ``on_frame(rows)`` gets each frame's rows as soon as it is done (to write them).
+
+    Locally (``ray`` None) frames run one after another, each on a worker pool of its own (the problem, hence the
+    renderer's camera and the physics table, differs per frame), and the first bad frame raises. With ``ray`` (a
+    RayConfig) every frame is a Ray task (``estimate_frame_task``); a frame that fails goes to ``on_failure`` (if
+    None: raised as InputError once the others are done) and the others go on."""
     config.validate()  # before any file is read or worker started
     check_workers(workers)
     rows: list[ResultRow] = []
-    for scene_id, im_id in frames:
-        t0 = time.perf_counter()
-        frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
-        evaluator = make_evaluator(problem, workers)
-        try:
-            estimator = Estimator(problem, config, evaluator)
-            with tqdm(total=config.iterations + 1, desc=f"scene {scene_id} frame {im_id}", file=sys.stderr,
-                      leave=False) as bar:
-                def progress(report):
-                    bar.update(1)
-                    bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
-                best = estimator.run(stop_on_convergence=early_stop, callback=progress)
-        finally:
-            evaluator.close()
-        scores = object_confidence(problem, estimator.projected, estimator.weights(), best)
-        frame_rows = result_rows(frame, problem, best, scores, time.perf_counter() - t0)
+
+    def done(frame_rows: list[ResultRow]) -> None:
         if on_frame is not None:
             on_frame(frame_rows)
-        rows += frame_rows
+        rows.extend(frame_rows)
+
+    if ray is not None:
+        failures: list[FrameFailure] = []
+        run_frame_tasks(estimate_frame_task, frames,
+                        (Path(dataset).resolve(), config, problem_config, workers, split, object_ids, early_stop),
+                        ray, lambda _frame, frame_rows: done(frame_rows), on_failure or failures.append)
+        if failures:
+            raise InputError(dataset, "; ".join(f"scene {f.frame[0]} frame {f.frame[1]}: {f.problem}"
+                                                for f in failures))
+        return rows
+    for scene_id, im_id in frames:
+        done(estimate_frame(dataset, scene_id, im_id, config, problem_config,
+                            lambda problem: make_evaluator(problem, workers), split, object_ids, early_stop,
+                            show_progress=True))
     return rows
 
 

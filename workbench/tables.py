@@ -16,6 +16,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -23,9 +24,10 @@ from tqdm import tqdm
 from workbench import bop
 from workbench.baseline import estimate_icp_fits
 from workbench.bop import ResultRow
+from workbench.distributed import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
-from workbench.evaluation import Evaluator, make_evaluator
+from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.metrics import (
     add_s, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors,
@@ -294,7 +296,8 @@ def render_report(report: dict) -> str:
     parts = [
         f"# workbench bench: {report['dataset']}",
         "",
-        f"{report['machine']}; {report['workers']} workers; mode: {'quick' if report['quick'] else 'full'}; "
+        f"{report['machine']}; engine {report.get('engine', 'local')}; {report['workers']} workers; "
+        f"mode: {'quick' if report['quick'] else 'full'}; "
         f"early stop: {'on' if report['early_stop'] else 'off'}; "
         f"budgets (particles x max iterations, state) by object count: "
         + ", ".join(f"{k} objects {b['particles']} x {b['iterations']} {b['state']}"
@@ -347,6 +350,9 @@ def render_report(report: dict) -> str:
         f"Shared overhead (loading frames, finding the table, starting worker pools): "
         f"{report['overhead_seconds']:.0f} s. Whole run: {report['wall_seconds']:.0f} s.",
         "",
+        *([f"**Failed frames** (left out of the tables): "
+           + "; ".join(f"scene {s} frame {i}: {problem}" for s, i, problem in report["failed_frames"]), ""]
+          if report.get("failed_frames") else []),
         "## Per object",
         "",
         _md(["scene", "category", "method", "obj", "size", "visib", "position cm", "height cm", "rotation deg",
@@ -469,12 +475,98 @@ def build_report(settings: dict, objects: list[ObjectResult], runs: list[RunResu
     }
 
 
+@dataclass(frozen=True)
+class BenchSettings:
+    """What every frame of a benchmark run shares: the methods, the budget overrides (None: ``budget_for``'s
+    defaults), the filters' search, and ``workers``, the split of each batch (local worker processes, or its parts
+    evaluated in turn in a Ray task: the results are the same)."""
+
+    quick: bool = False
+    methods: tuple[str, ...] = METHODS
+    particles: int | None = None
+    iterations: int | None = None
+    state: str = "auto"
+    early_stop: bool = True
+    proposals: str = "default"
+    workers: int = 2
+
+
+@dataclass
+class FrameBench:
+    """One frame's share of a benchmark: its per-object and per-run results, its result rows per method, the budget
+    it ran under and the seconds spent outside the methods (loading, the table, starting evaluators)."""
+
+    n_objects: int
+    objects: list[ObjectResult]
+    runs: list[RunResult]
+    rows: dict[str, list[ResultRow]]
+    budget: Budget
+    overhead: float
+
+
+def bench_frame(dataset: Path, scene_id: int, im_id: int, category: str, settings: BenchSettings,
+                evaluator_for: Callable[[Problem], Evaluator], on_run: Callable[[str], None] | None = None,
+                progress: Callable | None = None) -> FrameBench:
+    """ICP and the filters on one frame, scored. ``on_run(description)`` after each method's run,
+    ``progress(report)`` after each filter iteration (both for a progress bar)."""
+    t0 = time.perf_counter()
+    frame, problem = load_bop_problem(dataset, scene_id, im_id)
+    models = problem.models
+    visib = visib_fractions(frame)
+    points = [model_points(m.mesh) for m in models]
+    budget = budget_for(len(models), settings.quick, settings.particles, settings.iterations, settings.state)
+    out = FrameBench(len(models), [], [], {m: [] for m in settings.methods}, budget, time.perf_counter() - t0)
+
+    def record(method, T_cam, scores, run):
+        out.objects.extend(score_scene(frame, models, points, T_cam, visib, category, method))
+        out.runs.append(run)
+        out.rows[method] += [ResultRow(scene_id, im_id, m.obj_id, float(s), T, run.seconds)
+                             for m, s, T in zip(models, scores, T_cam)]
+        if on_run is not None:
+            on_run(f"scene {scene_id} {category} {METHOD_NAMES[method]}")
+
+    if "icp" in settings.methods:
+        T_cam, fitness, seconds = run_icp(frame, models)
+        record("icp", T_cam, fitness,
+               RunResult(scene_id, category, "icp", len(models), seconds, 0, 0, "-", 0, None, True, 0))
+    filters = [m for m in settings.methods if m != "icp"]
+    if not filters:
+        return out
+    t0 = time.perf_counter()
+    evaluator = evaluator_for(problem)
+    out.overhead += time.perf_counter() - t0
+    try:
+        truth = truth_loglik(frame, problem, evaluator)
+        for method in filters:
+            config = EstimatorConfig(method=method, particles=budget.particles, iterations=budget.iterations,
+                                     state=budget.state, seed=0, proposals=settings.proposals)
+            T_cam, scores, measured = run_filter(problem, config, evaluator, settings.early_stop, progress)
+            record(method, T_cam, scores,
+                   RunResult(scene_id, category, method, len(models), particles=budget.particles,
+                             max_iterations=budget.iterations, state=budget.state, truth_loglik=truth,
+                             **measured))
+    finally:
+        evaluator.close()
+    return out
+
+
+def bench_frame_task(scene_id: int, im_id: int, dataset: Path, categories: dict[int, str],
+                     settings: BenchSettings) -> FrameBench:
+    """One frame of the benchmark as a Ray task, on one CPU, with the same results as ``--engine local``."""
+    os.environ.setdefault("LP_NUM_THREADS", "1")  # one llvmpipe thread: the other tasks keep the other cores busy
+    return bench_frame(dataset, scene_id, im_id, categories[scene_id], settings,
+                       lambda problem: ChunkedEvaluator(problem, settings.workers))
+
+
 def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[str, ...] | list[str] = METHODS,
                   particles: int | None = None, iterations: int | None = None, workers: int = 2,
                   state: str = "auto", categories: list[str] | None = None,
-                  per_category: int | None = None, early_stop: bool = True, proposals: str = "default") -> dict:
+                  per_category: int | None = None, early_stop: bool = True, proposals: str = "default",
+                  ray: RayConfig | None = None) -> dict:
     """Run the methods on the dataset's frames, write OUT/report.md, OUT/report.json and OUT/results_<method>.csv,
-    print the report -> report.json's content. ``proposals``: the filters' search ("default" or "paper")."""
+    print the report -> report.json's content. ``proposals``: the filters' search ("default" or "paper").
+    ``ray`` (a RayConfig): frames as Ray tasks (``bench_frame_task``); a frame that fails is reported, left out
+    of the tables and listed in the report's ``failed_frames``, and the others go on."""
     dataset, out = Path(dataset), Path(out)
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -485,70 +577,46 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
     frames = select_frames(bop.list_frames(dataset), cats, categories, per_category)
     if not frames:
         raise InputError(dataset, "no frame of the wanted categories")
-    filters = [m for m in methods if m != "icp"]
+    settings = BenchSettings(quick=quick, methods=tuple(methods), particles=particles, iterations=iterations,
+                             state=state, early_stop=early_stop, proposals=proposals, workers=workers)
     t_start = time.perf_counter()
-    objects: list[ObjectResult] = []
-    runs: list[RunResult] = []
-    rows: dict[str, list[ResultRow]] = {m: [] for m in methods}
-    budgets: dict[int, Budget] = {}
-    overhead = 0.0
-    bar = tqdm(total=len(frames) * len(methods), file=sys.stderr, desc="bench", unit="run")
+    results: dict[tuple[int, int], FrameBench] = {}
+    failures: list[FrameFailure] = []
+    if ray is not None:
+        run_frame_tasks(bench_frame_task, frames, (dataset.resolve(), cats, settings), ray, results.__setitem__,
+                        failures.append, desc="bench")
+    else:
+        bar = tqdm(total=len(frames) * len(methods), file=sys.stderr, desc="bench", unit="run")
 
-    def progress(report):
-        bar.set_postfix(it=report.iteration, best=f"{report.best_loglik:.0f}")
-
-    for scene_id, im_id in frames:
-        t0 = time.perf_counter()
-        frame, problem = load_bop_problem(dataset, scene_id, im_id)
-        models, category = problem.models, cats[scene_id]
-        visib = visib_fractions(frame)
-        points = [model_points(m.mesh) for m in models]
-        budget = budgets.setdefault(len(models), budget_for(len(models), quick, particles, iterations, state))
-        overhead += time.perf_counter() - t0
-
-        def record(method, T_cam, scores, run):
-            objects.extend(score_scene(frame, models, points, T_cam, visib, category, method))
-            runs.append(run)
-            rows[method] += [ResultRow(scene_id, im_id, m.obj_id, float(s), T, run.seconds)
-                             for m, s, T in zip(models, scores, T_cam)]
+        def on_run(description):
+            bar.set_description(description)
             bar.update(1)
 
-        if "icp" in methods:
-            bar.set_description(f"scene {scene_id} {category} ICP")
-            T_cam, fitness, seconds = run_icp(frame, models)
-            record("icp", T_cam, fitness,
-                   RunResult(scene_id, category, "icp", len(models), seconds, 0, 0, "-", 0, None, True, 0))
-        if not filters:
-            continue
-        t0 = time.perf_counter()
-        evaluator = make_evaluator(problem, workers)
-        overhead += time.perf_counter() - t0
-        try:
-            truth = truth_loglik(frame, problem, evaluator)
-            for method in filters:
-                bar.set_description(f"scene {scene_id} {category} {METHOD_NAMES[method]}")
-                config = EstimatorConfig(method=method, particles=budget.particles, iterations=budget.iterations,
-                                         state=budget.state, seed=0, proposals=proposals)
-                T_cam, scores, measured = run_filter(problem, config, evaluator, early_stop, progress)
-                record(method, T_cam, scores,
-                       RunResult(scene_id, category, method, len(models), particles=budget.particles,
-                                 max_iterations=budget.iterations, state=budget.state, truth_loglik=truth,
-                                 **measured))
-        finally:
-            evaluator.close()
-    bar.close()
+        def progress(report):
+            bar.set_postfix(it=report.iteration, best=f"{report.best_loglik:.0f}")
 
-    settings = {
+        for scene_id, im_id in frames:
+            results[scene_id, im_id] = bench_frame(dataset, scene_id, im_id, cats[scene_id], settings,
+                                                   lambda problem: make_evaluator(problem, workers), on_run, progress)
+        bar.close()
+
+    # In frame order whichever engine ran them and in whatever order they finished: the same report either way.
+    done = [results[f] for f in frames if f in results]
+    objects = [o for r in done for o in r.objects]
+    runs = [run for r in done for run in r.runs]
+    budgets = {r.n_objects: r.budget for r in done}
+    settings_out = {
         "dataset": str(dataset), "quick": quick, "early_stop": early_stop, "machine": machine(),
-        "workers": workers, "methods": list(methods), "proposals": proposals,
-        "budgets": {str(k): asdict(b) for k, b in sorted(budgets.items())},
-        "frames": [list(f) for f in frames], "overhead_seconds": overhead,
+        "workers": workers, "engine": "local" if ray is None else "ray", "methods": list(methods),
+        "proposals": proposals, "budgets": {str(k): asdict(b) for k, b in sorted(budgets.items())},
+        "frames": [list(f) for f in frames], "overhead_seconds": sum(r.overhead for r in done),
         "wall_seconds": time.perf_counter() - t_start,
+        "failed_frames": [[*f.frame, f.problem] for f in failures],
     }
-    report = build_report(settings, objects, runs)
+    report = build_report(settings_out, objects, runs)
     out.mkdir(parents=True, exist_ok=True)
-    for method, method_rows in rows.items():
-        bop.write_results_csv(out / f"results_{method}.csv", method_rows)
+    for method in methods:
+        bop.write_results_csv(out / f"results_{method}.csv", [row for r in done for row in r.rows[method]])
     (out / "report.json").write_text(json.dumps(report, indent=1) + "\n")
     markdown = render_report(report)
     (out / "report.md").write_text(markdown)

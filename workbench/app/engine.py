@@ -127,9 +127,10 @@ def expected_distinct(weights: np.ndarray, n: int) -> float:
 
 
 class Engine:
-    def __init__(self, results: "Outbox", workers: int):
+    def __init__(self, results: "Outbox", workers: int, ray=None):
         self.results = results
         self.workers = workers
+        self.ray = ray  # a distributed.RayConfig: evaluate on Ray actors; None: here or on local processes
         self.problem = None
         self.frame = None
         self.estimator = None
@@ -243,7 +244,7 @@ class Engine:
     def make_evaluator(self, crash: BaseException | None = None):
         from workbench.evaluation import make_evaluator
 
-        evaluator = make_evaluator(self.problem, self.workers)
+        evaluator = make_evaluator(self.problem, self.workers, self.ray)
         # The pids serve the status line and the crash tests; a LocalEvaluator has none.
         pids = getattr(evaluator, "pids", [])
         reason = "" if crash is None else f"{type(crash).__name__}: {crash}"
@@ -602,6 +603,8 @@ class Engine:
                                                        f"objects labelled, {self.workers_used()} evaluation"))
 
     def workers_used(self) -> str:
+        if self.ray is not None:
+            return f"{self.workers} Ray actors"
         return "in-process" if self.workers <= 1 else f"{self.workers} workers"
 
     def load_session(self, cmd: p.LoadSession) -> None:
@@ -668,13 +671,14 @@ class Outbox:
         self.conn.send(msg)
 
 
-def engine_main(commands: "mp.Queue", results, workers: int) -> None:
-    """Entry point of the spawned process. ``results``: the writing end of a one-way pipe."""
+def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
+    """Entry point of the spawned process. ``results``: the writing end of a one-way pipe; ``ray``: a
+    distributed.RayConfig to evaluate on Ray actors."""
     # Ctrl-C in a terminal reaches the whole process group; the server shuts this process down in order instead.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="engine: %(message)s")
     outbox = Outbox(results)
-    engine = Engine(outbox, workers)
+    engine = Engine(outbox, workers, ray)
     parent = mp.parent_process()
     try:
         outbox.put(p.Ready(os.getpid()))
@@ -725,8 +729,9 @@ class EngineClient:
     RESTART_WINDOW_S = 60.0
 
     def __init__(self, workers: int, on_message: Callable[[object], None],
-                 on_restart: Callable[[int | None, bool], None]):
+                 on_restart: Callable[[int | None, bool], None], ray=None):
         self.workers = workers
+        self.ray = ray
         self.on_message = on_message
         self.on_restart = on_restart
         self._ctx = mp.get_context("spawn")
@@ -749,7 +754,7 @@ class EngineClient:
         # Not a daemon: it starts the worker pool, and daemonic processes may not have children. It exits on its
         # own when this process dies (it polls its parent).
         self.process = self._ctx.Process(
-            target=engine_main, args=(self.commands, writer, self.workers), name="workbench-engine"
+            target=engine_main, args=(self.commands, writer, self.workers, self.ray), name="workbench-engine"
         )
         self.process.start()
         writer.close()  # from now on only the engine holds the writing end

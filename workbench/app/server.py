@@ -65,7 +65,7 @@ class RunView:
 class App:
     def __init__(self, server: viser.ViserServer, source: p.Source | None, workers: int,
                  config: EstimatorConfig = DEFAULT_CONFIG, likelihood: str = "robust",
-                 sessions_dir: Path = SESSIONS_DIR, session: Path | None = None):
+                 sessions_dir: Path = SESSIONS_DIR, session: Path | None = None, ray=None):
         self.server = server
         self.lock = threading.RLock()
         self.quiet = Quiet()  # set while the server itself writes controls: their callbacks must not echo
@@ -86,7 +86,7 @@ class App:
                                    on_heatmap_mode=self.label_heatmap_mode_changed)
         self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.lock, self.quiet)
         self._wire()
-        self.engine = EngineClient(workers, self.on_message, self.on_engine_died)
+        self.engine = EngineClient(workers, self.on_message, self.on_engine_died, ray=ray)
         if session is not None:
             # As the Sessions tab's Load: the engine asks first if the dataset changed; a bad file is a message.
             self.panel.title.content = f"**workbench** · loading session {session} …"
@@ -543,14 +543,16 @@ def serve(
     likelihood: str = "robust",
     session: Path | None = None,
     sessions_dir: Path | None = None,
+    ray=None,
 ) -> AppHandle:
     """Start the workbench on ``host:port`` (localhost unless told otherwise) with ``dataset``'s frame, or the demo
     (``demo``, or no dataset), or continuing the saved ``session`` (a session JSON file). Sessions are saved to and
     listed from ``sessions_dir`` (default: the session's folder, else ./sessions). ``block``: serve until Ctrl-C
-    and then stop; else return the handle at once.
+    and then stop; else return the handle at once. ``ray`` (a distributed.RayConfig): evaluate each batch on
+    ``workers`` Ray actors instead of local processes, with the same results.
 
     A session continues bit for bit only with the worker count it was saved with (``workers``; the command line
-    uses 2): the tile a hypothesis is rendered in changes the last bits of its depth."""
+    uses 2), on either engine: the tile a hypothesis is rendered in changes the last bits of its depth."""
     # The CLI names the bundled demo folder, which a checkout may not hold yet: the engine writes it on demand.
     demo = demo or dataset is None or Path(dataset).resolve() == DEMO_DIR
     source = p.Source(demo=True) if demo else p.Source(Path(dataset), scene_id, im_id)
@@ -562,7 +564,7 @@ def serve(
         server.stop()
         raise InputError("--port", port_in_use_message(host, port))
     app = App(server, None if session is not None else source, workers, config, likelihood, sessions_dir,
-              None if session is None else Path(session))
+              None if session is None else Path(session), ray=ray)
     handle = AppHandle(server, app, f"http://{host}:{server.get_port()}")
     if not block:
         return handle

@@ -1,0 +1,234 @@
+"""Ray as the engine (`--engine ray`, the optional extra ``workbench[ray]``): whole frames as Ray tasks
+(``run_frame_tasks``, for `estimate` and `bench`), and one frame's particle batches over Ray actors
+(``RayEvaluator``, for `serve`).
+
+Results do not depend on the engine: a frame task evaluates its batches with a ``ChunkedEvaluator`` (the batch split
+as ``--workers`` local processes would split it, evaluated in turn on the task's one CPU), and ``RayEvaluator``
+splits a batch over its actors as ``PoolEvaluator`` splits it over processes; the estimator's seed is the
+config's, the same for every frame whatever ran it and in whatever order. So a run with `--engine ray` writes the
+same poses and scores as one with `--engine local` and the same ``--workers`` (only the time column differs).
+
+Ray is imported only here and only when asked for, so that everything else works without it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import sys
+from dataclasses import dataclass
+from typing import Callable, TypeVar
+
+import numpy as np
+from tqdm import tqdm
+
+from workbench.checks import check_rigid
+from workbench.errors import InputError
+from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed
+from workbench.problem import Problem
+
+INSTALL_HINT = "pip install 'workbench[ray]' (in a checkout: .venv/bin/pip install -e '.[ray]')"
+
+Frame = tuple[int, int]  # (scene_id, im_id)
+Result = TypeVar("Result")
+
+
+@dataclass(frozen=True)
+class RayConfig:
+    """Where Ray work runs.
+
+    ``address``: None starts a Ray instance on this machine for the run and stops it afterwards; "auto" joins the
+    cluster that `ray start` started on this machine; "HOST:PORT" joins that cluster's head node. ``num_cpus``: the
+    CPUs of a Ray instance started here (None: all; ignored when joining a cluster). ``max_retries``: how many
+    times a frame task is started again after its worker process died (killed, out of memory, node lost) before
+    the frame is reported as failed; an error raised by the frame itself (bad input) is reported at once."""
+
+    address: str | None = None
+    num_cpus: int | None = None
+    max_retries: int = 3
+
+    def validate(self) -> None:
+        if self.num_cpus is not None and self.num_cpus < 1:
+            raise InputError("num_cpus", f"must be at least 1, got {self.num_cpus}")
+        if self.max_retries < 0:
+            raise InputError("--max-retries", f"must be 0 or more, got {self.max_retries}")
+
+
+def require_ray():
+    """The ``ray`` module, or InputError saying how to install it."""
+    try:
+        import ray
+    except ImportError as err:
+        raise InputError("--engine", f"ray is not installed ({err}); install the extra: {INSTALL_HINT}") from None
+    return ray
+
+
+def check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
+    """InputError when ``address`` is HOST:PORT and nothing answers there within ``timeout_s``: Ray itself keeps
+    retrying an unreachable head node for many minutes without a word."""
+    if address is None or address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise InputError("--ray-address", f"expected auto or HOST:PORT (e.g. 10.0.0.5:6379), got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise InputError("--ray-address", f"nothing answers at {address} ({err}): is `ray start --head` running "
+                                          "there, and is the port open to this machine?") from None
+
+
+def connect(config: RayConfig):
+    """Connect this process to Ray as ``config`` says (a no-op when it already is) -> the ``ray`` module. A cluster
+    that cannot be reached is an InputError naming the address."""
+    ray = require_ray()
+    if ray.is_initialized():
+        return ray
+    config.validate()
+    check_reachable(config.address)
+    try:
+        ray.init(
+            address=config.address,
+            num_cpus=config.num_cpus if config.address is None else None,
+            include_dashboard=False,
+            # Task output (pybullet's banner, llvmpipe warnings) would tear the progress bar; errors come back as
+            # exceptions and are reported per frame.
+            log_to_driver=False,
+            logging_level=logging.WARNING,
+        )
+    except ConnectionError as err:
+        raise InputError("--ray-address", f"no Ray cluster reachable at {config.address!r} ({err}); start one with "
+                                          "`ray start --head`, or leave out --ray-address to start Ray here. A "
+                                          "cluster with token authentication (Ray's default since 2.59) also needs "
+                                          "RAY_AUTH_MODE=token and its head's ~/.ray/auth_token here") from None
+    return ray
+
+
+def disconnect() -> None:
+    """Leave Ray (and stop the instance ``connect`` started here, if it did)."""
+    ray = require_ray()
+    if ray.is_initialized():
+        ray.shutdown()
+
+
+def cluster_cpus() -> int:
+    """CPUs of the connected cluster, all nodes together."""
+    return int(require_ray().cluster_resources().get("CPU", 0))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Whole frames as tasks
+
+
+@dataclass(frozen=True)
+class FrameFailure:
+    """A frame that produced no result: ``problem`` says why in words (its input error, or its worker dying more
+    often than ``RayConfig.max_retries`` allows)."""
+
+    frame: Frame
+    problem: str
+
+
+def _frame_problem(ray, err: Exception, retries: int) -> str:
+    if isinstance(err, ray.exceptions.RayTaskError):
+        cause = err.cause if getattr(err, "cause", None) is not None else err
+        return str(cause) if isinstance(cause, InputError) else f"{type(cause).__name__}: {cause}"
+    if isinstance(err, (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError,
+                        ray.exceptions.ObjectLostError, ray.exceptions.OwnerDiedError)):
+        return f"its worker died {retries + 1} time(s) ({type(err).__name__}); gave up"
+    return f"{type(err).__name__}: {err}"
+
+
+def run_frame_tasks(
+    task: Callable[..., Result],
+    frames: list[Frame],
+    args: tuple,
+    config: RayConfig,
+    on_result: Callable[[Frame, Result], None],
+    on_failure: Callable[[FrameFailure], None],
+    desc: str = "frames",
+) -> None:
+    """Run ``task(scene_id, im_id, *args)`` for every frame as a Ray task of one CPU, as many at once as the
+    cluster has CPUs; hand each result to ``on_result`` (in the driver, in the order the tasks
+    finish) and each frame that failed to ``on_failure``, and go on with the others. One progress bar on stderr
+    counts finished frames. ``task`` must be a module-level function (workers import it by name); ``args`` are
+    put into Ray's object store once, not once per frame."""
+    ray = connect(config)
+    # Worker processes are reused across frames (Ray's default), so each imports the heavy libraries once.
+    remote = ray.remote(num_cpus=1, max_retries=config.max_retries, retry_exceptions=False)(task)
+    shared = [ray.put(a) for a in args]
+    pending = {remote.remote(scene_id, im_id, *shared): (scene_id, im_id) for scene_id, im_id in frames}
+    with tqdm(total=len(frames), desc=desc, unit="frame", file=sys.stderr) as bar:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            frame = pending.pop(done[0])
+            try:
+                result = ray.get(done[0])
+            except ray.exceptions.RayError as err:
+                failure = FrameFailure(frame, _frame_problem(ray, err, config.max_retries))
+                bar.write(f"workbench: scene {frame[0]} frame {frame[1]} failed: {failure.problem}", file=sys.stderr)
+                on_failure(failure)
+            else:
+                on_result(frame, result)
+            bar.update(1)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# One frame's particle batches over actors
+
+
+class _EvaluatorActor:
+    """A Ray actor holding one ``LocalEvaluator`` of the problem (its own physics client and renderer)."""
+
+    def __init__(self, problem: Problem):
+        # One llvmpipe thread per actor, as in PoolEvaluator's workers: the actors already fill the cores.
+        os.environ.setdefault("LP_NUM_THREADS", "1")
+        self.evaluator = LocalEvaluator(problem)
+
+    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+        return self.evaluator.evaluate(hypotheses)
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
+class RayEvaluator:
+    """The ``Evaluator`` interface over ``actors`` Ray actors of one CPU each, anywhere on the cluster: a batch is
+    split into ``actors`` contiguous chunks in order, chunk i to actor i, as ``PoolEvaluator`` splits it over its
+    processes, so results equal a pool of the same size bit for bit. The problem is put into the object store once
+    and each actor builds its evaluator from it. An actor that dies raises ``WorkerCrashed``, like a pool worker."""
+
+    def __init__(self, problem: Problem, actors: int = 2, config: RayConfig = RayConfig()):
+        if actors < 1:
+            raise ValueError(f"actors must be >= 1, got {actors}")
+        ray = connect(config)
+        if cluster_cpus() < actors:
+            raise InputError("--workers", f"{actors} evaluation actors need {actors} CPUs; the Ray cluster has "
+                                          f"{cluster_cpus()}")
+        self._ray = ray
+        actor_class = ray.remote(num_cpus=1)(_EvaluatorActor)
+        shared = ray.put(problem)
+        self._actors = [actor_class.remote(shared) for _ in range(actors)]
+        try:
+            self._pids = ray.get([a.pid.remote() for a in self._actors])
+        except ray.exceptions.RayActorError as err:
+            raise WorkerCrashed(f"an evaluation actor died while starting: {err}") from err
+
+    @property
+    def pids(self) -> list[int]:
+        """Process ids of the actors, on whichever node each runs (for the status line)."""
+        return list(self._pids)
+
+    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+        chunks = np.array_split(check_rigid(hypotheses, "hypotheses"), len(self._actors))
+        calls = [actor.evaluate.remote(chunk) for actor, chunk in zip(self._actors, chunks) if len(chunk)]
+        try:
+            return Evaluation.concatenate(self._ray.get(calls))
+        except self._ray.exceptions.RayActorError as err:
+            raise WorkerCrashed(f"an evaluation actor died: {err}") from err
+
+    def close(self) -> None:
+        for actor in self._actors:
+            self._ray.kill(actor)
+        self._actors = []
