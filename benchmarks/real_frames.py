@@ -74,13 +74,15 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=EstimatorConfig.iterations)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--library-every", type=int, default=EstimatorConfig.library_every,
+                    help="iterations between refits of the data-driven candidates")
     ap.add_argument("--frames", nargs="*", help="scene:frame pairs (default: all)")
     ap.add_argument("--out", type=Path, help="JSON lines, one per frame")
     args = ap.parse_args()
     frames = ([tuple(map(int, f.split(":"))) for f in args.frames] if args.frames
               else bop.list_frames(args.dataset))
     config = EstimatorConfig(method=args.method, particles=args.particles, iterations=args.iterations,
-                             proposals=args.proposals, seed=args.seed)
+                             proposals=args.proposals, seed=args.seed, library_every=args.library_every)
     results = []
     for scene_id, im_id in frames:
         r = run_frame(args.dataset, scene_id, im_id, config, args.workers)

@@ -6,7 +6,7 @@ import pytest
 
 from workbench.estimators import Estimator, EstimatorConfig
 from workbench.evaluation import LocalEvaluator
-from workbench.geometry import invert_pose
+from workbench.geometry import invert_pose, rot_z
 from workbench.inference import datadriven, gaussian, refine, resting, stacking
 from workbench.inference.moves import MoveKind, MoveMix
 from workbench.inference.scenepoints import clusters, object_badness
@@ -93,6 +93,29 @@ def test_data_driven_start_finds_each_generated_object(frame_and_problem, contex
         d = np.linalg.norm(library.poses[k][:, :3, 3] - gt[k, :3, 3], axis=1)
         assert d.min() < 0.02, f"object {k}: nearest candidate {d.min() * 100:.1f} cm away"
         assert np.isclose(library.weights[k].sum(), 1.0)
+
+
+def test_batched_icp_fits_each_start_as_alone_and_pulls_back_a_displaced_object(frame_and_problem, context):
+    """The library fits all of an object's starts in one batch: each start must come out as it would alone,
+    and a start 2 cm and 8 degrees off the truth must come back to it."""
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    truth = _truth(frame, problem)
+    rng = np.random.default_rng(0)
+    k = 0
+    starts = np.repeat(truth[k][None], 4, axis=0)
+    starts[:, :2, 3] += rng.normal(scale=0.02, size=(4, 2))
+    starts[:, :3, :3] = rot_z(rng.normal(scale=np.radians(8), size=4)) @ starts[:, :3, :3]
+    crops = [refine.crop(ctx.points.points, T[:3, 3], ctx.reach[k] + 0.02) for T in starts]
+    crops[3] = crops[3][:5]  # too few points: this start must stay where it is
+    batch, inliers = refine.icp_batch(crops, ctx.samples[k], starts)
+    for s in range(4):
+        alone, n = refine.icp(crops[s], ctx.samples[k], starts[s])
+        np.testing.assert_allclose(batch[s], alone, atol=1e-9)
+        assert inliers[s] == n
+    np.testing.assert_allclose(batch[3], starts[3], atol=1e-12)
+    for s in range(3):
+        assert np.linalg.norm(batch[s, :3, 3] - truth[k, :3, 3]) < 0.01
 
 
 def test_resting_pose_proposal_puts_a_box_on_a_face(frame_and_problem, context):

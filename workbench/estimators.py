@@ -42,7 +42,7 @@ class EstimatorConfig:
     proposals: str = "default"
     moves: MoveMix = field(default_factory=MoveMix)
     data_start: float = 0.8  # share of objects in the initial particles drawn from data-driven candidates
-    library_every: int = 5  # iterations between refits of the candidates to what the estimate leaves unexplained
+    library_every: int = 2  # iterations between refits of the candidates to what the estimate leaves unexplained
     sigma_floor: float = 0.25  # coarse to fine: Sigma shrinks per object down to this fraction
     target_ess: float = 0.25  # fraction of N kept by the tempered weights each iteration
     converge_position: float = 0.01  # m; the paper's "best particle moves < 1 cm"
