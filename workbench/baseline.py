@@ -22,6 +22,7 @@ from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, transform_points
 from workbench.metrics import box_symmetries
 from workbench.scene import Frame, ObjectModel
+from workbench.support import ransac_plane
 from workbench.synth import visible_masks
 
 
@@ -60,14 +61,14 @@ def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
 
 
-def plane_mask(points: np.ndarray, valid: np.ndarray, cfg: IcpConfig) -> np.ndarray:
-    """Pixels on the largest plane (open3d RANSAC). points (H, W, 3), valid (H, W) -> (H, W) bool."""
-    idx = np.flatnonzero(valid)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.reshape(-1, 3)[idx]))
-    _, inliers = pcd.segment_plane(cfg.plane_threshold, 3, cfg.plane_iterations)
-    mask = np.zeros(valid.size, dtype=bool)
-    mask[idx[np.asarray(inliers, dtype=np.int64)]] = True
-    return mask.reshape(valid.shape)
+def plane_mask(points: np.ndarray, valid: np.ndarray, cfg: IcpConfig, rng: np.random.Generator) -> np.ndarray:
+    """Pixels on the largest plane (seeded RANSAC, so the baseline repeats). points (H, W, 3), valid (H, W) ->
+    (H, W) bool."""
+    p = points[valid]
+    n, d = ransac_plane(p, cfg.plane_threshold, cfg.plane_iterations, rng)
+    mask = np.zeros(valid.shape, dtype=bool)
+    mask[valid] = np.abs(p @ n + d) < cfg.plane_threshold
+    return mask
 
 
 def principal_axes(points: np.ndarray) -> np.ndarray:
@@ -174,10 +175,9 @@ def estimate_icp_fits(
     if T_cam_world is None:
         T_cam_world = frame.camera.T_cam_world
     rng = np.random.default_rng(seed)
-    o3d.utility.random.seed(seed)
     points = backproject(frame.depth, K)
     valid = frame.depth > 0
-    on_plane = plane_mask(points, valid, cfg)
+    on_plane = plane_mask(points, valid, cfg, rng)
     fits = {}
     for obj_id in frame.object_ids:
         seg = masks[obj_id] & valid & ~on_plane

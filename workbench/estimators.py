@@ -302,7 +302,8 @@ class Estimator:
             return (gaussian.propose_joint(self.rng, parents, cfg.sigma, ones, cfg.state).hypotheses, np.zeros(n),
                     np.full(n, int(MoveKind.JOINT), np.int8))
         ctx = self._context()
-        if self.iteration % cfg.library_every == 0:
+        # A session saved without the search state (or by an older version) has no library yet: fit one now.
+        if self._library is None or self.iteration % cfg.library_every == 0:
             self._refit_library()
         # Objects that explain their part of the observation worst are moved most often; every object sometimes.
         choose = object_badness(self.problem, self.best, ctx.samples) + 0.1
@@ -445,6 +446,8 @@ def parse_search(search, K: int, N: int) -> dict:
             weights = [_array(w, (len(p),), np.float64, "library.weights") for w, p in zip(lib["weights"], poses)]
             if len(poses) != K or len(weights) != K:
                 raise ValueError(f"search.library must list {K} objects")
+            if any(len(w) and (np.any(w < 0) or abs(w.sum() - 1.0) > 1e-6) for w in weights):
+                raise ValueError("search.library.weights must be probabilities: >= 0, summing to 1 per object")
             library = datadriven.Library(poses, weights)
         return {
             "kinds": kinds,

@@ -78,7 +78,7 @@ def _ransac_planes(points: np.ndarray, cfg: SupportConfig) -> list[tuple[np.ndar
     for _ in range(cfg.max_planes):
         if len(remaining) < min_inliers:
             break
-        n, d = _ransac_plane(points[remaining], threshold, cfg.ransac_iterations, rng)
+        n, d = ransac_plane(points[remaining], threshold, cfg.ransac_iterations, rng)
         idx = np.flatnonzero(np.abs(points[remaining] @ n + d) < threshold)
         if len(idx) < min_inliers:
             break
@@ -89,13 +89,14 @@ def _ransac_planes(points: np.ndarray, cfg: SupportConfig) -> list[tuple[np.ndar
     return planes
 
 
-def _ransac_plane(points: np.ndarray, threshold: float, iterations: int, rng: np.random.Generator,
-                  chunk: int = 64) -> tuple[np.ndarray, float]:
+def ransac_plane(points: np.ndarray, threshold: float, iterations: int, rng: np.random.Generator,
+                 chunk: int = 64, max_scored: int = 30000) -> tuple[np.ndarray, float]:
     """The plane (unit normal (3,), offset d with n.p + d = 0) through three of the ``points`` (N, 3) with the
-    most points within ``threshold`` (m), of ``iterations`` random triples. Plain numpy with the caller's
-    generator: open3d's multi-threaded RANSAC gave a different table on every run, so no seeded run on a frame
-    without a table pose could be repeated."""
+    most points within ``threshold`` (m), of ``iterations`` random triples; counted on at most ``max_scored``
+    evenly spread points. Plain numpy with the caller's generator: open3d's multi-threaded RANSAC gave a different
+    table on every run, so no seeded run on a frame without a table pose could be repeated."""
     best, best_count = (np.array([0.0, 0.0, 1.0]), 0.0), -1
+    scored = points[np.linspace(0, len(points) - 1, max_scored).astype(int)] if len(points) > max_scored else points
     for start in range(0, iterations, chunk):
         m = min(chunk, iterations - start)
         tri = points[rng.integers(0, len(points), size=(m, 3))]  # (m, 3, 3)
@@ -106,7 +107,7 @@ def _ransac_plane(points: np.ndarray, threshold: float, iterations: int, rng: np
         d = -np.einsum("md,md->m", n, tri[ok, 0])
         if not len(n):
             continue
-        counts = (np.abs(points @ n.T + d) < threshold).sum(axis=0)
+        counts = (np.abs(scored @ n.T + d) < threshold).sum(axis=0)
         i = int(np.argmax(counts))
         if counts[i] > best_count:
             best, best_count = (n[i], float(d[i])), int(counts[i])
