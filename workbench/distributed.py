@@ -23,9 +23,8 @@ from typing import Callable, TypeVar
 import numpy as np
 from tqdm import tqdm
 
-from workbench.checks import check_rigid
 from workbench.errors import InputError
-from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed
+from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed, split_batch
 from workbench.problem import Problem
 
 INSTALL_HINT = "pip install 'workbench[ray]' (in a checkout: .venv/bin/pip install -e '.[ray]')"
@@ -203,9 +202,9 @@ class RayEvaluator:
         if actors < 1:
             raise ValueError(f"actors must be >= 1, got {actors}")
         ray = connect(config)
-        if cluster_cpus() < actors:
-            raise InputError("--workers", f"{actors} evaluation actors need {actors} CPUs; the Ray cluster has "
-                                          f"{cluster_cpus()}")
+        cpus = cluster_cpus()
+        if cpus < actors:
+            raise InputError("--workers", f"{actors} evaluation actors need {actors} CPUs; the Ray cluster has {cpus}")
         self._ray = ray
         actor_class = ray.remote(num_cpus=1)(_EvaluatorActor)
         shared = ray.put(problem)
@@ -221,8 +220,8 @@ class RayEvaluator:
         return list(self._pids)
 
     def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        chunks = np.array_split(check_rigid(hypotheses, "hypotheses"), len(self._actors))
-        calls = [actor.evaluate.remote(chunk) for actor, chunk in zip(self._actors, chunks) if len(chunk)]
+        chunks = split_batch(hypotheses, len(self._actors))
+        calls = [actor.evaluate.remote(chunk) for actor, chunk in zip(self._actors, chunks)]
         try:
             return Evaluation.concatenate(self._ray.get(calls))
         except self._ray.exceptions.RayActorError as err:

@@ -110,6 +110,13 @@ def _worker(problem: Problem, conn) -> None:
         conn.close()
 
 
+def split_batch(hypotheses: np.ndarray, parts: int) -> list[np.ndarray]:
+    """The checked batch (N, K, 4, 4) in up to ``parts`` contiguous non-empty chunks, in order: chunk i goes to
+    worker i. Every evaluator that splits a batch splits it this way, so results do not depend on which one ran.
+    Checked here, not only in the workers: a refused batch must not look like a crashed worker."""
+    return [c for c in np.array_split(check_rigid(hypotheses, "hypotheses"), parts) if len(c)]
+
+
 class WorkerCrashed(RuntimeError):
     """A worker process died mid-evaluation; the pool must be rebuilt."""
 
@@ -138,13 +145,10 @@ class PoolEvaluator:
         return [proc.pid for proc in self._procs]
 
     def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        # Checked here, not only in the workers: a refused batch must not look like a crashed worker.
-        chunks = np.array_split(check_rigid(hypotheses, "hypotheses"), len(self._conns))
         busy = []
-        for conn, chunk in zip(self._conns, chunks):
-            if len(chunk):
-                conn.send(chunk)
-                busy.append(conn)
+        for conn, chunk in zip(self._conns, split_batch(hypotheses, len(self._conns))):
+            conn.send(chunk)
+            busy.append(conn)
         try:
             return Evaluation.concatenate([conn.recv() for conn in busy])
         except (EOFError, ConnectionError, OSError) as err:
@@ -177,8 +181,7 @@ class ChunkedEvaluator(LocalEvaluator):
         self.chunks = chunks
 
     def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        parts = np.array_split(check_rigid(hypotheses, "hypotheses"), self.chunks)
-        return Evaluation.concatenate([LocalEvaluator.evaluate(self, p) for p in parts if len(p)])
+        return Evaluation.concatenate([LocalEvaluator.evaluate(self, p) for p in split_batch(hypotheses, self.chunks)])
 
 
 def make_evaluator(problem: Problem, workers: int, ray=None) -> Evaluator:

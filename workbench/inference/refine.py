@@ -50,7 +50,8 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
     S = len(scenes)
     if S == 0:
         return np.zeros((0, 4, 4)), np.zeros(0, dtype=int)
-    T_obj_world = invert_pose(np.asarray(T_init, dtype=np.float64)).reshape(S, 4, 4).copy()
+    # Scene points are moved into the object frame; the model (its k-d tree) stays put.
+    T_obj_world = invert_pose(np.asarray(T_init, dtype=np.float64)).reshape(S, 4, 4)
     # Evenly thinned: a few hundred points pin a pose down as well as thousands.
     thin = [sc[np.linspace(0, len(sc) - 1, max_points).astype(int)] if len(sc) > max_points else sc
             for sc in scenes]
@@ -59,7 +60,7 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
     alive = sizes >= 10  # fewer points cannot pin a pose: such starts stay where they are
     if not alive.any():
         return invert_pose(T_obj_world), inliers
-    points = np.concatenate([sc for sc in thin if len(sc)]) if sizes.sum() else np.zeros((0, 3))
+    points = np.concatenate(thin)
     owner = np.repeat(np.arange(S), sizes)
     tree = cKDTree(samples.points)
     for dist in stages:
@@ -71,7 +72,6 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
             own = owner[sel]
             R, t = T_obj_world[own, :3, :3], T_obj_world[own, :3, 3]
             p = np.einsum("nij,nj->ni", R, points[sel]) + t
-            # One thread: cKDTree's multi-threaded query was measured to change the results from run to run.
             d, j = tree.query(p, distance_upper_bound=dist)
             ok = np.isfinite(d)
             count = np.bincount(own[ok], minlength=S)
@@ -84,8 +84,8 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
                 break
             delta = _point_to_plane_steps(p[keep], samples.points[j[keep]], samples.normals[j[keep]], own[keep], S)
             T_obj_world[moving] = delta[moving] @ T_obj_world[moving]
-            small = (np.linalg.norm(delta[:, :3, 3], axis=1) < STILL_M) & (rotation_angle(delta[:, :3, :3]) < STILL_RAD)
-            moving &= ~small
+            moving &= ~((np.linalg.norm(delta[:, :3, 3], axis=1) < STILL_M)
+                        & (rotation_angle(delta[:, :3, :3]) < STILL_RAD))
     return invert_pose(T_obj_world), inliers
 
 
