@@ -8,6 +8,7 @@ log-q correction needs the ICP result from the proposed pose too (the reverse mo
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
 from workbench.geometry import euler_to_matrix, invert_pose, make_pose, rotation_angle
@@ -17,6 +18,7 @@ from workbench.inference.scenepoints import ModelSamples
 STAGES = (0.04, 0.02, 0.01)  # m; correspondence distances, coarse to fine
 JITTER_POS = 0.003  # m
 MAX_POINTS = 400
+PROPOSAL_POINTS = 200  # per ICP move: a refinement from near the object needs fewer than a fit
 STILL_M, STILL_RAD = 1e-4, 1e-3  # a step this small (0.1 mm, 0.06 degrees) ends a stage
 JITTER_ANG = np.radians(1.5)
 
@@ -95,43 +97,58 @@ def _point_to_plane_steps(p: np.ndarray, q: np.ndarray, n: np.ndarray, owner: np
     with R = I + [w]x. -> (S, 4, 4); identity for starts without points."""
     A = np.concatenate([np.cross(p, n), n], axis=1)  # (M, 6)
     b = np.einsum("md,md->m", q - p, n)
-    AtA = np.zeros((S, 36))
-    Atb = np.zeros((S, 6))
-    for c in range(36):  # per-start sums of the normal equations' entries
-        AtA[:, c] = np.bincount(owner, weights=A[:, c // 6] * A[:, c % 6], minlength=S)
-    for c in range(6):
-        Atb[:, c] = np.bincount(owner, weights=A[:, c] * b, minlength=S)
+    # Per-start sums of the normal equations' entries, as one sparse (S, M) indicator product.
+    member = csr_matrix((np.ones(len(owner)), (owner, np.arange(len(owner)))), shape=(S, len(owner)))
+    AtA = member @ (A[:, :, None] * A[:, None, :]).reshape(-1, 36)
+    Atb = member @ (A * b[:, None])
     x = np.linalg.solve(AtA.reshape(S, 6, 6) + 1e-9 * np.eye(6), Atb[..., None])[..., 0]
     return make_pose(euler_to_matrix(x[:, :3]), x[:, 3:])
 
 
-def _log_kernel(T: np.ndarray, centre: np.ndarray) -> float:
-    """log of the (unnormalised) jitter density of pose T around ``centre`` (both (4, 4)); the normalisers are
-    the same for the forward and reverse moves and cancel."""
-    d = np.sum((T[:3, 3] - centre[:3, 3]) ** 2)
-    a = float(rotation_angle(T[:3, :3].T @ centre[:3, :3]))
+def _log_kernel(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """log of the (unnormalised) jitter density of poses T around ``centre`` (both (B, 4, 4)) -> (B,); the
+    normalisers are the same for the forward and reverse moves and cancel."""
+    d = np.sum((T[:, :3, 3] - centre[:, :3, 3]) ** 2, axis=1)
+    a = rotation_angle(np.swapaxes(T[:, :3, :3], 1, 2) @ centre[:, :3, :3])
     return -0.5 * d / JITTER_POS**2 - 0.5 * a * a / JITTER_ANG**2
 
 
 def jitter(rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
-    """A small Gaussian perturbation of pose T (4, 4)."""
+    """Small Gaussian perturbations of poses T (B, 4, 4) -> (B, 4, 4)."""
     out = T.copy()
-    out[:3, 3] += rng.normal(scale=JITTER_POS, size=3)
-    out[:3, :3] = euler_to_matrix(rng.normal(scale=JITTER_ANG, size=3)) @ T[:3, :3]
+    out[:, :3, 3] += rng.normal(scale=JITTER_POS, size=(len(T), 3))
+    out[:, :3, :3] = euler_to_matrix(rng.normal(scale=JITTER_ANG, size=(len(T), 3))) @ T[:, :3, :3]
     return out
+
+
+def crops(points: np.ndarray, centres: np.ndarray, radius: float) -> list[np.ndarray]:
+    """For each centre (S, 3), the points (P, 3) within ``radius`` (horizontally), in their original order, as
+    ``crop`` gives them -> S arrays (Q_s, 3)."""
+    tree = cKDTree(points[:, :2])
+    return [points[i] for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
 
 
 def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarray, samples: list[ModelSamples],
                 reach: np.ndarray, weights: np.ndarray) -> Proposal:
     """One object per particle (drawn by ``weights`` (K,)) is fitted by ICP to the observed points ``points``
-    (P, 3) within its horizontal ``reach`` (K,) + 2 cm, then jittered. (B, K, 4, 4) -> Proposal."""
+    (P, 3) within its horizontal ``reach`` (K,) + 2 cm, then jittered. (B, K, 4, 4) -> Proposal.
+
+    All particles that move the same object are fitted as one ``icp_batch``, forward and reverse."""
+    B = len(parents)
+    picks = pick_objects(rng, B, weights)
+    rows = np.arange(B)
+    T0 = parents[rows, picks]
+    fitted = np.empty_like(T0)
+    for k in np.unique(picks):
+        sel = picks == k
+        fitted[sel] = icp_batch(crops(points, T0[sel, :3, 3], reach[k] + 0.02), samples[k], T0[sel],
+                                max_points=PROPOSAL_POINTS)[0]
+    new = jitter(rng, fitted)
+    back = np.empty_like(T0)
+    for k in np.unique(picks):
+        sel = picks == k
+        back[sel] = icp_batch(crops(points, new[sel, :3, 3], reach[k] + 0.02), samples[k], new[sel],
+                              max_points=PROPOSAL_POINTS)[0]
     out = parents.copy()
-    log_q = np.zeros(len(parents))
-    for b, k in enumerate(pick_objects(rng, len(parents), weights)):
-        T0 = parents[b, k]
-        fitted, _ = icp(crop(points, T0[:3, 3], reach[k] + 0.02), samples[k], T0)
-        new = jitter(rng, fitted)
-        back, _ = icp(crop(points, new[:3, 3], reach[k] + 0.02), samples[k], new)
-        out[b, k] = new
-        log_q[b] = _log_kernel(T0, back) - _log_kernel(new, fitted)
-    return Proposal(out, log_q)
+    out[rows, picks] = new
+    return Proposal(out, _log_kernel(T0, back) - _log_kernel(new, fitted))
