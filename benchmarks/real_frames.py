@@ -35,7 +35,6 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
     evaluator = make_evaluator(problem, workers)
     try:
         gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
-        truth = evaluator.evaluate(gt[None])
         estimator = Estimator(problem, config, evaluator)
         best = estimator.run()
         seconds = time.perf_counter() - t0
@@ -43,6 +42,8 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         evaluator.close()
     local = LocalEvaluator(problem)
     try:
+        # The truth is projected with the sink the estimator settled on, as its own hypotheses were.
+        truth = local.evaluate(gt[None], np.array([estimator.sink]))
         raw = float(scene_loglik(problem.observed, problem.background, local.renderer.render(gt[None]),
                                  problem.config.likelihood)[0])
         # Per object: the estimate with only that object put at its true pose, projected and scored. A gain means
@@ -50,7 +51,7 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         swaps = np.repeat(best[None], problem.n_objects + 1, axis=0)
         for k in range(problem.n_objects):
             swaps[k + 1, k] = gt[k]
-        swapped = local.evaluate(swaps).loglik
+        swapped = local.evaluate(swaps, np.full(len(swaps), estimator.sink)).loglik
     finally:
         local.close()
     objects = []
@@ -70,6 +71,7 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         "truth_loglik_as_annotated": round(raw, 1),
         "iterations": estimator.iteration, "evaluations": (estimator.iteration + 1) * config.particles,
         "seconds": round(seconds, 1), "best_kind": estimator.best_kind.label,
+        "sink_mm": round(1e3 * estimator.sink, 1),
     }
 
 

@@ -120,3 +120,45 @@ def test_ground_truth_poses_never_reach_the_estimator(touching_dataset, tmp_path
             evaluator.close()
     assert np.array_equal(runs[0].projected, runs[1].projected)
     assert np.array_equal(runs[0].loglik, runs[1].loglik)
+
+
+def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_problem):
+    """Real frames show objects several millimetres below the plane fitted to the table's depth. Here the
+    observation is drawn with the true objects 8 mm into the table (the table pixels unchanged): the fitted sink
+    must come out near 8 mm, and it must raise the estimate's log-likelihood."""
+    from dataclasses import replace
+
+    from workbench.likelihood import predicted_depth
+
+    frame, problem = frame_and_problem
+    gt = _ground_truth_in_table_frame(frame, problem)
+    local = LocalEvaluator(problem)
+    try:
+        sunk = gt.copy()
+        sunk[:, 2, 3] -= 0.008
+        observed = predicted_depth(local.renderer.render(sunk[None]), problem.background)[0].astype(np.float32)
+    finally:
+        local.close()
+    sunk_problem = replace(problem, observed=observed)
+    evaluator = LocalEvaluator(sunk_problem)
+    try:
+        estimator = Estimator(sunk_problem, EstimatorConfig(particles=4, seed=0), evaluator)
+        resting = evaluator.evaluate(gt[None])
+        estimator._map, estimator._map_loglik = resting.projected[0], float(resting.loglik[0])
+        estimator._fit_sink()
+        assert 0.006 <= estimator.sink <= 0.010
+        assert estimator.best_loglik > float(resting.loglik[0])
+        for k in range(problem.n_objects):  # the estimate rests at the sink, where the objects were drawn
+            assert abs(estimator.best[k, 2, 3] - sunk[k, 2, 3]) < 0.003
+    finally:
+        evaluator.close()
+
+
+def test_the_paper_search_keeps_the_objects_on_the_fitted_plane(frame_and_problem):
+    _, problem = frame_and_problem
+    evaluator = LocalEvaluator(problem)
+    try:
+        estimator = _run(problem, evaluator, 3, proposals="paper")
+    finally:
+        evaluator.close()
+    assert estimator.sink == 0.0

@@ -106,7 +106,7 @@ def test_batched_icp_fits_each_start_as_alone_and_pulls_back_a_displaced_object(
     starts = np.repeat(truth[k][None], 4, axis=0)
     starts[:, :2, 3] += rng.normal(scale=0.02, size=(4, 2))
     starts[:, :3, :3] = rot_z(rng.normal(scale=np.radians(8), size=4)) @ starts[:, :3, :3]
-    crops = [refine.crop(ctx.points.points, T[:3, 3], ctx.reach[k] + 0.02) for T in starts]
+    crops = refine.crops(ctx.points.points, starts[:, :3, 3], ctx.reach[k] + 0.02)
     crops[3] = crops[3][:5]  # too few points: this start must stay where it is
     batch, inliers = refine.icp_batch(crops, ctx.samples[k], starts)
     for s in range(4):
@@ -130,6 +130,21 @@ def test_resting_pose_proposal_puts_a_box_on_a_face(frame_and_problem, context):
             for T in (p.hypotheses[b, k], proj[b, k]):
                 assert np.max(np.abs(T[2, :3])) > 0.99, f"particle {b} object {k} is tilted: {T[2, :3]}"
     assert len(ctx.rest[0].probs) == 6 and np.isclose(ctx.rest[0].probs.sum(), 1.0)
+
+
+def test_a_thin_rod_can_rest_standing_as_well_as_lying():
+    """compute_stable_poses lists a rod lying down once per facet of its hull; every side must stay in reach, the
+    rarely landed standing one included (YCB-Video's large marker stands on its end)."""
+    import trimesh
+
+    rod = trimesh.creation.cylinder(radius=0.01, height=0.12, sections=16)
+    rp = resting.resting_poses(rod)
+    assert len(rp.probs) <= 6 and abs(rp.probs.sum() - 1.0) < 1e-9
+    standing = np.abs(rp.heights - 0.06) < 2e-3
+    lying = np.abs(rp.heights - 0.01) < 2e-3
+    assert standing.any() and lying.any() and (standing | lying).all()
+    assert rp.probs[standing].min() >= resting.MIN_PROB / 2
+    assert rp.probs[lying].sum() > rp.probs[standing].sum()  # lying stays the likelier
 
 
 def test_badness_singles_out_the_misplaced_object(frame_and_problem, context):

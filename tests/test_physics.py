@@ -147,6 +147,23 @@ def test_result_depends_only_on_the_particle_itself(cache_dir):
     assert np.array_equal(rest[0], rest_alone[0]) and rest[1:] == rest_alone[1:]
 
 
+def test_a_sunk_table_rests_objects_that_far_down_and_leaves_no_state():
+    models = [box([0.06, 0.06, 0.06], 1), cylinder(obj_id=2)]
+    scene = poses([0, 0, 0.04, 0, 0, 0], [0.1, 0, 0.07, 0, 0, 0])
+    with PhysicsProjector(models, TABLE) as projector:
+        flat, status, _ = projector.project(scene)
+        sunk, sunk_status, _ = projector.project(scene, sink=0.008)
+        again = projector.project(scene)
+    assert status == sunk_status == STATUS_REST
+    # The box's centre rests half its height above the surface, the cylinder's likewise: 8 mm lower when sunk.
+    assert abs(flat[0, 2, 3] - 0.03) < 1 * MM and abs(flat[1, 2, 3] - 0.05) < 1 * MM
+    assert np.allclose(sunk[:, 2, 3], flat[:, 2, 3] - 0.008, atol=1 * MM)
+    assert np.array_equal(again[0], flat)
+    with PhysicsProjector(models, TABLE) as projector:
+        out, _, _ = projector.project_batch(np.stack([scene, scene]), np.array([0.0, 0.008]))
+    assert np.array_equal(out[0], flat) and np.array_equal(out[1], sunk)
+
+
 def test_batch_matches_single_particles():
     models = [box([0.06, 0.06, 0.06], 1), box([0.04, 0.08, 0.03], 2)]
     batch = np.stack([poses([0, 0, 0.05, 0, 0, 0], [0.03, 0, 0.03, 0, 0, 1]),

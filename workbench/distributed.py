@@ -185,8 +185,8 @@ class _EvaluatorActor:
         os.environ.setdefault("LP_NUM_THREADS", "1")
         self.evaluator = LocalEvaluator(problem)
 
-    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        return self.evaluator.evaluate(hypotheses)
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+        return self.evaluator.evaluate(hypotheses, sink)
 
     def pid(self) -> int:
         return os.getpid()
@@ -219,9 +219,9 @@ class RayEvaluator:
         """Process ids of the actors, on whichever node each runs (for the status line)."""
         return list(self._pids)
 
-    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        chunks = split_batch(hypotheses, len(self._actors))
-        calls = [actor.evaluate.remote(chunk) for actor, chunk in zip(self._actors, chunks)]
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+        chunks = split_batch(hypotheses, len(self._actors), sink)
+        calls = [actor.evaluate.remote(h, s) for actor, (h, s) in zip(self._actors, chunks)]
         try:
             return Evaluation.concatenate(self._ray.get(calls))
         except self._ray.exceptions.RayActorError as err:

@@ -17,6 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from workbench.checks import check_rigid
+from workbench.errors import InputError
 from workbench.likelihood import pixel_loglik, predicted_depth, scene_loglik
 from workbench.physics import STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
@@ -46,8 +47,10 @@ class Evaluation:
 
 
 class Evaluator(Protocol):
-    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        """(B, K, 4, 4) hypotheses in the table frame -> their evaluation."""
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+        """(B, K, 4, 4) hypotheses in the table frame -> their evaluation. ``sink`` (B,) m, default 0: how far
+        below the fitted table plane each hypothesis's objects rest (``PhysicsProjector.project``); the observed
+        table is drawn where it was fitted either way."""
         ...
 
     def close(self) -> None: ...
@@ -63,10 +66,10 @@ class LocalEvaluator:
             problem.render_camera, [m.mesh for m in problem.models], problem.config.render
         )
 
-    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
         hypotheses = check_rigid(hypotheses, "hypotheses")  # physics would turn a reflection into another pose
         t0 = time.perf_counter()
-        projected, status, _ = self.projector.project_batch(hypotheses)
+        projected, status, _ = self.projector.project_batch(hypotheses, check_sink(sink, len(hypotheses)))
         t1 = time.perf_counter()
         ok = (status == STATUS_REST) | (status == STATUS_STEP_CAP)
         loglik = np.full(len(hypotheses), -np.inf)
@@ -99,10 +102,10 @@ def _worker(problem: Problem, conn) -> None:
     evaluator = LocalEvaluator(problem)
     try:
         while True:
-            hypotheses = conn.recv()
-            if hypotheses is None:
+            batch = conn.recv()
+            if batch is None:
                 break
-            conn.send(evaluator.evaluate(hypotheses))
+            conn.send(evaluator.evaluate(*batch))
     except (EOFError, KeyboardInterrupt):
         pass
     finally:
@@ -110,11 +113,24 @@ def _worker(problem: Problem, conn) -> None:
         conn.close()
 
 
-def split_batch(hypotheses: np.ndarray, parts: int) -> list[np.ndarray]:
-    """The checked batch (N, K, 4, 4) in up to ``parts`` contiguous non-empty chunks, in order: chunk i goes to
-    worker i. Every evaluator that splits a batch splits it this way, so results do not depend on which one ran.
-    Checked here, not only in the workers: a refused batch must not look like a crashed worker."""
-    return [c for c in np.array_split(check_rigid(hypotheses, "hypotheses"), parts) if len(c)]
+def check_sink(sink: np.ndarray | None, n: int) -> np.ndarray:
+    """The per-hypothesis sink (n,) m, zeros if None; a clear error for a wrong shape or a non-finite value."""
+    if sink is None:
+        return np.zeros(n)
+    sink = np.asarray(sink, dtype=np.float64)
+    if sink.shape != (n,) or not np.all(np.isfinite(sink)):
+        raise InputError("sink", f"expected {n} finite values in metres, got shape {sink.shape}")
+    return sink
+
+
+def split_batch(hypotheses: np.ndarray, parts: int, sink: np.ndarray | None = None
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The checked batch (N, K, 4, 4) and its sink (N,) in up to ``parts`` contiguous non-empty chunks, in order:
+    chunk i goes to worker i. Every evaluator that splits a batch splits it this way, so results do not depend on
+    which one ran. Checked here, not only in the workers: a refused batch must not look like a crashed worker."""
+    hypotheses = check_rigid(hypotheses, "hypotheses")
+    sink = check_sink(sink, len(hypotheses))
+    return [(h, s) for h, s in zip(np.array_split(hypotheses, parts), np.array_split(sink, parts)) if len(h)]
 
 
 class WorkerCrashed(RuntimeError):
@@ -144,9 +160,9 @@ class PoolEvaluator:
         """Process ids of the workers (for monitoring and crash tests)."""
         return [proc.pid for proc in self._procs]
 
-    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
         busy = []
-        for conn, chunk in zip(self._conns, split_batch(hypotheses, len(self._conns))):
+        for conn, chunk in zip(self._conns, split_batch(hypotheses, len(self._conns), sink)):
             conn.send(chunk)
             busy.append(conn)
         try:
@@ -180,8 +196,9 @@ class ChunkedEvaluator(LocalEvaluator):
         super().__init__(problem)
         self.chunks = chunks
 
-    def evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        return Evaluation.concatenate([LocalEvaluator.evaluate(self, p) for p in split_batch(hypotheses, self.chunks)])
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+        return Evaluation.concatenate([LocalEvaluator.evaluate(self, h, s)
+                                       for h, s in split_batch(hypotheses, self.chunks, sink)])
 
 
 def make_evaluator(problem: Problem, workers: int, ray=None) -> Evaluator:

@@ -219,9 +219,10 @@ class PhysicsProjector:
             physicsClientId=cid)
         half = [(tb.x_max - tb.x_min) / 2, (tb.y_max - tb.y_min) / 2, cfg.table_thickness / 2]
         table_shape = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half, physicsClientId=cid)
-        self._table_body = pybullet.createMultiBody(
-            0.0, table_shape, basePosition=[(tb.x_min + tb.x_max) / 2, (tb.y_min + tb.y_max) / 2, -half[2]],
-            physicsClientId=cid)
+        self._table_centre = [(tb.x_min + tb.x_max) / 2, (tb.y_min + tb.y_max) / 2, -half[2]]
+        self._table_body = pybullet.createMultiBody(0.0, table_shape, basePosition=self._table_centre,
+                                                    physicsClientId=cid)
+        self._sink = 0.0
         # Bullet combines rolling (and spinning) friction as r_a * f_b + r_b * f_a (f: lateral friction), so the
         # table has none of its own: an object's contact with it gets rolling_friction * table_friction.
         pybullet.changeDynamics(self._table_body, -1, lateralFriction=cfg.table_friction, rollingFriction=0.0,
@@ -287,21 +288,27 @@ class PhysicsProjector:
         self.close()
 
     # ------------------------------------------------------------------------------------------ projection
-    def project_batch(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def project_batch(self, T_world_obj: np.ndarray, sink: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Project B hypotheses one after the other. (B, K, 4, 4) -> resting poses (B, K, 4, 4), status (B,)
-        int8, steps simulated (B,) int32. Each result is the same as ``project`` of that hypothesis alone."""
+        int8, steps simulated (B,) int32. ``sink`` (B,) m: see ``project`` (default 0). Each result is the same
+        as ``project`` of that hypothesis alone."""
         T = np.asarray(T_world_obj, dtype=np.float64)
         if T.ndim != 4:
             raise InputError("T_world_obj", f"expected shape (B, {len(self._bodies)}, 4, 4), got {T.shape}")
+        sink = np.zeros(len(T)) if sink is None else np.asarray(sink, dtype=np.float64)
         out = np.empty_like(T)
         status = np.empty(len(T), dtype=np.int8)
         steps = np.empty(len(T), dtype=np.int32)
         for b in range(len(T)):
-            out[b], status[b], steps[b] = self.project(T[b])
+            out[b], status[b], steps[b] = self.project(T[b], float(sink[b]))
         return out, status, steps
 
-    def project(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, int, int]:
+    def project(self, T_world_obj: np.ndarray, sink: float = 0.0) -> tuple[np.ndarray, int, int]:
         """Simulate one hypothesis to rest. (K, 4, 4) -> (resting poses (K, 4, 4), status, steps simulated).
+
+        ``sink`` (m): the surface the objects rest on lies this far below the table frame's z = 0 (the plane fitted
+        to the table's depth); see ``Estimator`` for why it is estimated.
 
         Poses that are not finite or not rotations, or objects more than ``max_distance`` from the table, give
         STATUS_UNSTABLE with the input poses back; so does a simulation that blows up. Never raises for the
@@ -322,8 +329,9 @@ class PhysicsProjector:
         quat = wxyz_to_xyzw(matrix_to_quat_wxyz(R))
         R = self._rotations(quat)  # exactly orthonormal, as Bullet will use them
         pos = T_wb[:, :3, 3].copy()
-        if self._too_far(pos):
+        if self._too_far(pos) or not math.isfinite(sink):
             return T.copy(), STATUS_UNSTABLE, 0
+        self._set_sink(sink)
         self._separate(pos, R, quat)
         self._place(pos, quat)
         status, steps = self._simulate()
@@ -333,6 +341,14 @@ class PhysicsProjector:
             self._build_world()
             return T.copy(), STATUS_UNSTABLE, steps
         return poses @ self._T_body_obj, status, steps
+
+    def _set_sink(self, sink: float) -> None:
+        """Put the table's top at z = -``sink`` (m); a static body moved between particles keeps no state."""
+        if sink != self._sink:
+            x, y, z = self._table_centre
+            pybullet.resetBasePositionAndOrientation(self._table_body, [x, y, z - sink], [0.0, 0.0, 0.0, 1.0],
+                                                     physicsClientId=self._client)
+            self._sink = sink
 
     def _too_far(self, pos: np.ndarray) -> bool:
         """Is any body centre (K, 3) beyond ``max_distance`` around, above or below the table?"""
@@ -355,7 +371,7 @@ class PhysicsProjector:
         for _ in range(cfg.separation_iterations):
             moved = False
             for k, frame in enumerate(self._frames):
-                lowest = float(np.min(frame.support @ R[k, 2])) + pos[k, 2]
+                lowest = float(np.min(frame.support @ R[k, 2])) + pos[k, 2] + self._sink
                 if lowest < -tol:
                     pos[k, 2] -= lowest
                     moved = True

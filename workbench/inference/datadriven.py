@@ -19,9 +19,9 @@ import numpy as np
 
 from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
-from workbench.inference.refine import STAGES, crop, icp_batch
+from workbench.inference.refine import STAGES, crops, icp_batch
 from workbench.inference.resting import RestingPoses
-from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, project_samples
+from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples
 from workbench.problem import Problem
 
 JITTER_POS = 0.005  # m
@@ -81,16 +81,31 @@ def principal_heading(points: np.ndarray) -> float:
     return float(np.arctan2(v[1, -1], v[0, -1]))
 
 
-def fit_score(problem: Problem, T: np.ndarray, samples: ModelSamples) -> float:
-    """Pixels a candidate explains (observed depth on its camera-facing surface) less three for each pixel where
-    the sensor sees through it (a pose that floats in front of the background). Pixels hidden behind something
-    else count for nothing: an object may be occluded, and a pose buried inside another object explains little."""
-    v, u, d = project_samples(problem, T[None], [samples])[0]
-    o = problem.observed[v, u]
-    pixel = v * problem.observed.shape[1] + u
-    on = np.unique(pixel[(o > 0) & (np.abs(o - d) < EXPLAINED)])
-    through = np.unique(pixel[(o > 0) & (o > d + SEEN_THROUGH)])
-    return float(len(on) - 3.0 * len(np.setdiff1d(through, on)))
+def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.ndarray:
+    """Per candidate pose T (S, 4, 4) of one object: pixels it explains (observed depth on its camera-facing
+    surface) less three for each pixel where the sensor sees through it (a pose that floats in front of the
+    background) -> (S,). Pixels hidden behind something else count for nothing: an object may be occluded, and a
+    pose buried inside another object explains little. All candidates at once, as ``project_samples`` projects
+    one."""
+    cam, obs = problem.render_camera, problem.observed
+    h, w = obs.shape
+    S = len(T)
+    Tc = cam.T_cam_world[None] @ T
+    p = np.einsum("sij,mj->smi", Tc[:, :3, :3], samples.points) + Tc[:, None, :3, 3]  # (S, M, 3)
+    n = np.einsum("sij,mj->smi", Tc[:, :3, :3], samples.normals)
+    valid = (np.einsum("smd,smd->sm", n, p) < 0) & (p[..., 2] > 1e-3)  # facing the camera, in front of it
+    z = np.where(valid, p[..., 2], 1.0)
+    u = np.round(p[..., 0] / z * cam.K[0, 0] + cam.K[0, 2]).astype(int)
+    v = np.round(p[..., 1] / z * cam.K[1, 1] + cam.K[1, 2]).astype(int)
+    inside = valid & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    s = np.nonzero(inside)[0]
+    v, u, d = v[inside], u[inside], p[..., 2][inside]
+    o = obs[v, u]
+    key = s * (h * w) + v * w + u  # (candidate, pixel) pairs, counted once each
+    on = np.unique(key[(o > 0) & (np.abs(o - d) < EXPLAINED)])
+    through = np.unique(key[(o > 0) & (o > d + SEEN_THROUGH)])
+    through = through[~np.isin(through, on)]
+    return (np.bincount(on // (h * w), minlength=S) - 3.0 * np.bincount(through // (h * w), minlength=S))
 
 
 def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.ndarray,
@@ -109,16 +124,17 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
         starts, place = _starts(clusters, rest[k], hulls[k], reach[k])
         if not starts:
             continue
-        crops = [crop(all_points, T0[:3, 3], reach[k] + 0.02) for T0 in starts]
-        rough, _ = icp_batch(crops, samples[k], np.stack(starts), iterations=3, max_points=COARSE_POINTS,
-                             stages=STAGES[:1])
-        rough_score = np.array([fit_score(problem, T, samples[k]) for T in rough])
+        starts = np.stack(starts)
+        near = crops(all_points, starts[:, :3, 3], reach[k] + 0.02)
+        rough, _ = icp_batch(near, samples[k], starts, iterations=3, max_points=COARSE_POINTS, stages=STAGES[:1])
+        rough_score = fit_scores(problem, rough, samples[k])
         place = np.asarray(place)
         chosen = np.concatenate([np.nonzero(place == p)[0][np.argsort(-rough_score[place == p], kind="stable")
                                                             [:REFINED_PER_PLACE]] for p in np.unique(place)])
-        fitted, inliers = icp_batch([crops[i] for i in chosen], samples[k], rough[chosen], max_points=FIT_POINTS)
-        scored = [(fit_score(problem, T, samples[k]), T, p) for T, n, p in zip(fitted, inliers, place[chosen])
-                  if n >= 10 and np.all(np.isfinite(T))]
+        fitted, inliers = icp_batch([near[i] for i in chosen], samples[k], rough[chosen], max_points=FIT_POINTS)
+        ok = (inliers >= 10) & np.all(np.isfinite(fitted), axis=(1, 2))
+        scored = [(float(sc), T, p) for sc, T, p in zip(fit_scores(problem, fitted[ok], samples[k]), fitted[ok],
+                                                         place[chosen][ok])]
         # The best of each start place, so that in a cluster of several objects touching, the largest
         # object's surface (where a smaller object also fits well) cannot crowd out the others.
         for p in sorted({p for _, _, p in scored}):

@@ -23,11 +23,6 @@ STILL_M, STILL_RAD = 1e-4, 1e-3  # a step this small (0.1 mm, 0.06 degrees) ends
 JITTER_ANG = np.radians(1.5)
 
 
-def crop(points: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    """The points (P, 3) within ``radius`` (horizontally) of ``centre`` (3,) -> (Q, 3)."""
-    return points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < radius]
-
-
 def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations: int = 8
         ) -> tuple[np.ndarray, int]:
     """Fit the model (samples in its object frame) at ``T_init`` (4, 4, table frame) to the observed points
@@ -122,8 +117,8 @@ def jitter(rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
 
 
 def crops(points: np.ndarray, centres: np.ndarray, radius: float) -> list[np.ndarray]:
-    """For each centre (S, 3), the points (P, 3) within ``radius`` (horizontally), in their original order, as
-    ``crop`` gives them -> S arrays (Q_s, 3)."""
+    """For each centre (S, 3), the points (P, 3) within ``radius`` of it horizontally, in their original order
+    -> S arrays (Q_s, 3)."""
     tree = cKDTree(points[:, :2])
     return [points[i] for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
 
