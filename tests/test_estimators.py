@@ -162,3 +162,23 @@ def test_the_paper_search_keeps_the_objects_on_the_fitted_plane(frame_and_proble
     finally:
         evaluator.close()
     assert estimator.sink == 0.0
+
+
+def test_polish_puts_back_two_objects_that_took_each_others_places(frame_and_problem):
+    frame, problem = frame_and_problem
+    gt = _ground_truth_in_table_frame(frame, problem)
+    swapped = gt.copy()
+    swapped[0, :2, 3], swapped[1, :2, 3] = gt[1, :2, 3], gt[0, :2, 3]
+    evaluator = LocalEvaluator(problem)
+    try:
+        estimator = _run(problem, evaluator, 1)
+        wrong = evaluator.evaluate(swapped[None])
+        estimator._map, estimator._map_loglik = wrong.projected[0], float(wrong.loglik[0])
+        estimator._polish()
+    finally:
+        evaluator.close()
+    assert estimator.best_loglik > float(wrong.loglik[0])
+    for k in range(problem.n_objects):
+        assert position_error(gt[k], estimator.best[k]) < 0.02
+    assert estimator.best_kind.label == "polish"
+    assert np.any(estimator.kinds == 10) and np.all(np.isfinite(estimator.loglik))

@@ -18,7 +18,7 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation import STAGES, Evaluation, Evaluator
 from workbench.geometry import rotation_angle
-from workbench.inference import datadriven, gaussian, refine, resting, stacking
+from workbench.inference import datadriven, gaussian, polish, refine, resting, stacking
 from workbench.inference.proposal import Proposal
 from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix
 from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points, unexplained
@@ -198,6 +198,7 @@ class Estimator:
         self._update_map(ev, kinds)
         if cfg.proposals != "paper" and self.iteration % cfg.library_every == 0:
             self._fit_sink()
+            self._polish()
         self.iteration += 1
         self._beta = temper_to_ess(self.loglik, cfg.target_ess)
         moves = self._move_counts(kinds, accepted)
@@ -281,6 +282,25 @@ class Estimator:
         if ev.loglik[i] > self._map_loglik:
             self.sink = float(SINK_GRID[i])
             self._map, self._map_loglik = ev.projected[i].copy(), float(ev.loglik[i])
+
+    def _polish(self) -> None:
+        """Evaluate the estimate's one- and two-object variants (``polish.variants``); those that beat the
+        estimate replace the worst particles (at most a tenth of them), the best becomes the estimate."""
+        if self._map is None or self._library is None:
+            return
+        scenes = polish.variants(self._map, self._library)
+        if not len(scenes):
+            return
+        ev = self._evaluate(scenes)
+        better = np.nonzero(ev.loglik > self._map_loglik)[0]
+        self._update_map(ev, np.full(len(scenes), int(MoveKind.POLISH), np.int8))
+        better = better[np.argsort(-ev.loglik[better], kind="stable")][: max(1, len(self.loglik) // 10)]
+        worst = np.argsort(self.loglik, kind="stable")[: len(better)]
+        self.hypotheses[worst] = scenes[better]
+        self.projected[worst] = ev.projected[better]
+        self.loglik[worst] = ev.loglik[better]
+        self.status[worst] = ev.status[better]
+        self.kinds[worst] = int(MoveKind.POLISH)
 
     # ---------------------------------------------------------------------------------------------- proposals
     def _context(self):

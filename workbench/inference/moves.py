@@ -30,6 +30,7 @@ class MoveKind(IntEnum):
     DATA = 7  # one object to a data-driven candidate
     ICP = 8  # one object refined by ICP
     RELOCATE = 9  # one object to a random place in the object region, dropped onto whatever is below
+    POLISH = 10  # the estimate with one object on a candidate, or two objects' places exchanged (polish.py)
 
     @property
     def label(self) -> str:

@@ -1,0 +1,46 @@
+"""Polish: systematic one- and two-object changes of the estimate itself.
+
+The particle moves change one object of a *random* particle at a time, so a change that the estimate needs (its
+mustard bottle put on the candidate where the data shows it; two objects that took each other's places exchanged)
+is tried on the estimate only by chance. Every time the candidates are refitted, these variants of the estimate
+are evaluated like any hypothesis (physics, then the likelihood). A variant that beats the estimate becomes the
+estimate and replaces the worst particles, so the particle set searches on from it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workbench.geometry import rotation_angle
+from workbench.inference.datadriven import Library
+
+PER_OBJECT = 4  # the best candidates of each object tried in place of its pose in the estimate
+SAME_M, SAME_RAD = 0.01, np.radians(10.0)  # a candidate this close to the estimate's pose is no change
+LIFT = 0.005  # m; exchanged objects start this far above their old height, and physics sets them down
+
+
+def variants(estimate: np.ndarray, library: Library) -> np.ndarray:
+    """The estimate (K, 4, 4) with one object put on one of its best ``PER_OBJECT`` library candidates, for every
+    object and candidate that differs from its pose in the estimate; then with every pair of objects exchanging
+    their places (x, y), each keeping its own orientation and height. -> (V, K, 4, 4), V <= K * PER_OBJECT
+    + K (K - 1) / 2."""
+    K = len(estimate)
+    out = []
+    for k in range(K):
+        if not library.has(k):
+            continue
+        best = np.argsort(-library.weights[k], kind="stable")[:PER_OBJECT]
+        for T in library.poses[k][best]:
+            if (np.linalg.norm(T[:3, 3] - estimate[k, :3, 3]) < SAME_M
+                    and rotation_angle(T[:3, :3].T @ estimate[k, :3, :3]) < SAME_RAD):
+                continue
+            scene = estimate.copy()
+            scene[k] = T
+            out.append(scene)
+    for i in range(K):
+        for j in range(i + 1, K):
+            scene = estimate.copy()
+            scene[i, :2, 3], scene[j, :2, 3] = estimate[j, :2, 3], estimate[i, :2, 3]
+            scene[[i, j], 2, 3] += LIFT
+            out.append(scene)
+    return np.array(out).reshape(-1, K, 4, 4)
