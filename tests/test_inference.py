@@ -138,13 +138,13 @@ def test_polish_variants_change_one_object_or_exchange_two(frame_and_problem, co
     frame, _ = frame_and_problem
     problem, ctx, library = context
     truth = _truth(frame, problem)
-    scenes = polish.variants(truth, library)
+    scenes = polish.variants(truth, library, ctx.points.points, ctx.samples, ctx.reach)
     K = problem.n_objects
     assert scenes.ndim == 4 and scenes.shape[1:] == (K, 4, 4) and np.all(np.isfinite(scenes))
     assert np.allclose(scenes[:, :, :3, :3] @ np.swapaxes(scenes[:, :, :3, :3], 2, 3), np.eye(3), atol=1e-9)
     changed = np.any(np.abs(scenes - truth[None]) > 1e-12, axis=(2, 3)).sum(axis=1)
     assert np.all((changed == 1) | (changed == 2)) and np.sum(changed == 2) == K * (K - 1) // 2
-    assert np.array_equal(scenes, polish.variants(truth, library))
+    assert np.array_equal(scenes, polish.variants(truth, library, ctx.points.points, ctx.samples, ctx.reach))
 
 
 def test_a_thin_rod_can_rest_standing_as_well_as_lying():

@@ -288,7 +288,8 @@ class Estimator:
         estimate replace the worst particles (at most a tenth of them), the best becomes the estimate."""
         if self._map is None or self._library is None:
             return
-        scenes = polish.variants(self._map, self._library)
+        ctx = self._context()
+        scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach)
         if not len(scenes):
             return
         ev = self._evaluate(scenes)
