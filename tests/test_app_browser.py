@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from workbench.app.engine import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure
 from workbench.app.headless import canvas_png, chromium_path, color_extent, gui_input, image_stats, open_workbench
 
@@ -111,7 +112,7 @@ def test_step_advances_the_iteration_and_moves_the_particles(page, workbench):
     before = np.array(app.particles.batches[0].batched_positions)
     step(page, app)
     after = np.array(app.particles.batches[0].batched_positions)
-    assert before.shape == after.shape == (48, 3)
+    assert before.shape == after.shape == (min(48, DEFAULT_DISPLAY), 3)
     assert not np.allclose(before, after)
     # The chosen particle's panel and heatmap followed.
     assert app.state.chosen is not None and app.state.chosen.iteration == app.state.iteration

@@ -29,7 +29,7 @@ from workbench.app.labelling import Labelling
 from workbench.app.panel import Panel, build_panel
 from workbench.app.quiet import Quiet
 from workbench.app.sessions_panel import Sessions
-from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer
+from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
 from workbench.errors import InputError
 from workbench.estimators import EstimatorConfig
 from workbench.geometry import rotation_angle
@@ -78,6 +78,7 @@ class App:
         self._camera_timer: threading.Timer | None = None
         self.changed = threading.Condition(self.lock)  # notified on every engine message (tests wait on it)
         self.panel: Panel = build_panel(server.gui, config, likelihood)
+        light_cheaply(server)
         self.observation = ObservationLayer(server)
         self.particles = ParticleLayer(server, on_pick=self.pick)
         self.chosen = ChosenLayer(server)
