@@ -3,20 +3,32 @@
     .venv/bin/python benchmarks/browser_cpu.py [--seconds 20] [--particles 128] [--root DIR]
 
 Serves the demo (2 evaluation workers), opens it in headless Chromium (software WebGL, as in the tests) at
-1280x800, waits until the frame is drawn, then samples the CPU time of every Chromium process for ``--seconds``
-with nothing happening, and again while the estimator runs. Printed per Chromium process type (browser, GPU,
-renderer, ...) as percent of one core. ``--root`` imports the workbench from another checkout (e.g. an older
-commit unpacked with ``git archive``) to compare before and after a change with the same script.
+1280x800, waits until the frame is drawn, then samples for ``--seconds`` each: with nothing happening, while the
+estimator runs, and after it was paused. Printed per phase:
+
+- the CPU time of every Chromium process, per process type (browser, GPU, renderer, ...), as percent of one core;
+- measures that do not depend on the machine's load: frames the page drew with WebGL per second, WebGL calls per
+  frame, requestAnimationFrame callbacks per second, running CSS animations, and the server's messages that make
+  the 3D view draw ("scene messages", most frequent types named) per second and the bursts they came in (each
+  burst makes viser's client draw frames for 250 ms); and CPU milliseconds per drawn frame.
+
+``--root`` imports the served workbench from another checkout (e.g. an older commit unpacked with ``git archive``)
+to compare before and after a change with the same script; the browser and the probes always come from this
+checkout's ``workbench/app/headless.py``, loaded by path, so both runs are measured alike.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import socket
 import sys
 import time
+from collections import Counter
 from pathlib import Path
+
+HERE = Path(__file__).resolve().parent.parent
 
 
 def free_port() -> int:
@@ -56,30 +68,59 @@ def cpu_seconds(pids: dict[int, str]) -> dict[str, float]:
     return total
 
 
-def sample(seconds: float) -> dict[str, float]:
-    """Percent of one core per Chromium process type over the next ``seconds``."""
+def load_probes():
+    """This checkout's ``workbench/app/headless.py`` as a module of its own (not ``--root``'s)."""
+    spec = importlib.util.spec_from_file_location("_probes", HERE / "workbench" / "app" / "headless.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def sample(seconds: float, page, sent, probes) -> dict:
+    """Over the next ``seconds``: percent of one core per Chromium process type (``cpu``), the page's frame counts'
+    increase (``frames``, ``draws``, ``callbacks``; ``animations`` running at the end), the scene messages sent
+    (``scene``: type name -> count), the bursts they came in (``redraws``) and the wall time (``seconds``)."""
     pids = chromium_processes()
+    f0 = probes.frame_counts(page)
     a, t0 = cpu_seconds(pids), time.monotonic()
     time.sleep(seconds)
     b, t1 = cpu_seconds(pids), time.monotonic()
-    return {k: 100.0 * (b.get(k, 0.0) - a.get(k, 0.0)) / (t1 - t0) for k in sorted(set(a) | set(b))}
+    f1 = probes.frame_counts(page)
+    return {
+        "cpu": {k: 100.0 * (b.get(k, 0.0) - a.get(k, 0.0)) / (t1 - t0) for k in sorted(set(a) | set(b))},
+        **{k: f1[k] - f0[k] for k in ("frames", "draws", "callbacks")},
+        "animations": f1["animations"],
+        "scene": Counter(sent.scene_since(t0, t1)),
+        "redraws": len(sent.redraws(t0, t1)),
+        "seconds": t1 - t0,
+    }
 
 
-def show(label: str, use: dict[str, float]) -> None:
+def show(label: str, m: dict) -> None:
+    """Print one phase's measures (``m`` from ``sample``)."""
+    use, dt = m["cpu"], m["seconds"]
     parts = " · ".join(f"{k} {v:.0f} %" for k, v in use.items())
     print(f"{label:<8} total {sum(use.values()):.0f} % of a core ({parts})", flush=True)
+    frames = m["frames"]
+    per_frame = f"{10.0 * sum(use.values()) * dt / frames:.0f} ms CPU" if frames else "no frames"
+    top = ", ".join(f"{name} {n / dt:.1f}" for name, n in m["scene"].most_common(4))
+    print(f"         {frames / dt:.1f} frames/s ({m['draws'] / max(frames, 1):.0f} WebGL calls each, {per_frame} "
+          f"each) · {m['callbacks'] / dt:.1f} animation callbacks/s · {m['animations']} CSS animations running",
+          flush=True)
+    print(f"         {sum(m['scene'].values()) / dt:.1f} scene messages/s in {m['redraws'] / dt:.1f} bursts/s"
+          f"{' (' + top + ')' if top else ''}", flush=True)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--particles", type=int, default=128)
-    ap.add_argument("--root", type=Path, default=Path(__file__).resolve().parent.parent)
+    ap.add_argument("--root", type=Path, default=HERE)
     args = ap.parse_args()
+    probes = load_probes()
     sys.path.insert(0, str(args.root.resolve()))
 
     from workbench.app import protocol as p
-    from workbench.app.headless import chromium, dismiss_notifications, open_workbench
     from workbench.app.server import serve
     from workbench.estimators import EstimatorConfig
 
@@ -93,22 +134,22 @@ def main() -> int:
         if not app.wait_for(lambda s: s.view is not None or s.failures, 180) or app.state.view is None:
             print(f"the demo did not load: {app.state.failures}", file=sys.stderr)
             return 1
-        with chromium() as browser:
-            page = open_workbench(browser, handle.url)
-            dismiss_notifications(page, wait_ms=10_000)
+        with probes.chromium() as browser, probes.SentMessages().record() as sent:
+            page = probes.open_workbench(browser, handle.url, init_script=probes.FRAME_PROBE_JS)
+            probes.dismiss_notifications(page, wait_ms=10_000)
             time.sleep(5.0)  # the first frames, fonts, layout
-            show("idle", sample(args.seconds))
+            show("idle", sample(args.seconds, page, sent, probes))
             start = app.state.iteration
             app.send(p.Run(False))
             app.wait_for(lambda s: s.iteration >= start + 2, 120)
-            use = sample(args.seconds)
+            running = sample(args.seconds, page, sent, probes)
             done = app.state.iteration - start
             app.send(p.Pause())
-            show("running", use)
+            show("running", running)
             print(f"         ({done} iterations meanwhile, {args.particles} particles)")
             app.wait_for(lambda s: not s.running, 60)
             time.sleep(3.0)
-            show("idle", sample(args.seconds))
+            show("paused", sample(args.seconds, page, sent, probes))
     finally:
         handle.stop()
     return 0

@@ -9,8 +9,11 @@ import time
 import numpy as np
 import pytest
 
+from workbench.app.engine import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure
-from workbench.app.headless import canvas_png, chromium_path, color_extent, gui_input, image_stats, open_workbench
+from workbench.app.headless import (FRAME_PROBE_JS, SentMessages, canvas_png, chromium_path, color_extent,
+                                    frame_counts, gui_input, image_stats, open_workbench)
+from workbench.app.server import SCENE_INTERVAL_S
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -61,7 +64,7 @@ def browser():
 
 @pytest.fixture(scope="module")
 def page(browser, workbench):
-    p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT)
+    p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT, init_script=FRAME_PROBE_JS)
     yield p
     p.close()
 
@@ -111,7 +114,7 @@ def test_step_advances_the_iteration_and_moves_the_particles(page, workbench):
     before = np.array(app.particles.batches[0].batched_positions)
     step(page, app)
     after = np.array(app.particles.batches[0].batched_positions)
-    assert before.shape == after.shape == (48, 3)
+    assert before.shape == after.shape == (min(48, DEFAULT_DISPLAY), 3)
     assert not np.allclose(before, after)
     # The chosen particle's panel and heatmap followed.
     assert app.state.chosen is not None and app.state.chosen.iteration == app.state.iteration
@@ -153,6 +156,33 @@ def test_run_then_pause_stops_within_one_iteration(page, workbench):
     page.get_by_text(re.compile(rf"Iteration {stopped} of \d+ · paused")).wait_for(timeout=TIMEOUT_MS)
     time.sleep(1.5)
     assert app.state.iteration == stopped  # nothing ran after the pause
+
+
+def test_the_3d_view_is_redrawn_at_most_once_an_interval_while_running_and_not_at_all_when_paused(page, workbench):
+    app = workbench.app
+    start = app.state.iteration
+    with SentMessages().record() as sent:
+        t_run = time.monotonic()
+        page.get_by_role("button", name="Run").click()
+        assert app.wait_for(lambda s: s.iteration >= start + 3, 120), "Run did not iterate"
+        time.sleep(max(0.0, t_run + 4 * SCENE_INTERVAL_S - time.monotonic()))  # long enough for a few redraws
+        t_pause = time.monotonic()  # later, the run's end is drawn at once
+        page.get_by_role("button", name="Pause").click()
+        assert app.wait_for(lambda s: not s.running and s.last_state.reason == "paused", 60)
+        time.sleep(1.0)  # the frames that draw where the run stopped
+        f0, t0 = frame_counts(page), time.monotonic()
+        time.sleep(4.0)
+        f1, t1 = frame_counts(page), time.monotonic()
+        redraws = sent.redraws(t_run, t_pause)
+        idle = sent.scene_since(t0, t1)
+    # Every iteration updates the panel, but the 3D view only every SCENE_INTERVAL_S (a little slack for the event
+    # loop's scheduling).
+    assert len(redraws) >= 2, redraws
+    assert min(np.diff(redraws)) > SCENE_INTERVAL_S - 0.15, np.diff(redraws)
+    # Paused: nothing changes, so nothing is sent, and the page draws only viser's heartbeat frame a second.
+    assert idle == [], idle
+    assert f1["frames"] - f0["frames"] <= (t1 - t0) * 1.0 + 2, (f0, f1)
+    assert f1["animations"] == 0, f1
 
 
 def test_plots_draw_lines_after_reset(page, workbench):

@@ -40,7 +40,9 @@ from workbench.inference.moves import MoveKind
 log = logging.getLogger(__name__)
 
 DEMO_DIR = Path(__file__).resolve().parents[2] / "assets" / "demo"
-DEFAULT_DISPLAY = 64  # particles per snapshot; the rest are the least likely and add haze, and cost software WebGL
+# Particles per snapshot; the rest are the least likely and add haze. Their wireframes were about half of every
+# software-rendered frame's cost at 64.
+DEFAULT_DISPLAY = 32
 CRASH_ERRORS = (EOFError, BrokenPipeError, ConnectionError)
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import io
 import os
 import shutil
+import threading
+import time
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -50,10 +52,14 @@ def chromium() -> Iterator[object]:
             browser.close()
 
 
-def open_workbench(browser, url: str, timeout_ms: float = 60_000, viewport: dict | None = None):
+def open_workbench(browser, url: str, timeout_ms: float = 60_000, viewport: dict | None = None,
+                   init_script: str | None = None):
     """A new page on ``url``, once the panel is up; viser's "software WebGL" notice is closed so that it does not
-    cover the view. A smaller ``viewport`` makes software WebGL cheaper."""
+    cover the view. A smaller ``viewport`` makes software WebGL cheaper; ``init_script`` (e.g. ``FRAME_PROBE_JS``)
+    runs in the page before its own scripts."""
     page = browser.new_page(viewport=viewport or VIEWPORT)
+    if init_script:
+        page.add_init_script(init_script)
     page.goto(url)
     page.get_by_role("button", name="Step").wait_for(timeout=timeout_ms)
     dismiss_notifications(page)
@@ -112,3 +118,98 @@ def color_extent(png: bytes, rgb: tuple[int, int, int], tolerance: int = 40) -> 
     cols = np.nonzero(hit.any(axis=0))[0]
     span = (cols[-1] - cols[0] + 1) / img.shape[1] if cols.size else 0.0
     return int(hit.sum()), float(span)
+
+
+# Counts, in the page, the animation frames in which WebGL drew anything (three.js clears and draws inside
+# requestAnimationFrame callbacks) and every requestAnimationFrame callback (any script animating). Added with
+# ``page.add_init_script`` before the page loads; read with ``frame_counts``.
+FRAME_PROBE_JS = """
+(() => {
+  const s = {frames: 0, draws: 0, callbacks: 0, stamp: 0, counted: -1};
+  window.__workbenchFrames = s;
+  const raf = window.requestAnimationFrame.bind(window);
+  window.requestAnimationFrame = (cb) => raf((t) => { s.callbacks++; s.stamp = t; return cb(t); });
+  const names = ["clear", "drawArrays", "drawElements", "drawArraysInstanced", "drawElementsInstanced",
+                 "drawRangeElements"];
+  for (const C of [window.WebGL2RenderingContext, window.WebGLRenderingContext]) {
+    if (!C) continue;
+    for (const name of names) {
+      const original = C.prototype[name];
+      if (!original) continue;
+      C.prototype[name] = function (...args) {
+        s.draws++;
+        if (s.counted !== s.stamp) { s.frames++; s.counted = s.stamp; }
+        return original.apply(this, args);
+      };
+    }
+  }
+})();
+"""
+
+
+def frame_counts(page) -> dict[str, int]:
+    """Totals since the page loaded (needs ``FRAME_PROBE_JS``): ``frames`` (animation frames with WebGL drawing),
+    ``draws`` (WebGL clear and draw calls), ``callbacks`` (requestAnimationFrame callbacks of any script),
+    ``animations`` (CSS/Web animations running now)."""
+    return page.evaluate(
+        "() => ({...window.__workbenchFrames, "
+        "animations: document.getAnimations().filter(a => a.playState === 'running').length})"
+    )
+
+
+# Server -> browser messages that change only the panel: viser's client applies them without drawing the 3D view
+# (client/src/messageQueue.ts); every other message makes it draw frames for 250 ms.
+GUI_ONLY_MESSAGES = {
+    "GuiUpdateMessage", "GuiRemoveMessage", "GuiModalMessage", "GuiCloseModalMessage", "GuiPanelMessage",
+    "GuiPanelRemoveMessage", "GuiSetPanelCollapsedMessage", "GuiSetPanelHeightMessage",
+    "GuiSetPanelPositionMessage", "GuiSetPanelWidthMessage", "SetGuiPanelLabelMessage", "NotificationShowMessage",
+    "NotificationUpdateMessage", "RemoveNotificationMessage",
+}
+
+
+def is_scene_message(message) -> bool:
+    """Whether a viser message makes the browser draw the 3D view (anything but a panel-only message)."""
+    from viser._messages import _CreateGuiComponentMessage
+
+    return not isinstance(message, _CreateGuiComponentMessage) and type(message).__name__ not in GUI_ONLY_MESSAGES
+
+
+class SentMessages:
+    """Every message viser puts on a websocket while ``record()`` is active (for every connected tab), as
+    (monotonic time s, type name, makes the 3D view draw). Counted as serialised for sending, so after viser dropped
+    the superseded ones."""
+
+    def __init__(self) -> None:
+        self.log: list[tuple[float, str, bool]] = []
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def record(self) -> Iterator["SentMessages"]:
+        from viser.infra._messages import Message
+
+        original = Message.as_serializable_dict
+
+        def counted(message, *args, **kwargs):
+            with self._lock:
+                self.log.append((time.monotonic(), type(message).__name__, is_scene_message(message)))
+            return original(message, *args, **kwargs)
+
+        Message.as_serializable_dict = counted
+        try:
+            yield self
+        finally:
+            Message.as_serializable_dict = original
+
+    def scene_since(self, t0: float, t1: float | None = None) -> list[str]:
+        """Type names of the scene messages sent between monotonic times ``t0`` and ``t1`` (default: now)."""
+        t1 = time.monotonic() if t1 is None else t1
+        with self._lock:
+            return [name for t, name, scene in self.log if scene and t0 <= t < t1]
+
+    def redraws(self, t0: float, t1: float | None = None, gap: float = 0.1) -> list[float]:
+        """Start times (monotonic s) of the bursts of scene messages sent between ``t0`` and ``t1`` (default: now),
+        a burst being messages no more than ``gap`` s apart: one redraw of the 3D view each."""
+        t1 = time.monotonic() if t1 is None else t1
+        with self._lock:
+            times = [t for t, _, scene in self.log if scene and t0 <= t < t1]
+        return [t for i, t in enumerate(times) if i == 0 or t - times[i - 1] > gap]

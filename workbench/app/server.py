@@ -17,6 +17,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import viser
@@ -29,7 +30,7 @@ from workbench.app.labelling import Labelling
 from workbench.app.panel import Panel, build_panel
 from workbench.app.quiet import Quiet
 from workbench.app.sessions_panel import Sessions
-from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer
+from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
 from workbench.errors import InputError
 from workbench.estimators import EstimatorConfig
 from workbench.geometry import rotation_angle
@@ -41,6 +42,64 @@ DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
 SESSIONS_DIR = Path("sessions")
 STATUS_NAMES = {0: "rest", 1: "step cap", 2: "unstable", 3: "off the table"}  # physics.STATUS_*
 CAMERA_REST_S = 0.5  # a tab's camera is remembered (for reloads and new tabs) once it rested this long
+# While the estimator runs, the 3D view is redrawn at most once per this many seconds. Every batch of scene messages
+# makes viser's client draw frames for 250 ms, and a software-rendered frame costs ~0.2 s of CPU, so each redraw
+# costs ~0.5 s of CPU: a redraw per iteration (and Chosen apart from Snapshot) kept Chromium busy. The panel's text
+# and plots still follow every iteration.
+SCENE_INTERVAL_S = 1.0
+SCENE_GATHER_S = 0.1  # a deferred redraw waits this long at least, for the rest of its iteration (Chosen)
+
+
+class SceneThrottle:
+    """Draws into the 3D view at most once per ``interval`` seconds: the latest drawing submitted under each key
+    runs at once, or (deferred) by a timer once the interval since the last flush is over and at least ``gather``
+    seconds after it was submitted. All of one flush go out as one atomic batch, so the browser draws once for them."""
+
+    def __init__(self, server: viser.ViserServer, lock: threading.RLock, interval: float, gather: float,
+                 on_error: Callable[[str, Exception], None]):
+        self.server, self.lock, self.on_error = server, lock, on_error
+        self.interval, self.gather = interval, gather
+        self.pending: dict[str, Callable[[], None]] = {}  # key -> a function that draws
+        self.last = -np.inf  # time.monotonic() of the last flush
+        self.timer: threading.Timer | None = None
+
+    def submit(self, key: str, draw: Callable[[], None], defer: bool) -> None:
+        """Draw with ``draw()`` now, or (``defer``) by the timer: once the interval since the last flush is over,
+        and no sooner than ``gather`` seconds from now. A later drawing under the same key replaces this one."""
+        with self.lock:
+            self.pending[key] = draw
+            if not defer:
+                self.flush()
+            elif self.timer is None:
+                wait = max(self.gather, self.last + self.interval - time.monotonic())
+                self.timer = threading.Timer(wait, self.flush)
+                self.timer.daemon = True
+                self.timer.start()
+
+    def flush(self) -> None:
+        """Run every pending drawing now."""
+        with self.lock:
+            if self.timer is not None:
+                self.timer.cancel()
+                self.timer = None
+            draws, self.pending = self.pending, {}
+            if not draws:
+                return
+            self.last = time.monotonic()
+            with self.server.atomic():
+                for key, draw in draws.items():
+                    try:
+                        draw()
+                    except Exception as err:  # a drawing bug must not stop the other drawings
+                        self.on_error(key, err)
+
+    def cancel(self) -> None:
+        """Drop the pending drawings (a new frame or a reset replaces what they would draw)."""
+        with self.lock:
+            if self.timer is not None:
+                self.timer.cancel()
+                self.timer = None
+            self.pending = {}
 
 
 @dataclass
@@ -77,7 +136,10 @@ class App:
         self._camera_moved: CameraPose | None = None
         self._camera_timer: threading.Timer | None = None
         self.changed = threading.Condition(self.lock)  # notified on every engine message (tests wait on it)
+        self.scene_throttle = SceneThrottle(server, self.lock, SCENE_INTERVAL_S, SCENE_GATHER_S,
+                                            self.drawing_failed)
         self.panel: Panel = build_panel(server.gui, config, likelihood)
+        light_cheaply(server)
         self.observation = ObservationLayer(server)
         self.particles = ParticleLayer(server, on_pick=self.pick)
         self.chosen = ChosenLayer(server)
@@ -204,10 +266,15 @@ class App:
             try:
                 handler(msg)
             except Exception as err:  # a drawing bug must not stop the messages that follow
-                log.exception("drawing %s", type(msg).__name__)
-                self.state.display_errors.append(f"{type(msg).__name__}: {err!r}")
+                self.drawing_failed(type(msg).__name__, err)
             finally:
                 self.changed.notify_all()
+
+    def drawing_failed(self, what: str, err: Exception) -> None:
+        """Log a bug in drawing ``what`` (a message type or a throttled drawing) and keep it for the tests."""
+        log.error("drawing %s", what, exc_info=err)
+        with self.lock:
+            self.state.display_errors.append(f"{what}: {err!r}")
 
     def on_ready(self, msg: p.Ready) -> None:
         self.state.engine_pid = msg.pid
@@ -216,6 +283,7 @@ class App:
         view, P = msg.view, self.panel
         self.source = msg.source  # what a restarted engine reloads
         old = self.state
+        self.scene_throttle.cancel()
         self.state = replace(RunView(), view=view, engine_pid=old.engine_pid, restarts=old.restarts,
                              failures=old.failures, display_errors=old.display_errors)
         with self.server.atomic():
@@ -293,18 +361,22 @@ class App:
             s.reports.pop()  # a republished iteration (e.g. more particles drawn), not a new one
         s.reports.append(msg.report)
         s.cloud, s.iteration, s.running = msg.cloud, msg.report["iteration"], msg.running
-        self.particles.update(msg.cloud)
-        if len(msg.cloud.poses):
-            self.labelling.show_estimate(msg.cloud.poses[0])
+        self.scene_throttle.submit("particles", lambda: self.draw_particles(msg.cloud), defer=msg.running)
         P.rank.max = max(1, msg.cloud.n_total - 1)
         self.clear_error()  # an iteration went through: whatever failed before was dealt with
         P.plots.add(msg.report, msg.cloud.n_total, self.config.converge_position, self.config.converge_degrees)
         P.timings.content = timings_markdown(msg.report)
         P.status.content = self.status_markdown()
 
+    def draw_particles(self, cloud: p.ParticleCloud) -> None:
+        """The particle cloud and the most likely scene (which an unlabelled selected object's gizmo follows)."""
+        self.particles.update(cloud)
+        if len(cloud.poses):
+            self.labelling.show_estimate(cloud.poses[0])
+
     def on_chosen(self, msg: p.Chosen) -> None:
         self.state.chosen = msg
-        self.redraw_chosen()
+        self.scene_throttle.submit("chosen", self.redraw_chosen, defer=self.state.running)
 
     def redraw_chosen(self) -> None:
         with self.lock:
@@ -338,11 +410,14 @@ class App:
         s, P = self.state, self.panel
         s.last_state, s.running = msg, msg.running
         if msg.reason == "reset":
+            self.scene_throttle.cancel()
             s.reports, s.cloud, s.chosen, s.iteration = [], None, None, -1
             P.plots.clear()
             self.particles.set_frame(self.particles.meshes)
             self.redraw_chosen()
             self.labelling.show_estimate(None)
+        elif not msg.running:
+            self.scene_throttle.flush()  # the run stopped: show where it stopped now
         P.run.disabled = msg.running
         P.pause.disabled = not msg.running
         P.step.disabled = msg.running
@@ -459,6 +534,7 @@ class App:
     # -- lifetime
 
     def stop(self) -> None:
+        self.scene_throttle.cancel()
         self.engine.stop()
 
     def wait_for(self, predicate, timeout: float) -> bool:
