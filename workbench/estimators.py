@@ -93,6 +93,7 @@ class IterationReport:
     # the expected number of their offspring at the next resampling (N times their share of the weight).
     moves: dict[str, dict[str, float]] = field(default_factory=dict)
     best_kind: str = ""  # the move kind that produced the estimate (the best scene evaluated so far)
+    sink_m: float = 0.0  # how far below the fitted table plane the objects rest (see Estimator)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -454,6 +455,7 @@ class Estimator:
             timings={k: float(timings.get(k, 0.0)) for k in (*STAGES, "resampling", "total")},
             moves=moves,
             best_kind=self._map_kind.label,
+            sink_m=self.sink,
         )
 
 

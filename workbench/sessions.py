@@ -585,6 +585,8 @@ def _search(v) -> dict | None:
 
 def _report(v) -> IterationReport:
     names = [f.name for f in fields(IterationReport)]
+    if isinstance(v, dict) and "sink_m" not in v:  # saved before the sink was fitted: objects on the plane
+        v = {**v, "sink_m": 0.0}
     if not isinstance(v, dict) or sorted(v) != sorted(names):
         raise ValueError(f"a history entry must have exactly the fields {names}")
     if not isinstance(v["timings"], dict):
