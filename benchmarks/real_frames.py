@@ -69,7 +69,7 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         "estimate_loglik": round(estimator.best_loglik, 1),
         "truth_loglik_projected": round(float(truth.loglik[0]), 1),
         "truth_loglik_as_annotated": round(raw, 1),
-        "iterations": estimator.iteration, "evaluations": (estimator.iteration + 1) * config.particles,
+        "iterations": estimator.iteration, "evaluations": estimator.evaluations,
         "seconds": round(seconds, 1), "best_kind": estimator.best_kind.label,
         "sink_mm": round(1e3 * estimator.sink, 1),
     }

@@ -29,7 +29,8 @@ def test_quick_run_writes_both_tables_for_the_three_methods(touching_dataset, tm
     assert {r["size"] for r in report["table1"]} == {"large", "small"}
     for run_ in report["runs"]:
         if run_["method"] != "icp":
-            assert run_["evaluations"] == 48 * run_["iterations_run"]
+            # Every particle every iteration, plus the scenes the sink fit and the polish evaluate.
+            assert 48 * run_["iterations_run"] < run_["evaluations"] < 2 * 48 * run_["iterations_run"]
             assert run_["iterations_run"] <= 5  # the quick budget: the random start and 4 iterations
             assert np.isfinite(run_["truth_loglik"]) and np.isfinite(run_["best_loglik"])
     markdown = (out / "report.md").read_text()

@@ -138,6 +138,7 @@ class Estimator:
         self._library: datadriven.Library | None = None
         self._search = None  # per-object geometry for the default proposals, built at the first step
         self.sink = 0.0
+        self.evaluations = 0  # hypotheses evaluated so far: particles, the sink's and the polish's scenes
 
     def set_config(self, config: EstimatorConfig) -> None:
         """Takes effect at the next step; the particle set is kept (its size changes at the next resampling)."""
@@ -244,6 +245,7 @@ class Estimator:
                 "map_loglik": self._map_loglik if np.isfinite(self._map_loglik) else None,
                 "map_kind": int(self._map_kind),
                 "sink": self.sink,
+                "evaluations": self.evaluations,
                 "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
                                                      "weights": [w.tolist() for w in lib.weights]},
             },
@@ -265,10 +267,11 @@ class Estimator:
         self.kinds = None if self.loglik is None else search["kinds"]
         self._map, self._map_loglik = search["map"], search["map_loglik"]
         self._map_kind, self._library = search["map_kind"], search["library"]
-        self.sink = search["sink"]
+        self.sink, self.evaluations = search["sink"], search["evaluations"]
 
-    def _evaluate(self, hypotheses: np.ndarray) -> Evaluation:
-        return self.evaluator.evaluate(hypotheses, np.full(len(hypotheses), self.sink))
+    def _evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+        self.evaluations += len(hypotheses)
+        return self.evaluator.evaluate(hypotheses, np.full(len(hypotheses), self.sink) if sink is None else sink)
 
     def _fit_sink(self) -> None:
         """The sink that maximises the estimate's likelihood: the estimate, lowered to each value of SINK_GRID,
@@ -278,7 +281,7 @@ class Estimator:
             return
         scenes = np.repeat(self._map[None], len(SINK_GRID), axis=0)
         scenes[:, :, 2, 3] -= (SINK_GRID - self.sink)[:, None]
-        ev = self.evaluator.evaluate(scenes, SINK_GRID)
+        ev = self._evaluate(scenes, SINK_GRID)
         i = int(np.argmax(ev.loglik))
         if ev.loglik[i] > self._map_loglik:
             self.sink = float(SINK_GRID[i])
@@ -478,8 +481,8 @@ def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:
 
 def parse_search(search, K: int, N: int) -> dict:
     """The ``search`` entry of a ``state_dict`` (plain JSON lists) for K objects and N particles -> arrays:
-    ``kinds`` (N,) int8, ``map`` (K, 4, 4) or None, ``map_loglik``, ``map_kind`` (MoveKind), ``sink`` (m), ``library``
-    (datadriven.Library or None). None (a state saved before the search existed) gives the neutral values.
+    ``kinds`` (N,) int8, ``map`` (K, 4, 4) or None, ``map_loglik``, ``map_kind`` (MoveKind), ``sink`` (m),
+    ``evaluations``, ``library`` (datadriven.Library or None). None (a state saved before the search existed) gives the neutral values.
     Raises ValueError naming what is malformed."""
     if search is None:
         search = {}
@@ -512,6 +515,7 @@ def parse_search(search, K: int, N: int) -> dict:
             "map_loglik": float("-inf") if ll is None else float(_array(ll, (), np.float64, "map_loglik")),
             "map_kind": MoveKind(int(search.get("map_kind", 0))),
             "sink": sink,
+            "evaluations": int(_array(search.get("evaluations", 0), (), np.int64, "evaluations")),
             "library": library,
         }
     except (TypeError, KeyError, IndexError, OverflowError) as e:

@@ -448,7 +448,7 @@ def run_filter(problem: Problem, config: EstimatorConfig, evaluator: Evaluator, 
         "iterations_to_converge": iterations_to_converge(np.stack(estimator.best_history),
                                                          symmetries=[m.symmetries for m in problem.models]),
         "converged": estimator.converged,
-        "evaluations": n_iter * config.particles,
+        "evaluations": estimator.evaluations,
         "best_loglik": float(estimator.loglik[estimator.best_index]),
     }
     return problem.camera.T_cam_world[None] @ best, scores, measured
