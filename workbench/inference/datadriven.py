@@ -19,7 +19,7 @@ import numpy as np
 
 from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
-from workbench.inference.refine import STAGES, crops, icp_batch
+from workbench.inference.refine import NEAR, STAGES, crops, icp_batch
 from workbench.inference.resting import RestingPoses
 from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples
 from workbench.problem import Problem
@@ -129,7 +129,7 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
         if not starts:
             continue
         starts = np.stack(starts)
-        near = crops(all_points, starts[:, :3, 3], reach[k] + 0.02)
+        near = crops(all_points, starts[:, :3, 3], reach[k] + NEAR)
         rough, _ = icp_batch(near, samples[k], starts, iterations=3, max_points=COARSE_POINTS, stages=STAGES[:1])
         rough_score = fit_scores(problem, rough, samples[k])
         place = np.asarray(place)

@@ -15,7 +15,7 @@ import numpy as np
 
 from workbench.geometry import rot_z, rotation_angle
 from workbench.inference.datadriven import Library
-from workbench.inference.refine import PROPOSAL_POINTS, crops, icp_batch
+from workbench.inference.refine import refit
 from workbench.inference.scenepoints import ModelSamples
 
 PER_OBJECT = 4  # the best candidates of each object tried in place of its pose in the estimate
@@ -28,16 +28,14 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
     """The estimate (K, 4, 4) with one object put on one of its best ``PER_OBJECT`` library candidates, for every
     object and candidate that differs from its pose in the estimate; with one object turned by 90, 180 or 270
     degrees about the vertical through its centre and refitted by ICP to the observed points ``points`` (P, 3)
-    within its ``reach`` (K,) + 2 cm; then with every pair of objects exchanging their places (x, y), each
+    near it (``refine.refit``; ``reach`` (K,) m); then with every pair of objects exchanging their places (x, y), each
     keeping its own orientation and height. -> (V, K, 4, 4), V <= K * (PER_OBJECT + 3) + K (K - 1) / 2."""
     K = len(estimate)
     out = []
     for k in range(K):
         turned = np.repeat(estimate[k][None], 3, axis=0)
         turned[:, :3, :3] = rot_z(np.pi / 2 * np.arange(1, 4)) @ estimate[k, :3, :3]
-        fitted, _ = icp_batch(crops(points, turned[:, :3, 3], reach[k] + 0.02), samples[k], turned,
-                              max_points=PROPOSAL_POINTS)
-        for T in fitted:
+        for T in refit(points, samples[k], reach[k], turned):
             scene = estimate.copy()
             scene[k] = T
             out.append(scene)

@@ -19,6 +19,7 @@ STAGES = (0.04, 0.02, 0.01)  # m; correspondence distances, coarse to fine
 JITTER_POS = 0.003  # m
 MAX_POINTS = 400
 PROPOSAL_POINTS = 200  # per ICP move: a refinement from near the object needs fewer than a fit
+NEAR = 0.02  # m; an object is fitted to the observed points within its horizontal reach plus this
 STILL_M, STILL_RAD = 1e-4, 1e-3  # a step this small (0.1 mm, 0.06 degrees) ends a stage
 JITTER_ANG = np.radians(1.5)
 
@@ -123,10 +124,16 @@ def crops(points: np.ndarray, centres: np.ndarray, radius: float) -> list[np.nda
     return [points[i] for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
 
 
+def refit(points: np.ndarray, samples: ModelSamples, reach: float, T: np.ndarray) -> np.ndarray:
+    """Poses T (S, 4, 4) of one object of horizontal ``reach`` (m), each refined by ICP on PROPOSAL_POINTS of
+    the observed points ``points`` (P, 3) near it -> (S, 4, 4)."""
+    return icp_batch(crops(points, T[:, :3, 3], reach + NEAR), samples, T, max_points=PROPOSAL_POINTS)[0]
+
+
 def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarray, samples: list[ModelSamples],
                 reach: np.ndarray, weights: np.ndarray) -> Proposal:
     """One object per particle (drawn by ``weights`` (K,)) is fitted by ICP to the observed points ``points``
-    (P, 3) within its horizontal ``reach`` (K,) + 2 cm, then jittered. (B, K, 4, 4) -> Proposal.
+    (P, 3) near it (``refit``; ``reach`` (K,) m), then jittered. (B, K, 4, 4) -> Proposal.
 
     All particles that move the same object are fitted as one ``icp_batch``, forward and reverse."""
     B = len(parents)
@@ -136,14 +143,12 @@ def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarra
     fitted = np.empty_like(T0)
     for k in np.unique(picks):
         sel = picks == k
-        fitted[sel] = icp_batch(crops(points, T0[sel, :3, 3], reach[k] + 0.02), samples[k], T0[sel],
-                                max_points=PROPOSAL_POINTS)[0]
+        fitted[sel] = refit(points, samples[k], reach[k], T0[sel])
     new = jitter(rng, fitted)
     back = np.empty_like(T0)
     for k in np.unique(picks):
         sel = picks == k
-        back[sel] = icp_batch(crops(points, new[sel, :3, 3], reach[k] + 0.02), samples[k], new[sel],
-                              max_points=PROPOSAL_POINTS)[0]
+        back[sel] = refit(points, samples[k], reach[k], new[sel])
     out = parents.copy()
     out[rows, picks] = new
     return Proposal(out, _log_kernel(T0, back) - _log_kernel(new, fitted))
