@@ -18,12 +18,13 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation import STAGES, Evaluation, Evaluator
 from workbench.geometry import rotation_angle
-from workbench.inference import datadriven, gaussian, polish, refine, resting, stacking
+from workbench.inference import assemble, datadriven, gaussian, polish, refine, resting, stacking
 from workbench.inference.proposal import Proposal
 from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix
 from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points, unexplained
 from workbench.particles import STATES, Sigma, initial_particles, random_relocations
 from workbench.problem import Problem
+from workbench.render import DepthRenderer
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 
 METHODS = ("pipf", "mcpf")
@@ -293,19 +294,22 @@ class Estimator:
         if self._map is None or self._library is None:
             return
         ctx = self._context()
-        scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach)
+        scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius)
+        joint = self._assemblies(self._map)
+        kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.ASSEMBLE], np.int8), [len(scenes), len(joint)])
+        scenes = np.concatenate([scenes.reshape(-1, *self._map.shape), joint.reshape(-1, *self._map.shape)])
         if not len(scenes):
             return
         ev = self._evaluate(scenes)
         better = np.nonzero(ev.loglik > self._map_loglik)[0]
-        self._update_map(ev, np.full(len(scenes), int(MoveKind.POLISH), np.int8))
+        self._update_map(ev, kinds)
         better = better[np.argsort(-ev.loglik[better], kind="stable")][: max(1, len(self.loglik) // 10)]
         worst = np.argsort(self.loglik, kind="stable")[: len(better)]
         self.hypotheses[worst] = scenes[better]
         self.projected[worst] = ev.projected[better]
         self.loglik[worst] = ev.loglik[better]
         self.status[worst] = ev.status[better]
-        self.kinds[worst] = int(MoveKind.POLISH)
+        self.kinds[worst] = kinds[better]
 
     # ---------------------------------------------------------------------------------------------- proposals
     def _context(self):
@@ -315,13 +319,15 @@ class Estimator:
             models = self.problem.models
             upright = self.config.state == "xyzyaw"
             hulls = [np.asarray(m.mesh.convex_hull.vertices, dtype=np.float64) for m in models]
+            samples = [model_samples(m.mesh) for m in models]
             self._search = _Search(
                 rest=[resting.resting_poses(m.mesh, upright_only=upright) for m in models],
-                samples=[model_samples(m.mesh) for m in models],
+                samples=samples,
                 hulls=hulls,
                 reach=np.array([float(np.max(np.linalg.norm(h[:, :2], axis=1))) for h in hulls]),
                 radius=np.array([float(np.max(np.linalg.norm(h, axis=1))) for h in hulls]),
                 points=observed_points(self.problem),
+                solids=[assemble.solid(h, s) for h, s in zip(hulls, samples)],
             )
         return self._search
 
@@ -347,7 +353,22 @@ class Estimator:
         start = datadriven.sequential_start(self.rng, self._library, cfg.particles, self._context().radius, take,
                                             start)
         kinds[take.any(axis=1)] = int(MoveKind.DATA_START)
+        joint = self._assemblies(start[0])[: cfg.particles]
+        start[: len(joint)] = joint
+        kinds[: len(joint)] = int(MoveKind.ASSEMBLE)
         return start, kinds
+
+    def _assemblies(self, base: np.ndarray) -> np.ndarray:
+        """``assemble.assemblies`` of the library on ``base`` (K, 4, 4) -> (A, K, 4, 4). The candidates are
+        rendered here, in the main process, by a renderer made for the call."""
+        ctx = self._context()
+        renderer = DepthRenderer(self.problem.render_camera, [m.mesh for m in self.problem.models],
+                                 self.problem.config.render)
+        try:
+            return assemble.assemblies(self.problem, self._library, renderer, ctx.solids, base,
+                                       np.argsort(-ctx.radius, kind="stable"))
+        finally:
+            renderer.close()
 
     def _propose(self, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Proposals from the resampled ``parents`` (N, K, 4, 4) -> (hypotheses (N, K, 4, 4), log-q corrections
@@ -470,6 +491,7 @@ class _Search:
     reach: np.ndarray  # (K,) m, horizontal distance from the origin to the farthest hull vertex
     radius: np.ndarray  # (K,) m, the same in 3D
     points: object
+    solids: list
 
 
 def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:

@@ -38,6 +38,7 @@ MIN_TOP = 0.015  # m; lower clusters are table unevenness or flat clutter (paper
 # cap that few points reach: YCB-Video's upright mustard bottle (19.1 cm) shows a cluster 17 cm high, and with
 # 2 cm of slack it was never proposed standing.
 FACE_SLACK = 0.04
+PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally) are at one place
 
 
 @dataclass
@@ -52,15 +53,32 @@ class Library:
         return len(self.poses[k]) > 0
 
     def merged(self, other: "Library", keep: int = PER_OBJECT) -> "Library":
-        """Both libraries' candidates per object, the best ``keep`` by weight (re-normalised)."""
+        """Both libraries' candidates per object, the first ``keep`` in ``place_order`` (re-normalised)."""
         poses, weights = [], []
         for k in range(len(self.poses)):
             p = np.concatenate([self.poses[k], other.poses[k]])
             w = np.concatenate([self.weights[k], other.weights[k]])
-            order = np.argsort(-w, kind="stable")[:keep]
+            order = place_order(p, w)[:keep]
             poses.append(p[order])
             weights.append(w[order] / w[order].sum() if len(order) else w[order])
         return Library(poses, weights)
+
+
+def place_order(poses: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Candidates (poses (C, 4, 4), weights (C,)) in the order they are kept: the best of each distinct place
+    (centres PLACE_M apart horizontally) by weight, then the rest by weight -> (C,) indices.
+
+    Candidates are weighted by the observed points they explain, so the heaviest crowd the largest cluster (several
+    objects touching, where every object fits somewhere) and, ranked by weight alone, pushed out a place that only
+    one object explains: YCB-Video's standing marker at the image edge lost its only right candidates at the
+    first refit."""
+    by_weight = np.argsort(-weights, kind="stable")
+    first: list[int] = []
+    for i in by_weight:
+        if all(np.linalg.norm(poses[i, :2, 3] - poses[j, :2, 3]) >= PLACE_M for j in first):
+            first.append(int(i))
+    rest = [int(i) for i in by_weight if int(i) not in set(first)]
+    return np.array(first + rest, dtype=int)
 
 
 def spread_centres(points: np.ndarray, spacing: float, limit: int) -> np.ndarray:
@@ -85,15 +103,13 @@ def principal_heading(points: np.ndarray) -> float:
     return float(np.arctan2(v[1, -1], v[0, -1]))
 
 
-def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.ndarray:
-    """Per candidate pose T (S, 4, 4) of one object: pixels it explains (observed depth on its camera-facing
-    surface) less three for each pixel where the sensor sees through it (a pose that floats in front of the
-    background) -> (S,). Pixels hidden behind something else count for nothing: an object may be occluded, and a
-    pose buried inside another object explains little. All candidates at once, as ``project_samples`` projects
-    one."""
+def explained_pixels(problem: Problem, T: np.ndarray, samples: ModelSamples) -> tuple[np.ndarray, np.ndarray]:
+    """Per candidate pose T (S, 4, 4) of one object, the problem-grid pixels whose observed depth lies on its
+    camera-facing surface (``on``), and those where the sensor sees through it (``through``: a reading behind
+    where the surface should hide it, and not on it) -> (on, through), each sorted unique keys ``s * H * W + row *
+    W + col``. Pixels hidden behind something else are in neither: an object may be occluded."""
     cam, obs = problem.render_camera, problem.observed
     h, w = obs.shape
-    S = len(T)
     Tc = cam.T_cam_world[None] @ T
     p = np.einsum("sij,mj->smi", Tc[:, :3, :3], samples.points) + Tc[:, None, :3, 3]  # (S, M, 3)
     n = np.einsum("sij,mj->smi", Tc[:, :3, :3], samples.normals)
@@ -108,8 +124,16 @@ def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.nda
     key = s * (h * w) + v * w + u  # (candidate, pixel) pairs, counted once each
     on = np.unique(key[(o > 0) & (np.abs(o - d) < EXPLAINED)])
     through = np.unique(key[(o > 0) & (o > d + SEEN_THROUGH)])
-    through = through[~np.isin(through, on)]
-    return (np.bincount(on // (h * w), minlength=S) - 3.0 * np.bincount(through // (h * w), minlength=S))
+    return on, through[~np.isin(through, on)]
+
+
+def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.ndarray:
+    """Per candidate pose T (S, 4, 4) of one object: pixels it explains less three for each pixel where the
+    sensor sees through it (a pose that floats in front of the background; ``explained_pixels``) -> (S,). A pose
+    buried inside another object explains little."""
+    on, through = explained_pixels(problem, T, samples)
+    hw = problem.observed.size
+    return np.bincount(on // hw, minlength=len(T)) - 3.0 * np.bincount(through // hw, minlength=len(T))
 
 
 def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.ndarray,

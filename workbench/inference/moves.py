@@ -31,6 +31,7 @@ class MoveKind(IntEnum):
     ICP = 8  # one object refined by ICP
     RELOCATE = 9  # one object to a random place in the object region, dropped onto whatever is below
     POLISH = 10  # the estimate with one object on a candidate, or two objects' places exchanged (polish.py)
+    ASSEMBLE = 11  # every object on a candidate, the joint assignment that explains the depth best (assemble.py)
 
     @property
     def label(self) -> str:

@@ -14,22 +14,25 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.geometry import rot_z, rotation_angle
-from workbench.inference.datadriven import Library
+from workbench.inference.datadriven import Library, overlaps, place_order
 from workbench.inference.refine import refit
 from workbench.inference.scenepoints import ModelSamples
 
-PER_OBJECT = 4  # the best candidates of each object tried in place of its pose in the estimate
+PER_OBJECT = 6  # candidates of each object tried in place of its pose in the estimate: the best of as many places
 SAME_M, SAME_RAD = 0.01, np.radians(10.0)  # a candidate this close to the estimate's pose is no change
 LIFT = 0.005  # m; exchanged objects start this far above their old height, and physics sets them down
 
 
 def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples: list[ModelSamples],
-             reach: np.ndarray) -> np.ndarray:
-    """The estimate (K, 4, 4) with one object put on one of its best ``PER_OBJECT`` library candidates, for every
-    object and candidate that differs from its pose in the estimate; with one object turned by 90, 180 or 270
-    degrees about the vertical through its centre and refitted by ICP to the observed points ``points`` (P, 3)
-    near it (``refine.refit``; ``reach`` (K,) m); then with every pair of objects exchanging their places (x, y), each
-    keeping its own orientation and height. -> (V, K, 4, 4), V <= K * (PER_OBJECT + 3) + K (K - 1) / 2."""
+             reach: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Variants of the estimate (K, 4, 4):
+    - one object turned by 90, 180 or 270 degrees about the vertical through its centre and refitted by ICP to the
+      observed points ``points`` (P, 3) near it (``refine.refit``; ``reach`` (K,) m);
+    - one object put on its best library candidate at one of its ``PER_OBJECT`` best places
+      (``datadriven.place_order``), for every object and candidate that differs from its pose in the estimate,
+      the objects it would sit inside moved out of its way (``seat``; ``radii`` (K,) m);
+    - every pair of objects exchanging their places (x, y), each keeping its own orientation and height.
+    -> (V, K, 4, 4), V <= K * (PER_OBJECT + 3) + K (K - 1) / 2."""
     K = len(estimate)
     out = []
     for k in range(K):
@@ -42,14 +45,11 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
     for k in range(K):
         if not library.has(k):
             continue
-        best = np.argsort(-library.weights[k], kind="stable")[:PER_OBJECT]
-        for T in library.poses[k][best]:
+        for T in library.poses[k][place_order(library.poses[k], library.weights[k])[:PER_OBJECT]]:
             if (np.linalg.norm(T[:3, 3] - estimate[k, :3, 3]) < SAME_M
                     and rotation_angle(T[:3, :3].T @ estimate[k, :3, :3]) < SAME_RAD):
                 continue
-            scene = estimate.copy()
-            scene[k] = T
-            out.append(scene)
+            out.append(seat(estimate, k, T, library, radii))
     for i in range(K):
         for j in range(i + 1, K):
             scene = estimate.copy()
@@ -57,3 +57,38 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
             scene[[i, j], 2, 3] += LIFT
             out.append(scene)
     return np.array(out).reshape(-1, K, 4, 4)
+
+
+def seat(scene: np.ndarray, k: int, T: np.ndarray, library: Library, radii: np.ndarray) -> np.ndarray:
+    """``scene`` (K, 4, 4) with object k at pose T, and every object it would then sit inside (``overlaps``;
+    ``radii`` (K,) m) moved to its first candidate in ``place_order`` clear of all the others, else of the objects
+    already seated; an object moved so may push out the next (an ejection chain, each object moved at most once).
+    -> (K, 4, 4).
+
+    An estimate that went wrong early is often a chain of objects each on another's place: on YCB-Video frame
+    2:10 the pudding box sat on the potted meat can's place and the marker on the banana's, the can and the banana
+    lay 50 cm away on flat clutter. Putting the can back alone leaves it inside the pudding box, which physics
+    pushes both out of, so no one-object change could gain; with the pudding box moved aside in the same variant,
+    the chain unwinds one link per polish."""
+    out = scene.copy()
+    out[k] = T
+    K = len(out)
+    seated = [k]
+    queue = [k]
+    while queue:
+        i = queue.pop(0)
+        for j in range(K):
+            if j in seated or not overlaps(out[j], out[[i]], radii[j], radii[[i]]):
+                continue
+            seated.append(j)
+            if not library.has(j):
+                continue
+            others = np.array([o for o in range(K) if o != j], dtype=int)
+            done = np.array(seated[:-1], dtype=int)
+            order = place_order(library.poses[j], library.weights[j])
+            clear = [c for c in order if not overlaps(library.poses[j][c], out[others], radii[j], radii[others])]
+            clear = clear or [c for c in order if not overlaps(library.poses[j][c], out[done], radii[j], radii[done])]
+            if clear:
+                out[j] = library.poses[j][clear[0]]
+                queue.append(j)
+    return out

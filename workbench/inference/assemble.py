@@ -1,0 +1,137 @@
+"""Assemble: whole scenes put together from the library, one candidate per object, that jointly explain the
+observed depth best without sitting inside each other.
+
+Polish changes the estimate one object (or one exchange) at a time. An estimate that went wrong early is often
+several objects each on another's place: on YCB-Video frame 2:10 the pudding box sat on the potted meat can's
+place and the marker on the banana's, while the can and the banana lay 50 cm away on flat clutter. Every
+one-object change then puts an object inside another, physics pushes both aside, and the change loses thousands of
+log-units. A beam search over the candidates finds the joint assignment directly. Each candidate is rendered once,
+alone; an assignment's depth is the nearest of its candidates' depths per pixel (what rendering them together
+draws) and is scored by the likelihood itself. Assignments in which one candidate sits inside another's hull are
+ruled out, since the likelihood cannot see a hidden overlap and physics would push the two apart.
+
+The best few assignments are then evaluated like any hypothesis (physics, then the likelihood).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from workbench.geometry import invert_pose, make_pose
+from workbench.inference.datadriven import Library
+from workbench.inference.scenepoints import ModelSamples
+from workbench.likelihood import pixel_loglik
+from workbench.problem import Problem
+from workbench.render import DepthRenderer
+
+BEAM = 32  # partial assignments kept after each object
+ASSEMBLIES = 4  # complete assignments returned
+INSIDE = 0.3  # a candidate with this share of its core inside another's hull sits inside it
+CORE = 0.7  # the core: the surface samples pulled this far towards the centroid (surface points of two objects
+# at one place lie on each other's surface, not inside it; touching objects' cores stay apart)
+MARGIN = 0.005  # m; samples less deep than this inside the other hull are touching it, not inside
+HULL_POINTS = 64  # vertices of the simplified hull used for the inside test
+TEST_POINTS = 200  # core points per object tested against the others' hulls
+
+
+@dataclass(frozen=True)
+class Solid:
+    """An object's shape for the inside test, object frame: ``planes`` (F, 4) of a simplified convex hull, unit
+    outward normal and offset (inside where ``n . x + d <= 0``); ``points`` (M, 3) its core (see CORE), metres."""
+
+    planes: np.ndarray
+    points: np.ndarray
+
+
+def solid(hull_vertices: np.ndarray, samples: ModelSamples) -> Solid:
+    """The Solid of an object from its convex hull's vertices (V, 3) and its surface samples. The hull is reduced
+    to HULL_POINTS vertices by farthest-point sampling, so it lies within the full hull (the test errs towards
+    'touching')."""
+    v = np.asarray(hull_vertices, dtype=np.float64)
+    chosen = [int(np.argmax(np.linalg.norm(v - v.mean(axis=0), axis=1)))]
+    d = np.linalg.norm(v - v[chosen[0]], axis=1)
+    while len(chosen) < min(HULL_POINTS, len(v)):
+        chosen.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(v - v[chosen[-1]], axis=1))
+    step = max(1, len(samples.points) // TEST_POINTS)
+    surface = samples.points[::step][:TEST_POINTS]
+    centre = surface.mean(axis=0)
+    return Solid(ConvexHull(v[chosen]).equations, centre + CORE * (surface - centre))
+
+
+def inside_share(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:
+    """Share of object a's core points inside object b's hull (deeper than MARGIN), for every pose pair:
+    Ta (A, 4, 4), Tb (B, 4, 4), same frame -> (A, B)."""
+    rel = invert_pose(Tb)[None] @ Ta[:, None]  # (A, B, 4, 4): a's frame into b's
+    p = np.einsum("abij,mj->abmi", rel[..., :3, :3], a.points) + rel[:, :, None, :3, 3]  # (A, B, M, 3)
+    depth = p @ b.planes[:, :3].T + b.planes[:, 3]  # (A, B, M, F)
+    return (depth.max(axis=-1) < -MARGIN).mean(axis=-1)
+
+
+def conflicts(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:
+    """Whether candidate i of object a and candidate j of object b sit inside one another -> (A, B) bool."""
+    return (inside_share(Ta, a, Tb, b) > INSIDE) | (inside_share(Tb, b, Ta, a).T > INSIDE)
+
+
+def candidate_depths(renderer: DepthRenderer, camera_pose: np.ndarray, poses: np.ndarray, k: int) -> np.ndarray:
+    """Depth images (C, H, W) of object k alone at each of ``poses`` (C, 4, 4), table frame: the other objects are
+    put behind the camera (``camera_pose``: the camera in the table frame, (4, 4)), where nothing is drawn."""
+    behind = camera_pose @ make_pose(np.eye(3), np.array([0.0, 0.0, -100.0]))
+    scenes = np.repeat(behind[None, None], len(poses), axis=0).repeat(renderer.n_objects, axis=1)
+    scenes[:, k] = poses
+    return renderer.render(scenes)
+
+
+def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, solids: list[Solid],
+               base: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Up to ASSEMBLIES scenes (A, K, 4, 4), best first: ``base`` (K, 4, 4) with every object that has candidates
+    put on one of them, no candidate inside another, by the likelihood of the candidates' joint depth (no
+    physics). Objects are assigned in ``order`` (K,) (largest first: they constrain the most), keeping the BEAM best
+    partial assignments after each; the objects not yet assigned are absent (the table shows there)."""
+    ks = [int(k) for k in order if library.has(int(k))]
+    if not ks:
+        return np.zeros((0,) + base.shape)
+    poses = [_unique(library.poses[k]) for k in ks]
+    camera_pose = invert_pose(problem.render_camera.T_cam_world)
+    depths = [candidate_depths(renderer, camera_pose, P, k).reshape(len(P), -1) for P, k in zip(poses, ks)]
+    # Only pixels some candidate covers can change the score; elsewhere every assignment predicts the table.
+    cover = np.nonzero(np.any(np.concatenate(depths) > 0, axis=0))[0]
+    depths = [d[:, cover] for d in depths]
+    observed = problem.observed.reshape(1, -1)[:, cover]
+    background = problem.background.reshape(-1)[cover]
+    config = problem.config.likelihood
+    clash = {(i, j): conflicts(poses[i], solids[ks[i]], poses[j], solids[ks[j]])
+             for i in range(len(ks)) for j in range(i)}
+    beam = [(np.zeros(0, int), np.zeros(len(cover), np.float32))]  # (candidate per assigned object, joint depth)
+    for i in range(len(ks)):
+        grown = []
+        for chosen, joint in beam:
+            ok = np.ones(len(poses[i]), bool)
+            for j, c in enumerate(chosen):
+                ok &= ~clash[(i, j)][:, c]
+            d = depths[i][ok]
+            nearer = (d > 0) & ((joint == 0) | (d < joint))
+            merged = np.where(nearer, d, joint)  # (n_ok, P)
+            predicted = np.where(merged > 0, merged, background)
+            score = pixel_loglik(observed, predicted[:, None], config)[:, 0].sum(axis=1, dtype=np.float64)
+            grown += [(float(sc), np.append(chosen, c), m) for sc, c, m in zip(score, np.nonzero(ok)[0], merged)]
+        if not grown:  # every candidate sits inside an assigned object: no consistent assignment from here
+            return np.zeros((0,) + base.shape)
+        grown.sort(key=lambda g: -g[0])  # stable: ties keep the earlier state and candidate
+        beam = [(c, m) for _, c, m in grown[:BEAM]]
+    out = []
+    for chosen, _ in beam[:ASSEMBLIES]:
+        scene = base.copy()
+        for i, c in enumerate(chosen):
+            scene[ks[i]] = poses[i][c]
+        out.append(scene)
+    return np.array(out)
+
+
+def _unique(poses: np.ndarray) -> np.ndarray:
+    """The distinct poses of (C, 4, 4), first occurrences in order (merged libraries repeat candidates)."""
+    _, first = np.unique(np.round(poses.reshape(len(poses), -1), 9), axis=0, return_index=True)
+    return poses[np.sort(first)]
