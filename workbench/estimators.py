@@ -138,6 +138,7 @@ class Estimator:
         self._map_kind = MoveKind.START
         self._library: datadriven.Library | None = None
         self._search = None  # per-object geometry for the default proposals, built at the first step
+        self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
         self.sink = 0.0
         self.evaluations = 0  # hypotheses evaluated so far: particles, the sink's and the polish's scenes
 
@@ -337,7 +338,8 @@ class Estimator:
         ctx = self._context()
         loose = unexplained(self.problem, ctx.points, self._map, ctx.samples)
         groups = clusters(ctx.points.points[loose])
-        fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
+        fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls,
+                                         self._cluster_memo)
         self._library = fresh if self._library is None else self._library.merged(fresh)
 
     def _start(self) -> tuple[np.ndarray, np.ndarray]:

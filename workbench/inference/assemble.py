@@ -40,10 +40,12 @@ TEST_POINTS = 200  # core points per object tested against the others' hulls
 @dataclass(frozen=True)
 class Solid:
     """An object's shape for the inside test, object frame: ``planes`` (F, 4) of a simplified convex hull, unit
-    outward normal and offset (inside where ``n . x + d <= 0``); ``points`` (M, 3) its core (see CORE), metres."""
+    outward normal and offset (inside where ``n . x + d <= 0``); ``points`` (M, 3) its core (see CORE), metres;
+    ``radius`` (m) of a sphere about the origin holding both."""
 
     planes: np.ndarray
     points: np.ndarray
+    radius: float
 
 
 def solid(hull_vertices: np.ndarray, samples: ModelSamples) -> Solid:
@@ -59,21 +61,30 @@ def solid(hull_vertices: np.ndarray, samples: ModelSamples) -> Solid:
     step = max(1, len(samples.points) // TEST_POINTS)
     surface = samples.points[::step][:TEST_POINTS]
     centre = surface.mean(axis=0)
-    return Solid(ConvexHull(v[chosen]).equations, centre + CORE * (surface - centre))
+    core = centre + CORE * (surface - centre)
+    radius = float(max(np.linalg.norm(v, axis=1).max(), np.linalg.norm(core, axis=1).max()))
+    return Solid(ConvexHull(v[chosen]).equations, core, radius)
 
 
 def inside_share(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:
-    """Share of object a's core points inside object b's hull (deeper than MARGIN), for every pose pair:
-    Ta (A, 4, 4), Tb (B, 4, 4), same frame -> (A, B)."""
-    rel = invert_pose(Tb)[None] @ Ta[:, None]  # (A, B, 4, 4): a's frame into b's
-    p = np.einsum("abij,mj->abmi", rel[..., :3, :3], a.points) + rel[:, :, None, :3, 3]  # (A, B, M, 3)
-    depth = p @ b.planes[:, :3].T + b.planes[:, 3]  # (A, B, M, F)
+    """Share of object a's core points inside object b's hull (deeper than MARGIN), pose by pose: Ta (P, 4, 4),
+    Tb (P, 4, 4), same frame -> (P,)."""
+    rel = invert_pose(Tb) @ Ta  # (P, 4, 4): a's frame into b's
+    p = a.points @ np.swapaxes(rel[:, :3, :3], 1, 2) + rel[:, None, :3, 3]  # (P, M, 3)
+    depth = p @ b.planes[:, :3].T + b.planes[:, 3]  # (P, M, F)
     return (depth.max(axis=-1) < -MARGIN).mean(axis=-1)
 
 
 def conflicts(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:
-    """Whether candidate i of object a and candidate j of object b sit inside one another -> (A, B) bool."""
-    return (inside_share(Ta, a, Tb, b) > INSIDE) | (inside_share(Tb, b, Ta, a).T > INSIDE)
+    """Whether candidate i of object a (Ta (A, 4, 4)) and candidate j of object b (Tb (B, 4, 4)) sit inside one
+    another -> (A, B) bool. Only pairs whose bounding spheres meet are tested."""
+    out = np.zeros((len(Ta), len(Tb)), bool)
+    gap = np.linalg.norm(Ta[:, None, :3, 3] - Tb[None, :, :3, 3], axis=-1)
+    i, j = np.nonzero(gap < a.radius + b.radius)
+    if len(i):
+        out[i, j] = ((inside_share(Ta[i], a, Tb[j], b) > INSIDE)
+                     | (inside_share(Tb[j], b, Ta[i], a) > INSIDE))
+    return out
 
 
 def candidate_depths(renderer: DepthRenderer, camera_pose: np.ndarray, poses: np.ndarray, k: int) -> np.ndarray:
