@@ -286,3 +286,26 @@ def test_relocation_stays_valid(frame_and_problem):
     parents = np.repeat(_truth(frame, problem)[None], 10, axis=0)
     out = random_relocations(np.random.default_rng(0), parents, 0.5, problem.models, problem.table)
     assert np.all(np.isfinite(out)) and out.shape == parents.shape
+
+
+def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_and_problem, context, monkeypatch):
+    """build_library's memo: a second call with the same clusters fits nothing and returns the same library as
+    a call without it; a cluster it has not seen is still fitted."""
+    problem, ctx, _ = context
+    groups = clusters(ctx.points.points)
+    args = (problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
+    plain = datadriven.build_library(*args)
+    memo: dict = {}
+    first = datadriven.build_library(*args, memo)
+    assert memo and all(len(fitted) == problem.n_objects for fitted in memo.values())
+    calls = []
+    real = datadriven.cluster_candidates
+    monkeypatch.setattr(datadriven, "cluster_candidates", lambda *a: calls.append(1) or real(*a))
+    again = datadriven.build_library(*args, memo)
+    assert not calls
+    for lib in (first, again):
+        assert all(np.array_equal(p, q) for p, q in zip(lib.poses, plain.poses))
+        assert all(np.array_equal(w, v) for w, v in zip(lib.weights, plain.weights))
+    shifted = [g + np.array([0.001, 0.0, 0.0]) for g in groups[:1]]
+    datadriven.build_library(problem, shifted, *args[2:], memo)
+    assert len(calls) == problem.n_objects
