@@ -295,7 +295,8 @@ class Estimator:
         if self._map is None or self._library is None:
             return
         ctx = self._context()
-        scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius)
+        scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius,
+                                 ctx.points.viewpoint)
         joint = self._assemblies(self._map)
         kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.ASSEMBLE], np.int8), [len(scenes), len(joint)])
         scenes = np.concatenate([scenes.reshape(-1, *self._map.shape), joint.reshape(-1, *self._map.shape)])
@@ -406,7 +407,8 @@ class Estimator:
             elif kind == MoveKind.DATA:
                 p = datadriven.propose_data(self.rng, sub, self._library, choose, ctx.radius)
             elif kind == MoveKind.ICP:
-                p = refine.propose_icp(self.rng, sub, ctx.points.points, ctx.samples, ctx.reach, choose)
+                p = refine.propose_icp(self.rng, sub, ctx.points.points, ctx.samples, ctx.reach, choose,
+                                       ctx.points.viewpoint)
             else:  # RELOCATE: the uniform move keeps every place reachable
                 p = Proposal.symmetric(random_relocations(
                     self.rng, sub, 1.0 / K, self.problem.models, self.problem.table))

@@ -17,12 +17,13 @@ import hashlib
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
 from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, crops, icp_batch
 from workbench.inference.resting import RestingPoses
-from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples
+from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, viewpoint
 from workbench.problem import Problem
 
 JITTER_POS = 0.005  # m
@@ -39,6 +40,12 @@ MIN_TOP = 0.015  # m; lower clusters are table unevenness or flat clutter (paper
 # cap that few points reach: YCB-Video's upright mustard bottle (19.1 cm) shows a cluster 17 cm high, and with
 # 2 cm of slack it was never proposed standing.
 FACE_SLACK = 0.04
+LEVEL_BIN = 0.01  # m; heights of a cluster's horizontal surfaces are found in bins this tall
+MIN_LEVEL = 40  # observed points that make a horizontal surface
+MAX_LEVELS = 2  # per cluster
+LEVEL_HEADINGS = 12  # headings tried on a horizontal surface, 30 degrees apart
+TOP_SHARE = 0.5  # an object on top shows as the cluster's points above its base plus this share of its height
+MIN_UPPER = 20  # observed points that make such an upper part
 PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally) are at one place
 
 
@@ -95,6 +102,22 @@ def spread_centres(points: np.ndarray, spacing: float, limit: int) -> np.ndarray
         centres.append(xy[i])
         d = np.minimum(d, np.linalg.norm(xy - xy[i], axis=1))
     return np.array(centres)
+
+
+def rectangle_heading(points: np.ndarray) -> float:
+    """Heading (rad) of an edge of the minimum-area rectangle around the points' (P, 3) xy: a box's top face
+    seen from above, where the principal axis of a near-square face is no axis at all."""
+    xy = points[:, :2]
+    try:
+        ring = xy[ConvexHull(xy).vertices]
+    except QhullError:  # fewer than three points, or all on a line
+        return principal_heading(points)
+    edges = np.roll(ring, -1, axis=0) - ring
+    angles = np.arctan2(edges[:, 1], edges[:, 0])
+    c, s = np.cos(angles), np.sin(angles)
+    u = ring @ np.stack([c, s])  # (V, E): the hull's extent along each edge direction ...
+    v = ring @ np.stack([-s, c])  # ... and across it
+    return float(angles[int(np.argmin(np.ptp(u, axis=0) * np.ptp(v, axis=0)))])
 
 
 def principal_heading(points: np.ndarray) -> float:
@@ -193,12 +216,15 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.nda
         return []
     starts = np.stack(starts)
     near = crops(all_points, starts[:, :3, 3], reach + NEAR)
-    rough, _ = icp_batch(near, samples, starts, iterations=3, max_points=COARSE_POINTS, stages=STAGES[:1])
+    eye = viewpoint(problem)
+    rough, _ = icp_batch(near, samples, starts, iterations=3, max_points=COARSE_POINTS, stages=STAGES[:1],
+                         viewpoint=eye)
     rough_score = fit_scores(problem, rough, samples)
     place = np.asarray(place)
     chosen = np.concatenate([np.nonzero(place == p)[0][np.argsort(-rough_score[place == p], kind="stable")
                                                         [:REFINED_PER_PLACE]] for p in np.unique(place)])
-    fitted, inliers = icp_batch([near[i] for i in chosen], samples, rough[chosen], max_points=FIT_POINTS)
+    fitted, inliers = icp_batch([near[i] for i in chosen], samples, rough[chosen], max_points=FIT_POINTS,
+                                viewpoint=eye)
     ok = (inliers >= 10) & np.all(np.isfinite(fitted), axis=(1, 2))
     scored = [(float(sc), T, p) for sc, T, p in zip(fit_scores(problem, fitted[ok], samples), fitted[ok],
                                                      place[chosen][ok])]
@@ -213,28 +239,59 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.nda
 
 def _starts(clusters: list[np.ndarray], rest: RestingPoses, hull: np.ndarray, reach: float
             ) -> tuple[list[np.ndarray], list[int]]:
-    """One object's ICP starts (4, 4) over the ``clusters``, and the start place (a cluster's centre) of each:
-    at each cluster's centroid and spread points, on every face on which the object is no taller than the
-    cluster, in four headings from the cluster's principal axis."""
+    """One object's ICP starts (4, 4) over the ``clusters``, and the start place of each:
+    - at each cluster's centroid and spread points, on every face on which the object is no taller than the
+      cluster, in four headings from the cluster's principal axis; where the cluster is clearly taller than the
+      object, also on top, its upper face at the cluster's top;
+    - on top of something: at each of the cluster's horizontal surfaces (``_levels``), the object's upper face
+      there, in LEVEL_HEADINGS headings from the surface's minimum-area rectangle (one more place each)."""
     starts: list[np.ndarray] = []
     place: list[int] = []
     heights = np.array([_height(R, hull) for R in rest.rotations])
     n_places = 0
+
+    def add(centres: np.ndarray, bases: list[tuple[int, float]], heading: float, turns: int) -> None:
+        nonlocal n_places
+        for centre in centres:
+            for f, base in bases:
+                for i in range(turns):
+                    R = rot_z(heading + i * 2 * np.pi / turns) @ rest.rotations[f]
+                    starts.append(make_pose(R, np.array([centre[0], centre[1], base + rest.heights[f]])))
+                    place.append(n_places)
+            n_places += 1
+
     for cluster in clusters:
         top = float(np.percentile(cluster[:, 2], 95))
-        heading = principal_heading(cluster)
         faces = np.nonzero(heights <= top + FACE_SLACK)[0]
         bases = [(f, 0.0) for f in (faces if len(faces) else [int(np.argmin(heights))])]
         # Where the cluster is clearly taller, the object may stand on something, so it also starts on top.
         bases += [(f, top - heights[f]) for f in faces if top > heights[f] + 0.02]
-        for centre in spread_centres(cluster, 1.2 * reach, MAX_CENTRES):
-            for f, base in bases:
-                for quarter in range(4):
-                    R = rot_z(heading + quarter * np.pi / 2) @ rest.rotations[f]
-                    starts.append(make_pose(R, np.array([centre[0], centre[1], base + rest.heights[f]])))
-                    place.append(n_places)
-            n_places += 1
+        add(spread_centres(cluster, 1.2 * reach, MAX_CENTRES), bases, principal_heading(cluster), 4)
+        # An object on top of another shows as a horizontal surface of their joint cluster (many points at one
+        # height), which the cluster's centre and rim miss when the cluster also holds objects beside them:
+        # YCB-Video's pudding box lies on the wood block, which touches the can and the banana, and no start
+        # came within 6 cm of it. The surface's rectangle gives a heading only roughly (other objects' points
+        # share the height), so more headings are tried there.
+        for level, upper in _levels(cluster):
+            on = [(f, level - heights[f]) for f in faces if level > heights[f] + 0.02]
+            if on:
+                add(spread_centres(upper, 1.2 * reach, 1), on, rectangle_heading(upper), LEVEL_HEADINGS)
     return starts, place
+
+
+def _levels(cluster: np.ndarray) -> list[tuple[float, np.ndarray]]:
+    """The heights (m) of a cluster's (P, 3) horizontal surfaces, with their points: histogram peaks of the
+    points' heights (LEVEL_BIN bins, at least MIN_LEVEL points, the MAX_LEVELS fullest) -> [(height, (Q, 3))]."""
+    z = cluster[:, 2]
+    edges = np.arange(0.0, z.max() + 2 * LEVEL_BIN, LEVEL_BIN)
+    count, _ = np.histogram(z, edges)
+    padded = np.concatenate([[0], count, [0]])
+    peak = (count >= MIN_LEVEL) & (count >= padded[:-2]) & (count > padded[2:])
+    out = []
+    for b in sorted(np.nonzero(peak)[0], key=lambda b: -count[b])[:MAX_LEVELS]:
+        at = (z >= edges[b]) & (z < edges[b + 1])
+        out.append((float(np.median(z[at])), cluster[at]))
+    return out
 
 
 def _height(R: np.ndarray, hull: np.ndarray) -> float:

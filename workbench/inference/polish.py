@@ -24,10 +24,10 @@ LIFT = 0.005  # m; exchanged objects start this far above their old height, and 
 
 
 def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples: list[ModelSamples],
-             reach: np.ndarray, radii: np.ndarray) -> np.ndarray:
+             reach: np.ndarray, radii: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
     """Variants of the estimate (K, 4, 4):
     - one object turned by 90, 180 or 270 degrees about the vertical through its centre and refitted by ICP to the
-      observed points ``points`` (P, 3) near it (``refine.refit``; ``reach`` (K,) m);
+      observed points ``points`` (P, 3) near it, seen from ``viewpoint`` (3,) (``refine.refit``; ``reach`` (K,) m);
     - one object put on its best library candidate at one of its ``PER_OBJECT`` best places
       (``datadriven.place_order``), for every object and candidate that differs from its pose in the estimate,
       the objects it would sit inside moved out of its way (``seat``; ``radii`` (K,) m);
@@ -38,7 +38,7 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
     for k in range(K):
         turned = np.repeat(estimate[k][None], 3, axis=0)
         turned[:, :3, :3] = rot_z(np.pi / 2 * np.arange(1, 4)) @ estimate[k, :3, :3]
-        for T in refit(points, samples[k], reach[k], turned):
+        for T in refit(points, samples[k], reach[k], turned, viewpoint):
             scene = estimate.copy()
             scene[k] = T
             out.append(scene)

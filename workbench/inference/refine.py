@@ -34,7 +34,8 @@ def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations
 
 
 def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarray, iterations: int = 8,
-              max_points: int = MAX_POINTS, stages: tuple[float, ...] = STAGES) -> tuple[np.ndarray, np.ndarray]:
+              max_points: int = MAX_POINTS, stages: tuple[float, ...] = STAGES,
+              viewpoint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fit one model (samples in its object frame) from S starts at once: start s at ``T_init[s]`` (4, 4, table
     frame) against its observed points ``scenes[s]`` (P_s, 3). Scene-to-model point-to-plane ICP, coarse to
     fine over the correspondence distances ``stages`` (m); a start leaves a stage when its step is negligible and
@@ -44,7 +45,12 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
     Points of other objects in a crop find no model surface within the correspondence distance. All starts share
     one k-d tree query and one batched solve per step, so a library of thousands of starts costs a few dozen
     numpy calls per step instead of thousands. Plain numpy and a k-d tree: bit-reproducible, unlike a
-    multi-threaded ICP, so seeded runs stay identical."""
+    multi-threaded ICP, so seeded runs stay identical.
+
+    ``viewpoint`` (3,), the camera centre in the table frame: a scene point matched to the model's far side (a
+    surface facing away from the camera, which the sensor cannot have seen) is no correspondence. Without it, an
+    object lying on another pulls its hidden bottom onto the other's top: from its true pose, YCB-Video's pudding
+    box on the wood block slid 6 cm and turned 74 degrees."""
     S = len(scenes)
     if S == 0:
         return np.zeros((0, 4, 4)), np.zeros(0, dtype=int)
@@ -72,6 +78,10 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
             p = np.einsum("nij,nj->ni", R, points[sel]) + t
             d, j = tree.query(p, distance_upper_bound=dist)
             ok = np.isfinite(d)
+            if viewpoint is not None:
+                eye = np.einsum("nij,j->ni", R, viewpoint) + t  # the camera centre in the object frame
+                jj = np.where(ok, j, 0)
+                ok &= np.einsum("nd,nd->n", samples.normals[jj], eye - samples.points[jj]) > 0
             count = np.bincount(own[ok], minlength=S)
             inliers[moving] = count[moving]
             lost = moving & (count < 6)
@@ -124,16 +134,19 @@ def crops(points: np.ndarray, centres: np.ndarray, radius: float) -> list[np.nda
     return [points[i] for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
 
 
-def refit(points: np.ndarray, samples: ModelSamples, reach: float, T: np.ndarray) -> np.ndarray:
+def refit(points: np.ndarray, samples: ModelSamples, reach: float, T: np.ndarray, viewpoint: np.ndarray
+          ) -> np.ndarray:
     """Poses T (S, 4, 4) of one object of horizontal ``reach`` (m), each refined by ICP on PROPOSAL_POINTS of
-    the observed points ``points`` (P, 3) near it -> (S, 4, 4)."""
-    return icp_batch(crops(points, T[:, :3, 3], reach + NEAR), samples, T, max_points=PROPOSAL_POINTS)[0]
+    the observed points ``points`` (P, 3) near it, seen from ``viewpoint`` (3,) -> (S, 4, 4)."""
+    return icp_batch(crops(points, T[:, :3, 3], reach + NEAR), samples, T, max_points=PROPOSAL_POINTS,
+                     viewpoint=viewpoint)[0]
 
 
 def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarray, samples: list[ModelSamples],
-                reach: np.ndarray, weights: np.ndarray) -> Proposal:
+                reach: np.ndarray, weights: np.ndarray, viewpoint: np.ndarray) -> Proposal:
     """One object per particle (drawn by ``weights`` (K,)) is fitted by ICP to the observed points ``points``
-    (P, 3) near it (``refit``; ``reach`` (K,) m), then jittered. (B, K, 4, 4) -> Proposal.
+    (P, 3) near it, seen from ``viewpoint`` (3,) (``refit``; ``reach`` (K,) m), then jittered.
+    (B, K, 4, 4) -> Proposal.
 
     All particles that move the same object are fitted as one ``icp_batch``, forward and reverse."""
     B = len(parents)
@@ -143,12 +156,12 @@ def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarra
     fitted = np.empty_like(T0)
     for k in np.unique(picks):
         sel = picks == k
-        fitted[sel] = refit(points, samples[k], reach[k], T0[sel])
+        fitted[sel] = refit(points, samples[k], reach[k], T0[sel], viewpoint)
     new = jitter(rng, fitted)
     back = np.empty_like(T0)
     for k in np.unique(picks):
         sel = picks == k
-        back[sel] = refit(points, samples[k], reach[k], new[sel])
+        back[sel] = refit(points, samples[k], reach[k], new[sel], viewpoint)
     out = parents.copy()
     out[rows, picks] = new
     return Proposal(out, _log_kernel(T0, back) - _log_kernel(new, fitted))

@@ -22,10 +22,11 @@ SEEN_THROUGH = 0.02  # m; an observed depth this far behind an object's surface 
 @dataclass(frozen=True)
 class ScenePoints:
     """``points``: (P, 3) observed points above the table, table frame; ``pixels``: (P, 2) their (row, col) on the
-    problem grid."""
+    problem grid; ``viewpoint``: (3,) the camera centre they were seen from, table frame."""
 
     points: np.ndarray
     pixels: np.ndarray
+    viewpoint: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,12 @@ def observed_points(problem: Problem, max_height: float = 0.45) -> ScenePoints:
     keep = ((world[:, 2] > MIN_HEIGHT) & (world[:, 2] < max_height)
             & (world[:, 0] >= tb.x_min) & (world[:, 0] <= tb.x_max)
             & (world[:, 1] >= tb.y_min) & (world[:, 1] <= tb.y_max))
-    return ScenePoints(world[keep], np.stack([rows[keep], cols[keep]], axis=1))
+    return ScenePoints(world[keep], np.stack([rows[keep], cols[keep]], axis=1), viewpoint(problem))
+
+
+def viewpoint(problem: Problem) -> np.ndarray:
+    """The camera centre in the table frame -> (3,) m."""
+    return invert_pose(problem.render_camera.T_cam_world)[:3, 3].copy()
 
 
 def project_samples(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]
