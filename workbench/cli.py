@@ -23,8 +23,8 @@ DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
 
 def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=METHODS, default="pipf", help="PI-PF or PI-MCPF (default: pipf)")
-    p.add_argument("--particles", type=int, default=400, help="particles N (paper: 1444; default 400)")
-    p.add_argument("--iterations", type=int, default=60, help="maximum iterations (default 60)")
+    p.add_argument("--particles", type=int, default=200, help="particles N (paper: 1444; default 200)")
+    p.add_argument("--iterations", type=int, default=20, help="maximum iterations (default 20)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--state", choices=STATES, default="6dof", help="6dof, or the paper's reduced x,y,z,yaw")
     p.add_argument("--proposals", choices=PROPOSALS, default="default",
