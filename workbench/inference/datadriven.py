@@ -44,8 +44,6 @@ LEVEL_BIN = 0.01  # m; heights of a cluster's horizontal surfaces are found in b
 MIN_LEVEL = 40  # observed points that make a horizontal surface
 MAX_LEVELS = 2  # per cluster
 LEVEL_HEADINGS = 12  # headings tried on a horizontal surface, 30 degrees apart
-TOP_SHARE = 0.5  # an object on top shows as the cluster's points above its base plus this share of its height
-MIN_UPPER = 20  # observed points that make such an upper part
 PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally) are at one place
 
 
@@ -127,11 +125,12 @@ def principal_heading(points: np.ndarray) -> float:
     return float(np.arctan2(v[1, -1], v[0, -1]))
 
 
-def explained_pixels(problem: Problem, T: np.ndarray, samples: ModelSamples) -> tuple[np.ndarray, np.ndarray]:
-    """Per candidate pose T (S, 4, 4) of one object, the problem-grid pixels whose observed depth lies on its
-    camera-facing surface (``on``), and those where the sensor sees through it (``through``: a reading behind
-    where the surface should hide it, and not on it) -> (on, through), each sorted unique keys ``s * H * W + row *
-    W + col``. Pixels hidden behind something else are in neither: an object may be occluded."""
+def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.ndarray:
+    """Per candidate pose T (S, 4, 4) of one object: pixels it explains (observed depth on its camera-facing
+    surface) less three for each pixel where the sensor sees through it (a pose that floats in front of the
+    background) -> (S,). Pixels hidden behind something else count for nothing: an object may be occluded, and a
+    pose buried inside another object explains little. All candidates at once, as ``project_samples`` projects
+    one."""
     cam, obs = problem.render_camera, problem.observed
     h, w = obs.shape
     Tc = cam.T_cam_world[None] @ T
@@ -149,16 +148,8 @@ def explained_pixels(problem: Problem, T: np.ndarray, samples: ModelSamples) -> 
     key = s * (h * w) + v * w + u  # (candidate, pixel) pairs, counted once each
     on = np.unique(key[(o > 0) & (np.abs(o - d) < EXPLAINED)])
     through = np.unique(key[(o > 0) & (o > d + SEEN_THROUGH)])
-    return on, through[~np.isin(through, on)]
-
-
-def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.ndarray:
-    """Per candidate pose T (S, 4, 4) of one object: pixels it explains less three for each pixel where the
-    sensor sees through it (a pose that floats in front of the background; ``explained_pixels``) -> (S,). A pose
-    buried inside another object explains little."""
-    on, through = explained_pixels(problem, T, samples)
-    hw = problem.observed.size
-    return np.bincount(on // hw, minlength=len(T)) - 3.0 * np.bincount(through // hw, minlength=len(T))
+    through = through[~np.isin(through, on)]
+    return np.bincount(on // (h * w), minlength=len(T)) - 3.0 * np.bincount(through // (h * w), minlength=len(T))
 
 
 def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.ndarray,
@@ -211,7 +202,7 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.nda
     """One object's scored candidates (score, pose (4, 4)) fitted at one ``cluster`` (P, 3): the best
     PER_CENTRE distinct ones of each start place (``_starts``), place by place."""
     reach = float(np.max(np.linalg.norm(hull[:, :2], axis=1)))
-    starts, place = _starts([cluster], rest, hull, reach)
+    starts, place = _starts(cluster, rest, hull, reach)
     if not starts:
         return []
     starts = np.stack(starts)
@@ -237,10 +228,10 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.nda
     return out
 
 
-def _starts(clusters: list[np.ndarray], rest: RestingPoses, hull: np.ndarray, reach: float
+def _starts(cluster: np.ndarray, rest: RestingPoses, hull: np.ndarray, reach: float
             ) -> tuple[list[np.ndarray], list[int]]:
-    """One object's ICP starts (4, 4) over the ``clusters``, and the start place of each:
-    - at each cluster's centroid and spread points, on every face on which the object is no taller than the
+    """One object's ICP starts (4, 4) at one ``cluster`` (P, 3), and the start place of each:
+    - at the cluster's centroid and spread points, on every face on which the object is no taller than the
       cluster, in four headings from the cluster's principal axis; where the cluster is clearly taller than the
       object, also on top, its upper face at the cluster's top;
     - on top of something: at each of the cluster's horizontal surfaces (``_levels``), the object's upper face
@@ -260,22 +251,21 @@ def _starts(clusters: list[np.ndarray], rest: RestingPoses, hull: np.ndarray, re
                     place.append(n_places)
             n_places += 1
 
-    for cluster in clusters:
-        top = float(np.percentile(cluster[:, 2], 95))
-        faces = np.nonzero(heights <= top + FACE_SLACK)[0]
-        bases = [(f, 0.0) for f in (faces if len(faces) else [int(np.argmin(heights))])]
-        # Where the cluster is clearly taller, the object may stand on something, so it also starts on top.
-        bases += [(f, top - heights[f]) for f in faces if top > heights[f] + 0.02]
-        add(spread_centres(cluster, 1.2 * reach, MAX_CENTRES), bases, principal_heading(cluster), 4)
-        # An object on top of another shows as a horizontal surface of their joint cluster (many points at one
-        # height), which the cluster's centre and rim miss when the cluster also holds objects beside them:
-        # YCB-Video's pudding box lies on the wood block, which touches the can and the banana, and no start
-        # came within 6 cm of it. The surface's rectangle gives a heading only roughly (other objects' points
-        # share the height), so more headings are tried there.
-        for level, upper in _levels(cluster):
-            on = [(f, level - heights[f]) for f in faces if level > heights[f] + 0.02]
-            if on:
-                add(spread_centres(upper, 1.2 * reach, 1), on, rectangle_heading(upper), LEVEL_HEADINGS)
+    top = float(np.percentile(cluster[:, 2], 95))
+    faces = np.nonzero(heights <= top + FACE_SLACK)[0]
+    bases = [(f, 0.0) for f in (faces if len(faces) else [int(np.argmin(heights))])]
+    # Where the cluster is clearly taller, the object may stand on something, so it also starts on top.
+    bases += [(f, top - heights[f]) for f in faces if top > heights[f] + 0.02]
+    add(spread_centres(cluster, 1.2 * reach, MAX_CENTRES), bases, principal_heading(cluster), 4)
+    # An object on top of another shows as a horizontal surface of their joint cluster (many points at one
+    # height), which the cluster's centre and rim miss when the cluster also holds objects beside them:
+    # YCB-Video's pudding box lies on the wood block, which touches the can and the banana, and no start
+    # came within 6 cm of it. The surface's rectangle gives a heading only roughly (other objects' points
+    # share the height), so more headings are tried there.
+    for level, upper in _levels(cluster):
+        on = [(f, level - heights[f]) for f in faces if level > heights[f] + 0.02]
+        if on:
+            add(spread_centres(upper, 1.2 * reach, 1), on, rectangle_heading(upper), LEVEL_HEADINGS)
     return starts, place
 
 
