@@ -179,6 +179,35 @@ def test_panel_shows_a_restored_config_without_changing_it():
         server.stop()
 
 
+def test_a_running_engine_starts_an_iteration_only_once_the_server_shows_the_last():
+    """Flow control between engine and server: a run never gets ahead of the display by more than the iteration
+    in progress, so a Pause pressed while iteration k is shown stops it at k + 1 at the latest."""
+    from workbench.app.engine import Engine
+    from workbench.estimators import EstimatorConfig
+
+    engine = Engine(Inbox(), workers=1)
+    try:
+        engine.handle(p.Load(p.Source(demo=True), EstimatorConfig(particles=12, iterations=50), "robust"))
+        engine.handle(p.Run(stop_on_convergence=False))
+        assert engine.may_step()
+        engine.step()
+        assert engine.running and not engine.may_step()  # iteration 0 is on its way to the server
+        engine.handle(p.Shown(engine.estimator.iteration - 1))  # an older snapshot shown: still waiting
+        assert not engine.may_step()
+        engine.handle(p.Shown(engine.estimator.iteration))
+        assert engine.may_step()
+        engine.step()
+        # The server sends a Pause before the Shown of any later iteration: the run stops there.
+        engine.handle(p.Pause())
+        engine.handle(p.Shown(engine.estimator.iteration))
+        assert not engine.running and not engine.may_step() and engine.estimator.iteration == 1
+        engine.handle(p.Reset(EstimatorConfig(particles=12, iterations=50), "robust"))
+        engine.handle(p.Run())
+        assert engine.may_step()  # a fresh run waits for nothing from the old one
+    finally:
+        engine.close()
+
+
 def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message(tmp_path, capsys):
     from workbench.app.engine import Engine
     from workbench.app.server import serve

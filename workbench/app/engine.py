@@ -3,7 +3,9 @@
 It runs in a ``spawn``ed process (forking after an OpenGL context exists hangs the child) so that the browser
 server never waits for an iteration: the server puts commands on a queue and reads messages from a pipe (see
 ``EngineClient``). Commands are drained between iterations, so a Pause takes effect after the iteration in
-progress.
+progress. A run starts an iteration only once the server has shown the last one (``protocol.Shown``): a slow
+display holds the run back instead of falling behind it, and a Pause stops the run one iteration after the one on
+display at the latest.
 
 Labels and sessions are handled here too, because they need the estimator and a renderer: the server only shows
 them. Label edits arrive as ``SetLabels`` on every gizmo move; the engine keeps the latest and renders its heatmap
@@ -140,6 +142,7 @@ class Engine:
         self.explainer = None  # a LocalEvaluator in this process, for one particle's per-pixel likelihood
         self.config = None
         self.running = False
+        self.unshown: int | None = None  # the iteration last published and not yet Shown by the server
         self.stop_on_convergence = True
         self.max_display = DEFAULT_DISPLAY
         self.order = np.zeros(0, int)  # particle indices of the last snapshot, most likely first
@@ -175,6 +178,9 @@ class Engine:
                 self.step()
         elif isinstance(cmd, p.Run):
             self.start(cmd.stop_on_convergence)
+        elif isinstance(cmd, p.Shown):
+            if self.unshown is not None and cmd.iteration >= self.unshown:
+                self.unshown = None
         elif isinstance(cmd, p.Pause):
             if self.running:
                 self.running = False
@@ -236,6 +242,7 @@ class Engine:
         from workbench.estimators import Estimator
 
         self.running = False
+        self.unshown = None  # a snapshot of the old run still on its way does not hold up the new one
         if self.evaluator is None:
             self.evaluator = self.make_evaluator()
         self.estimator = Estimator(self.problem, self.config, self.evaluator)
@@ -290,6 +297,10 @@ class Engine:
         self.running = True
         self.send_state("running")
 
+    def may_step(self) -> bool:
+        """Running, and the server shows the last iteration (see ``protocol.Shown``)."""
+        return self.running and self.unshown is None
+
     def finished(self) -> bool:
         est = self.estimator
         return est.iteration >= self.config.iterations or (
@@ -334,6 +345,7 @@ class Engine:
         row["distinct_after_resampling"] = expected_distinct(weights, self.config.particles)
         row["reference"], row["reference_loglik"] = self.reference_loglik()
         self.results.put(p.Snapshot(row, cloud, self.running, self.config.particles))
+        self.unshown = est.iteration
         self.publish_chosen()
         self.publish_label_errors()
 
@@ -686,9 +698,10 @@ def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
         outbox.put(p.Ready(os.getpid()))
         while True:
             try:
-                # Block briefly while idle; never while running or with label work waiting, so iterations follow
-                # each other at once and a heatmap follows its edit.
-                busy = engine.running or engine.label_dirty
+                # Block briefly while idle or waiting for the server to show the last iteration; never while an
+                # iteration may start or label work waits, so iterations follow each other at once and a heatmap
+                # follows its edit.
+                busy = engine.may_step() or engine.label_dirty
                 cmd = commands.get(timeout=0.5) if not busy else commands.get_nowait()
             except queue.Empty:
                 cmd = None
@@ -700,7 +713,7 @@ def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
                     continue  # drain every queued command before the next iteration
                 if engine.label_dirty:
                     engine.label_work()  # for the latest labels only: the edits drained above were overwritten
-                if engine.running:
+                if engine.may_step():
                     engine.step()
             except Exception as err:  # noqa: BLE001 - every error becomes a message; the loop must survive
                 engine.fail(err)

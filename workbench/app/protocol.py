@@ -65,6 +65,15 @@ class Pause:
 
 
 @dataclass(frozen=True)
+class Shown:
+    """The server has taken in the snapshot of ``iteration``. A running engine starts the next iteration only
+    once the last one it published is shown, so the display never falls behind the run, and a Pause pressed
+    while iteration k is on display stops the run at k + 1 at the latest."""
+
+    iteration: int
+
+
+@dataclass(frozen=True)
 class Reset:
     """Throw the particles away and start again (seed and likelihood model take effect here)."""
 
@@ -150,7 +159,7 @@ class LoadSession:
     confirmed: bool = False
 
 
-Command = (Load | Step | Run | Pause | Reset | SetConfig | Select | SetDisplay | Shutdown | SetLabels | SnapLabels
+Command = (Load | Step | Run | Pause | Shown | Reset | SetConfig | Select | SetDisplay | Shutdown | SetLabels | SnapLabels
            | FitLabels | UseBestAsLabel | SaveLabels | SaveSession | LoadSession)
 
 

@@ -211,9 +211,11 @@ class App:
         self.guarded(apply)
 
     def pause(self) -> None:
+        # Sent under the lock, so it reaches the engine before the Shown of any later iteration (on_snapshot sends
+        # that under the lock too): the run stops at most one iteration after the one on display.
         with self.lock:
             self.state.pause_requested_at = self.state.iteration
-        self.send(p.Pause())
+            self.send(p.Pause())
 
     def reset(self) -> None:
         def apply():
@@ -361,6 +363,7 @@ class App:
             s.reports.pop()  # a republished iteration (e.g. more particles drawn), not a new one
         s.reports.append(msg.report)
         s.cloud, s.iteration, s.running = msg.cloud, msg.report["iteration"], msg.running
+        self.send(p.Shown(s.iteration))  # the engine may start the next iteration (see protocol.Shown)
         self.scene_throttle.submit("particles", lambda: self.draw_particles(msg.cloud), defer=msg.running)
         P.rank.max = max(1, msg.cloud.n_total - 1)
         self.clear_error()  # an iteration went through: whatever failed before was dealt with
