@@ -43,6 +43,11 @@ class SupportConfig:
     cluster_voxel: float = 0.01  # the points above the table are clustered on this voxel grid
     cluster_eps: float = 0.025  # DBSCAN neighbourhood
     extent_percentiles: tuple[float, float] = (1.0, 99.0)  # of the table inliers, against stray points
+    # Where the table runs out of the image its edge is unseen: that side of the extent is pushed out this far, so
+    # that physics does not drop objects near the image border off an edge that is only the field of view's.
+    unseen_extension: float = 0.3
+    border_near: float = 0.03  # a side is judged by what is seen this far beyond it
+    unseen_share: float = 0.5  # of that line out of the image or on the table plane: the table may go on there
     seed: int = 0
 
 
@@ -214,6 +219,39 @@ def _table_outline(
     return hull, (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
 
 
+def _extend_unseen_sides(
+    extent: tuple[float, float, float, float], depth: np.ndarray, camera: Camera, T_cam_world: np.ndarray,
+    cfg: SupportConfig,
+) -> tuple[float, float, float, float]:
+    """Push each side of ``extent`` (x_min, x_max, y_min, y_max; m, in the table frame of ``T_cam_world``) out by
+    ``cfg.unseen_extension`` where the table may go on: where most of a line ``cfg.border_near`` beyond the side
+    lies out of the image, or on pixels whose depth (H, W; m) is the table plane's. A side whose beyond is seen as
+    something else (the floor far below, a wall, no return) is a real edge and stays."""
+    x_min, x_max, y_min, y_max = extent
+    t = np.linspace(0.0, 1.0, 41)
+    d = cfg.border_near
+    lines = {  # side -> (41, 3) points just beyond it
+        "x_min": np.stack([np.full_like(t, x_min - d), y_min + t * (y_max - y_min), 0 * t], -1),
+        "x_max": np.stack([np.full_like(t, x_max + d), y_min + t * (y_max - y_min), 0 * t], -1),
+        "y_min": np.stack([x_min + t * (x_max - x_min), np.full_like(t, y_min - d), 0 * t], -1),
+        "y_max": np.stack([x_min + t * (x_max - x_min), np.full_like(t, y_max + d), 0 * t], -1),
+    }
+    H, W = depth.shape
+    out = dict(x_min=x_min, x_max=x_max, y_min=y_min, y_max=y_max)
+    for side, pts in lines.items():
+        cam = transform_points(T_cam_world, pts)
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.round(camera.K[0, 0] * cam[:, 0] / z + camera.K[0, 2])
+            v = np.round(camera.K[1, 1] * cam[:, 1] / z + camera.K[1, 2])
+        inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        seen = depth[v[inside].astype(int), u[inside].astype(int)]
+        table = np.abs(seen - z[inside]) < np.maximum(cfg.min_height, cfg.refine_sigmas * depth_noise_sigma(z[inside]))
+        if (np.count_nonzero(~inside) + np.count_nonzero(table)) / len(t) >= cfg.unseen_share:
+            out[side] += cfg.unseen_extension if side.endswith("max") else -cfg.unseen_extension
+    return out["x_min"], out["x_max"], out["y_min"], out["y_max"]
+
+
 def _object_region(
     world: np.ndarray, z_cam: np.ndarray, outline: np.ndarray, cfg: SupportConfig, path
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -277,6 +315,7 @@ def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig()) -> tupl
 
     world = transform_points(invert_pose(T), points)
     outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
+    extent = _extend_unseen_sides(extent, depth, camera, T, cfg)
     lo, hi = _object_region(world, points[:, 2], outline, cfg, path)
     if estimated:
         # Put the origin at the centre of the objects: where the estimator's attention is.
