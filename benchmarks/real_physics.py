@@ -35,9 +35,9 @@ class RecordingEvaluator(LocalEvaluator):
         super().__init__(problem)
         self.batches: list[np.ndarray] = []
 
-    def evaluate(self, hypotheses):
+    def evaluate(self, hypotheses, sink=None):
         self.batches.append(np.array(hypotheses))
-        return super().evaluate(hypotheses)
+        return super().evaluate(hypotheses, sink)
 
 
 def filter_hypotheses(problem, particles: int, iterations: int, seed: int) -> np.ndarray:

@@ -72,6 +72,31 @@ def test_physics_results_do_not_depend_on_the_worker(frame_and_problem):
     assert np.allclose(a.loglik, b.loglik, rtol=1e-5)
 
 
+def test_submitted_batches_equal_their_evaluation_whichever_is_collected_first(frame_and_problem):
+    """The estimator hands the workers one batch and prepares the next meanwhile. Batches submitted before any is
+    collected (the later one collected first) come back as ``evaluate`` gives them; a large one is held back until
+    the one before is received, so no pipe fills both ways."""
+    frame, problem = frame_and_problem
+    rng = np.random.default_rng(0)
+    truth = _ground_truth_in_table_frame(frame, problem)
+    batches = []
+    for n in (40, 1500):
+        h = np.repeat(truth[None], n, axis=0)
+        h[:, :, :3, 3] += rng.uniform(-0.02, 0.02, size=h[:, :, :3, 3].shape)
+        h[:, :, 2, 3] += 0.005
+        batches.append(h)
+    pool = PoolEvaluator(problem, workers=2)
+    try:
+        pending = [pool.submit(h) for h in batches]
+        late, early = pending[1].result(), pending[0].result()
+        again = [pool.evaluate(h) for h in batches]
+    finally:
+        pool.close()
+    for got, want in zip((early, late), again):
+        assert np.array_equal(got.projected, want.projected) and np.array_equal(got.loglik, want.loglik)
+    assert len(late.loglik) == 1500 and np.isfinite(late.loglik).mean() > 0.9
+
+
 def test_particle_count_and_sigma_change_between_steps(frame_and_problem):
     _, problem = frame_and_problem
     evaluator = LocalEvaluator(problem)

@@ -192,6 +192,19 @@ class _EvaluatorActor:
         return os.getpid()
 
 
+class _RayPending:
+    """A batch submitted to a ``RayEvaluator``: the actors' calls (each actor runs its calls in order)."""
+
+    def __init__(self, ray, calls):
+        self._ray, self._calls = ray, calls
+
+    def result(self) -> Evaluation:
+        try:
+            return Evaluation.concatenate(self._ray.get(self._calls))
+        except self._ray.exceptions.RayActorError as err:
+            raise WorkerCrashed(f"an evaluation actor died: {err}") from err
+
+
 class RayEvaluator:
     """The ``Evaluator`` interface over ``actors`` Ray actors of one CPU each, anywhere on the cluster: a batch is
     split into ``actors`` contiguous chunks in order, chunk i to actor i, as ``PoolEvaluator`` splits it over its
@@ -220,12 +233,11 @@ class RayEvaluator:
         return list(self._pids)
 
     def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+        return self.submit(hypotheses, sink).result()
+
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> "_RayPending":
         chunks = split_batch(hypotheses, len(self._actors), sink)
-        calls = [actor.evaluate.remote(h, s) for actor, (h, s) in zip(self._actors, chunks)]
-        try:
-            return Evaluation.concatenate(self._ray.get(calls))
-        except self._ray.exceptions.RayActorError as err:
-            raise WorkerCrashed(f"an evaluation actor died: {err}") from err
+        return _RayPending(self._ray, [actor.evaluate.remote(h, s) for actor, (h, s) in zip(self._actors, chunks)])
 
     def close(self) -> None:
         for actor in self._actors:

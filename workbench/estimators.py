@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.evaluation import STAGES, Evaluation, Evaluator
+from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
 from workbench.geometry import rotation_angle
 from workbench.inference import assemble, datadriven, gaussian, polish, refine, resting, stacking
 from workbench.inference.proposal import Proposal
@@ -188,9 +188,8 @@ class Estimator:
             accepted = None
         else:
             idx = systematic_resample(self._beta * self.loglik, self.rng, cfg.particles)
-            proposals, log_q, kinds = self._propose(self.projected[idx])
-            t_resample = time.perf_counter() - t0
-            ev = self._evaluate(proposals)
+            proposals, log_q, kinds, ev, waited = self._propose_and_evaluate(self.projected[idx])
+            t_resample = time.perf_counter() - t0 - waited  # the main process's own work
             if cfg.method == "pipf":
                 self._adopt(proposals, ev, kinds, np.ones(len(idx), bool))
                 accepted = None
@@ -274,8 +273,14 @@ class Estimator:
         self.sink, self.evaluations = search["sink"], search["evaluations"]
 
     def _evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+        return self._submit(hypotheses, sink).result()
+
+    def _submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Pending:
+        if len(hypotheses) == 0:  # nothing to send the workers
+            n, K = 0, self.problem.n_objects
+            return Done(Evaluation(np.zeros((n, K, 4, 4)), np.zeros(n), np.zeros(n, np.int8)))
         self.evaluations += len(hypotheses)
-        return self.evaluator.evaluate(hypotheses, np.full(len(hypotheses), self.sink) if sink is None else sink)
+        return self.evaluator.submit(hypotheses, np.full(len(hypotheses), self.sink) if sink is None else sink)
 
     def _fit_sink(self) -> None:
         """The sink that maximises the estimate's likelihood: the estimate, lowered to each value of SINK_GRID,
@@ -375,26 +380,45 @@ class Estimator:
         finally:
             renderer.close()
 
-    def _propose(self, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Proposals from the resampled ``parents`` (N, K, 4, 4) -> (hypotheses (N, K, 4, 4), log-q corrections
-        (N,), move kinds (N,))."""
+    def _propose_and_evaluate(self, parents: np.ndarray
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Evaluation, float]:
+        """Proposals from the resampled ``parents`` (N, K, 4, 4), evaluated -> (hypotheses (N, K, 4, 4), log-q
+        corrections (N,), move kinds (N,), their evaluation, seconds spent waiting for it).
+
+        The moves that are cheap to make go to the evaluator first; the main process then refits the library
+        (when due) and makes the data-driven and ICP moves while the workers project the first ones."""
         cfg, n, K = self.config, len(parents), self.problem.n_objects
         if cfg.proposals == "paper":
-            ones = np.ones(K)
-            return (gaussian.propose_joint(self.rng, parents, cfg.sigma, ones, cfg.state).hypotheses, np.zeros(n),
-                    np.full(n, int(MoveKind.JOINT), np.int8))
+            hypotheses = gaussian.propose_joint(self.rng, parents, cfg.sigma, np.ones(K), cfg.state).hypotheses
+            t0 = time.perf_counter()
+            ev = self._evaluate(hypotheses)
+            return hypotheses, np.zeros(n), np.full(n, int(MoveKind.JOINT), np.int8), ev, time.perf_counter() - t0
         ctx = self._context()
-        # A session saved without the search state (or by an older version) has no library yet: fit one now.
-        if self._library is None or self.iteration % cfg.library_every == 0:
-            self._refit_library()
         # Objects that explain their part of the observation worst are moved most often; every object sometimes.
         choose = object_badness(self.problem, self.best, ctx.samples) + 0.1
         scales = gaussian.object_scales(self.projected, self.weights(), cfg.sigma, cfg.sigma_floor)
         mix = cfg.moves if cfg.state == "6dof" else replace(cfg.moves, face=0.0)
         kinds = mix.draw(self.rng, n)
         out, log_q = parents.copy(), np.zeros(n)
-        for kind in np.unique(kinds):
-            sel = np.nonzero(kinds == kind)[0]
+        first = ~np.isin(kinds, (MoveKind.DATA, MoveKind.ICP))
+        self._propose(parents, kinds, first, out, log_q, choose, scales)
+        pending = self._submit(out[first])
+        # A session saved without the search state (or by an older version) has no library yet: fit one now.
+        if self._library is None or self.iteration % cfg.library_every == 0:
+            self._refit_library()
+        self._propose(parents, kinds, ~first, out, log_q, choose, scales)
+        t0 = time.perf_counter()
+        ev = Evaluation.interleave(first, pending.result(), self._evaluate(out[~first]))
+        return out, log_q, kinds, ev, time.perf_counter() - t0
+
+    def _propose(self, parents: np.ndarray, kinds: np.ndarray, which: np.ndarray, out: np.ndarray,
+                 log_q: np.ndarray, choose: np.ndarray, scales: np.ndarray) -> None:
+        """Fill ``out`` (N, K, 4, 4) and ``log_q`` (N,) where ``which`` (N,) is true: the move of kind ``kinds``
+        (N,) from ``parents`` (N, K, 4, 4). ``choose`` (K,): how often each object is the one moved; ``scales``
+        (K,): the Gaussian steps' scale per object."""
+        cfg, K, ctx = self.config, self.problem.n_objects, self._context()
+        for kind in np.unique(kinds[which]):
+            sel = np.nonzero(which & (kinds == kind))[0]
             sub = parents[sel]
             if kind == MoveKind.JOINT:
                 p = gaussian.propose_joint(self.rng, sub, cfg.sigma, scales, cfg.state)
@@ -415,7 +439,6 @@ class Estimator:
                 p = Proposal.symmetric(random_relocations(
                     self.rng, sub, 1.0 / K, self.problem.models, self.problem.table))
             out[sel], log_q[sel] = p.hypotheses, p.log_q_ratio
-        return out, log_q, kinds
 
     # ------------------------------------------------------------------------------------------- bookkeeping
     def _keep_parents(self, idx: np.ndarray) -> None:

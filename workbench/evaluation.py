@@ -1,6 +1,8 @@
 """Particle evaluation behind one small interface: a batch of hypotheses in, projected poses and log-likelihoods
 out. The estimators see only ``Evaluator``; where the work runs (this process, a pool of local workers, or Ray actors
-on a cluster: ``workbench.distributed.RayEvaluator``) is the evaluator's business.
+on a cluster: ``workbench.distributed.RayEvaluator``) is the evaluator's business. ``submit`` hands a batch over and
+returns at once where the work runs elsewhere, so that the caller can prepare the next batch meanwhile;
+``evaluate`` is ``submit(...).result()``.
 
 Each evaluation is independent of every other (physics rebuilds its world per particle), so splitting a batch
 across workers never changes a result.
@@ -11,6 +13,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -45,12 +48,43 @@ class Evaluation:
             timings={s: sum(p.timings[s] for p in parts) for s in STAGES},
         )
 
+    @staticmethod
+    def interleave(first: np.ndarray, a: "Evaluation", b: "Evaluation") -> "Evaluation":
+        """The evaluation of a batch whose hypotheses where ``first`` (B,) is true were evaluated as ``a`` and the
+        others as ``b``, both in order."""
+        projected = np.empty((len(first), *a.projected.shape[1:]))
+        loglik, status = np.empty(len(first)), np.empty(len(first), dtype=a.status.dtype)
+        for part, where in ((a, first), (b, ~first)):
+            projected[where], loglik[where], status[where] = part.projected, part.loglik, part.status
+        return Evaluation(projected, loglik, status, {s: a.timings[s] + b.timings[s] for s in STAGES})
+
+
+class Pending(Protocol):
+    def result(self) -> Evaluation:
+        """The submitted batch's evaluation, waiting for it if need be."""
+        ...
+
+
+@dataclass
+class Done:
+    """A batch evaluated at submission (evaluators that work in the caller's process)."""
+
+    evaluation: Evaluation
+
+    def result(self) -> Evaluation:
+        return self.evaluation
+
 
 class Evaluator(Protocol):
     def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
         """(B, K, 4, 4) hypotheses in the table frame -> their evaluation. ``sink`` (B,) m, default 0: how far
         below the fitted table plane each hypothesis's objects rest (``PhysicsProjector.project``); the observed
         table is drawn where it was fitted either way."""
+        ...
+
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Pending:
+        """``evaluate``, but returning as soon as the batch is handed over; results are the same. Batches are
+        evaluated in the order submitted."""
         ...
 
     def close(self) -> None: ...
@@ -81,6 +115,9 @@ class LocalEvaluator:
             )
         t3 = time.perf_counter()
         return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
+
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Done:
+        return Done(self.evaluate(hypotheses, sink))
 
     def explain(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
@@ -137,9 +174,26 @@ class WorkerCrashed(RuntimeError):
     """A worker process died mid-evaluation; the pool must be rebuilt."""
 
 
+class _PoolPending:
+    """A batch submitted to a ``PoolEvaluator``: its chunks, and their evaluation once received."""
+
+    def __init__(self, pool: "PoolEvaluator", chunks: list[tuple[np.ndarray, np.ndarray]]):
+        self.pool, self.chunks = pool, chunks
+        self.evaluation: Evaluation | None = None
+
+    def result(self) -> Evaluation:
+        while self.evaluation is None:
+            self.pool._advance()
+        return self.evaluation
+
+
 class PoolEvaluator:
     """Splits each batch into contiguous chunks over ``workers`` spawned processes, each holding its own physics
-    client and renderer, created once. ``spawn`` because forking after any OpenGL context exists hangs the child."""
+    client and renderer, created once. ``spawn`` because forking after any OpenGL context exists hangs the child.
+
+    One batch is with the workers at a time; later submissions wait here and go out as soon as the one before is
+    received. (Sending a second batch while a worker is still sending back the first can fill both directions of
+    its pipe and hang both sides.)"""
 
     def __init__(self, problem: Problem, workers: int = 2):
         if workers < 1:
@@ -154,6 +208,8 @@ class PoolEvaluator:
             child.close()
             self._conns.append(parent)
             self._procs.append(proc)
+        self._in_flight: _PoolPending | None = None
+        self._waiting: deque[_PoolPending] = deque()
 
     @property
     def pids(self) -> list[int]:
@@ -161,14 +217,38 @@ class PoolEvaluator:
         return [proc.pid for proc in self._procs]
 
     def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
-        busy = []
-        for conn, chunk in zip(self._conns, split_batch(hypotheses, len(self._conns), sink)):
-            conn.send(chunk)
-            busy.append(conn)
+        return self.submit(hypotheses, sink).result()
+
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> _PoolPending:
+        pending = _PoolPending(self, split_batch(hypotheses, len(self._conns), sink))
+        self._waiting.append(pending)
+        if self._in_flight is None:
+            self._send_next()
+        return pending
+
+    def _send_next(self) -> None:
+        pending = self._in_flight = self._waiting.popleft()
         try:
-            return Evaluation.concatenate([conn.recv() for conn in busy])
+            for conn, chunk in zip(self._conns, pending.chunks):
+                conn.send(chunk)
+        except (ConnectionError, OSError) as err:
+            self._fail(err)
+
+    def _advance(self) -> None:
+        """Receive the batch in flight, then send the next waiting one."""
+        pending = self._in_flight
+        try:
+            pending.evaluation = Evaluation.concatenate([conn.recv() for conn in self._conns[: len(pending.chunks)]])
         except (EOFError, ConnectionError, OSError) as err:
-            raise WorkerCrashed(f"an evaluation worker died: {err!r}") from err
+            self._fail(err)
+        self._in_flight = None
+        if self._waiting:
+            self._send_next()
+
+    def _fail(self, err: Exception):
+        # The pool is broken: every submitted batch is lost with it (the caller rebuilds the pool).
+        self._in_flight, self._waiting = None, deque()
+        raise WorkerCrashed(f"an evaluation worker died: {err!r}") from err
 
     def close(self) -> None:
         for conn in self._conns:
