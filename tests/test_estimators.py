@@ -97,6 +97,25 @@ def test_submitted_batches_equal_their_evaluation_whichever_is_collected_first(f
     assert len(late.loglik) == 1500 and np.isfinite(late.loglik).mean() > 0.9
 
 
+def test_a_scene_with_an_object_resting_outside_the_object_region_is_ruled_out(frame_and_problem):
+    """The table may go on out of view, but no object is seen beyond the object region: a scene that parks an
+    object there gets no likelihood, whatever it would explain."""
+    from workbench.physics import STATUS_OUTSIDE, STATUS_REST
+
+    frame, problem = frame_and_problem
+    truth = _ground_truth_in_table_frame(frame, problem)
+    away = truth.copy()
+    away[0, 0, 3] = problem.table.region_max[0] + problem.config.region_margin + 0.05
+    assert away[0, 0, 3] < problem.table.x_max  # still on the table: physics alone would keep it
+    evaluator = LocalEvaluator(problem)
+    try:
+        ev = evaluator.evaluate(np.stack([truth, away]))
+    finally:
+        evaluator.close()
+    assert ev.status.tolist() == [STATUS_REST, STATUS_OUTSIDE]
+    assert np.isfinite(ev.loglik[0]) and ev.loglik[1] == -np.inf
+
+
 def test_particle_count_and_sigma_change_between_steps(frame_and_problem):
     _, problem = frame_and_problem
     evaluator = LocalEvaluator(problem)

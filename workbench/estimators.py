@@ -89,7 +89,7 @@ class IterationReport:
     best_move_m: float  # how far the best scene moved since the last iteration (max over objects)
     best_move_deg: float
     converged: bool
-    n_failed: int  # particles whose physics blew up or left the table
+    n_failed: int  # particles whose physics blew up or left the table, or that rest outside the object region
     accept_rate: float  # PI-MCPF only (nan for PI-PF)
     timings: dict[str, float]
     # Per move kind: how many were proposed this iteration, and how many were accepted (PI-MCPF) or, for PI-PF,

@@ -22,8 +22,9 @@ import numpy as np
 from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.likelihood import pixel_loglik, predicted_depth, scene_loglik
-from workbench.physics import STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
+from workbench.physics import STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
+from workbench.scene import Table
 from workbench.render import DepthRenderer
 
 STAGES = ("projection", "render", "likelihood")
@@ -90,6 +91,14 @@ class Evaluator(Protocol):
     def close(self) -> None: ...
 
 
+def in_region(T_world_obj: np.ndarray, table: Table, margin: float) -> np.ndarray:
+    """Whether every object's origin (B, K, 4, 4 table frame) lies within ``margin`` (m) of the table's object
+    region -> (B,) bool."""
+    xy = T_world_obj[:, :, :2, 3]
+    lo, hi = np.asarray(table.region_min) - margin, np.asarray(table.region_max) + margin
+    return np.all((xy >= lo) & (xy <= hi), axis=(1, 2))
+
+
 class LocalEvaluator:
     """Evaluates in this process with its own physics client and renderer."""
 
@@ -106,6 +115,9 @@ class LocalEvaluator:
         projected, status, _ = self.projector.project_batch(hypotheses, check_sink(sink, len(hypotheses)))
         t1 = time.perf_counter()
         ok = (status == STATUS_REST) | (status == STATUS_STEP_CAP)
+        outside = ok & ~in_region(projected, self.problem.table, self.problem.config.region_margin)
+        status[outside] = STATUS_OUTSIDE
+        ok &= ~outside
         loglik = np.full(len(hypotheses), -np.inf)
         rendered = self.renderer.render(projected[ok]) if ok.any() else None
         t2 = time.perf_counter()

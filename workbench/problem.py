@@ -25,6 +25,11 @@ class ProblemConfig:
     # Small objects get the pixels they need: the grid is made finer (up to 2x max_render_pixels) until the
     # smallest object covers about this many pixels at the objects' median depth.
     min_object_pixels: int = 300
+    # A scene with an object resting more than this (m) outside the object region (``Table.region_*``, where
+    # something stands on the table) is ruled out: no object is seen there. The table itself may go on out of view
+    # (``support``), and without this prior the search parks objects it cannot place on unmodelled clutter or at
+    # the image's edges.
+    region_margin: float = 0.05
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
