@@ -329,7 +329,7 @@ class Engine:
             if not est.history:
                 return
             report = est.history[-1]
-        order = np.argsort(-est.loglik, kind="stable")  # -inf (failed physics) last
+        order = np.argsort(-est.loglik, kind="stable")  # -inf (failed physics, or outside the object region) last
         self.order = order
         top = order[: self.max_display]
         weights = est.weights()

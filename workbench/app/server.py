@@ -531,7 +531,7 @@ class App:
         return (
             f"**{counter}** · {state}  \n{conv}  \n"
             f"best log-lik {r['best_loglik']:.1f} (from a {r.get('best_kind') or 'start'} move) · β {r['beta']:.3g}"
-            f" · failed physics {r['n_failed']}{accept} · objects rest {r.get('sink_m', 0.0) * 1000:.0f} mm below"
+            f" · failed physics or outside the object region {r['n_failed']}{accept} · objects rest {r.get('sink_m', 0.0) * 1000:.0f} mm below"
             f" the fitted table"
         )
 
