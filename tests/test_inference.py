@@ -10,7 +10,7 @@ from workbench.geometry import invert_pose, rot_z
 from workbench.inference import datadriven, gaussian, refine, resting, stacking
 from workbench.inference.moves import MoveKind, MoveMix
 from workbench.inference.scenepoints import clusters, object_badness
-from workbench.particles import Sigma, random_relocations
+from workbench.particles import Sigma, initial_particles, random_relocations
 from workbench.pipeline import load_bop_problem
 
 
@@ -287,6 +287,31 @@ def test_relocation_stays_valid(frame_and_problem):
     parents = np.repeat(_truth(frame, problem)[None], 10, axis=0)
     out = random_relocations(np.random.default_rng(0), parents, 0.5, problem.models, problem.table)
     assert np.all(np.isfinite(out)) and out.shape == parents.shape
+
+
+def test_random_starts_and_relocations_land_on_the_support(frame_and_problem):
+    """No wasted evaluations: random starts and relocations are drawn over the object region and above the support,
+    so physics sets (nearly) every one down, on the table or on another object, and inside the region."""
+    from workbench.physics import STATUS_REST, STATUS_STEP_CAP
+
+    frame, problem = frame_and_problem
+    rng = np.random.default_rng(0)
+    starts = initial_particles(rng, 48, problem.models, problem.table, "6dof")
+    moved = random_relocations(rng, np.repeat(_truth(frame, problem)[None], 48, axis=0), 0.5, problem.models,
+                               problem.table)
+    evaluator = LocalEvaluator(problem)
+    try:
+        ev = evaluator.evaluate(np.concatenate([starts, moved]))
+    finally:
+        evaluator.close()
+    landed = (ev.status == STATUS_REST) | (ev.status == STATUS_STEP_CAP)
+    assert landed.mean() >= 0.95, np.bincount(ev.status)
+    # Resting on something: no object's lowest vertex is below the table or hangs in the air above everything.
+    for k, model in enumerate(problem.models):
+        lowest = (model.mesh.vertices @ np.swapaxes(ev.projected[landed, k, :3, :3], 1, 2))[..., 2].min(axis=1)
+        lowest += ev.projected[landed, k, 2, 3]
+        others_top = max(float(np.max(m.mesh.extents)) for m in problem.models)
+        assert np.all(lowest > -0.005) and np.all(lowest < others_top), lowest
 
 
 def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_and_problem, context, monkeypatch):
