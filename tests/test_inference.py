@@ -307,11 +307,11 @@ def test_random_starts_and_relocations_land_on_the_support(frame_and_problem):
     landed = (ev.status == STATUS_REST) | (ev.status == STATUS_STEP_CAP)
     assert landed.mean() >= 0.95, np.bincount(ev.status)
     # Resting on something: no object's lowest vertex is below the table or hangs in the air above everything.
+    tallest = max(float(np.max(m.mesh.extents)) for m in problem.models)
     for k, model in enumerate(problem.models):
-        lowest = (model.mesh.vertices @ np.swapaxes(ev.projected[landed, k, :3, :3], 1, 2))[..., 2].min(axis=1)
-        lowest += ev.projected[landed, k, 2, 3]
-        others_top = max(float(np.max(m.mesh.extents)) for m in problem.models)
-        assert np.all(lowest > -0.005) and np.all(lowest < others_top), lowest
+        T = ev.projected[landed, k]
+        lowest = resting.lowest_point(T[:, :3, :3], model.mesh.vertices) + T[:, 2, 3]
+        assert np.all(lowest > -0.005) and np.all(lowest < tallest), lowest
 
 
 def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_and_problem, context, monkeypatch):
