@@ -161,9 +161,14 @@ def _plane_frame(n: np.ndarray, d: float) -> np.ndarray:
     return make_pose(np.stack([x, np.cross(n, x), n], axis=-1), -d * n)
 
 
+def _noise_band(z_cam: np.ndarray, cfg: SupportConfig) -> np.ndarray:
+    """How far (m) a reading at camera depth ``z_cam`` (N,) may lie from the plane and still be the plane -> (N,)."""
+    return np.maximum(cfg.min_height, cfg.refine_sigmas * depth_noise_sigma(z_cam))
+
+
 def _on_table(world: np.ndarray, z_cam: np.ndarray, cfg: SupportConfig) -> np.ndarray:
     """Which points (N, 3) in the table frame lie on z = 0, within sensor noise. ``z_cam``: (N,) -> mask (N,)."""
-    return np.abs(world[:, 2]) < np.maximum(cfg.min_height, cfg.refine_sigmas * depth_noise_sigma(z_cam))
+    return np.abs(world[:, 2]) < _noise_band(z_cam, cfg)
 
 
 def _cross_2d(a: np.ndarray, b: np.ndarray) -> float:
@@ -246,7 +251,7 @@ def _extend_unseen_sides(
             v = np.round(camera.K[1, 1] * cam[:, 1] / z + camera.K[1, 2])
         inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         seen = depth[v[inside].astype(int), u[inside].astype(int)]
-        table = np.abs(seen - z[inside]) < np.maximum(cfg.min_height, cfg.refine_sigmas * depth_noise_sigma(z[inside]))
+        table = np.abs(seen - z[inside]) < _noise_band(z[inside], cfg)
         if (np.count_nonzero(~inside) + np.count_nonzero(table)) / len(t) >= cfg.unseen_share:
             out[side] += cfg.unseen_extension if side.endswith("max") else -cfg.unseen_extension
     return out["x_min"], out["x_max"], out["y_min"], out["y_max"]
@@ -259,7 +264,7 @@ def _object_region(
     the image border cuts below ``max_height`` (a monitor's lower half, say) stays in: nothing tells it apart.
 
     ``world``: (N, 3) points in the table frame; ``z_cam``: (N,) their depths (noise model); ``outline``: (V, 2)."""
-    above = world[:, 2] > np.maximum(cfg.min_height, cfg.refine_sigmas * depth_noise_sigma(z_cam))
+    above = world[:, 2] > _noise_band(z_cam, cfg)
     # The margin drops the foot of a wall behind the desk, which noise spreads over the table's far edge.
     above[above] = _inside_hull(world[above, :2], outline, cfg.edge_margin)
     if not above.any():

@@ -34,13 +34,13 @@ from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, Par
 from workbench.errors import InputError
 from workbench.estimators import EstimatorConfig
 from workbench.geometry import rotation_angle
+from workbench.physics import STATUS_NAMES
 
 log = logging.getLogger(__name__)
 
 # Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
 SESSIONS_DIR = Path("sessions")
-STATUS_NAMES = {0: "rest", 1: "step cap", 2: "unstable", 3: "off the table", 4: "outside the object region"}  # physics.STATUS_*
 CAMERA_REST_S = 0.5  # a tab's camera is remembered (for reloads and new tabs) once it rested this long
 # While the estimator runs, the 3D view is redrawn at most once per this many seconds. Every batch of scene messages
 # makes viser's client draw frames for 250 ms, and a software-rendered frame costs ~0.2 s of CPU, so each redraw
