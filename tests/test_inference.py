@@ -150,6 +150,38 @@ def test_polish_variants_change_objects_or_exchange_two(frame_and_problem, conte
                                                  ctx.radius, ctx.points.viewpoint))
 
 
+def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_problem, context):
+    """A candidate ranked below polish's PER_OBJECT places in the merged library is tried when the latest refit
+    (from the points the estimate leaves unexplained) has it; a candidate both have is tried once."""
+    from workbench.inference import polish
+
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    truth = _truth(frame, problem)
+    K = problem.n_objects
+    places = []
+    for i in range(polish.PER_OBJECT + 2):  # distinct places 10 cm apart, heaviest first
+        T = truth[0].copy()
+        T[0, 3] += 0.1 * (i + 1)
+        places.append(T)
+    weights = np.linspace(2.0, 1.0, len(places))
+    merged = datadriven.Library([np.stack(places)] + [np.zeros((0, 4, 4))] * (K - 1),
+                                [weights / weights.sum()] + [np.zeros(0)] * (K - 1))
+    target, shared = places[-1], places[0]
+    fresh = datadriven.Library([np.stack([target, shared])] + [np.zeros((0, 4, 4))] * (K - 1),
+                               [np.array([0.5, 0.5])] + [np.zeros(0)] * (K - 1))
+    args = (ctx.points.points, ctx.samples, ctx.reach, ctx.radius, ctx.points.viewpoint)
+    without = polish.variants(truth, merged, *args)
+    with_fresh = polish.variants(truth, merged, *args, unexplained=fresh)
+
+    def count_at(scenes, T):
+        return sum(np.allclose(s[0], T) for s in scenes)
+
+    assert count_at(without, target) == 0 and count_at(with_fresh, target) == 1
+    assert count_at(without, shared) == 1 and count_at(with_fresh, shared) == 1
+    assert len(with_fresh) == len(without) + 1
+
+
 def test_seating_an_object_moves_the_one_on_its_place_out_of_the_way():
     """An ejection chain: the can goes back to its place, the box that sat there moves to its own free candidate,
     which pushes the marker off the box's place onto the marker's; the bowl, in nobody's way, stays."""

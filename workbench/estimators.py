@@ -139,6 +139,9 @@ class Estimator:
         self._map_loglik = float("-inf")
         self._map_kind = MoveKind.START
         self._library: datadriven.Library | None = None
+        # The latest refit's candidates alone, fitted where the estimate leaves points unexplained; polish tries
+        # them first. Made and used within one step (refit and polish fall on the same iterations), so not saved.
+        self._unexplained: datadriven.Library | None = None
         self._search = None  # per-object geometry for the default proposals, built at the first step
         self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
         self.sink = 0.0
@@ -303,7 +306,7 @@ class Estimator:
             return
         ctx = self._context()
         scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius,
-                                 ctx.points.viewpoint)
+                                 ctx.points.viewpoint, self._unexplained)
         joint = self._assemblies(self._map)
         kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.ASSEMBLE], np.int8), [len(scenes), len(joint)])
         scenes = np.concatenate([scenes.reshape(-1, *self._map.shape), joint.reshape(-1, *self._map.shape)])
@@ -349,6 +352,7 @@ class Estimator:
         fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls,
                                          self._cluster_memo)
         self._library = fresh if self._library is None else self._library.merged(fresh)
+        self._unexplained = fresh
 
     def _start(self) -> tuple[np.ndarray, np.ndarray]:
         """Iteration 0: random scenes over the object region; in the default search most objects are taken from
