@@ -19,7 +19,8 @@ from workbench.inference.refine import refit
 from workbench.inference.scenepoints import ModelSamples
 
 PER_OBJECT = 6  # candidates of each object tried in place of its pose in the estimate: the best of as many places
-SAME_M, SAME_RAD = 0.01, np.radians(10.0)  # a candidate this close to the estimate's pose is no change
+# A candidate this close to the estimate's pose is no change; this close to one already tried, no new variant.
+SAME_M, SAME_RAD = 0.01, np.radians(10.0)
 LIFT = 0.005  # m; exchanged objects start this far above their old height, and physics sets them down
 
 
