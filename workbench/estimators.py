@@ -142,6 +142,7 @@ class Estimator:
         # The latest refit's candidates alone, fitted where the estimate leaves points unexplained; polish tries
         # them first. Made and used within one step (refit and polish fall on the same iterations), so not saved.
         self._unexplained: datadriven.Library | None = None
+        self._base_memo: dict = {}  # polish.stacked's bases found under each top so far: a cache, not saved
         self._search = None  # per-object geometry for the default proposals, built at the first step
         self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
         self.sink = 0.0
@@ -307,6 +308,9 @@ class Estimator:
         ctx = self._context()
         scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius,
                                  ctx.points.viewpoint, self._unexplained)
+        scenes = np.concatenate([scenes, polish.stacked(self.problem, self._map, self._library, self._unexplained,
+                                                        ctx.rest, ctx.hulls, ctx.samples, ctx.radius,
+                                                        self._base_memo)])
         joint = self._assemblies(self._map)
         kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.ASSEMBLE], np.int8), [len(scenes), len(joint)])
         scenes = np.concatenate([scenes.reshape(-1, *self._map.shape), joint.reshape(-1, *self._map.shape)])

@@ -125,12 +125,13 @@ def principal_heading(points: np.ndarray) -> float:
     return float(np.arctan2(v[1, -1], v[0, -1]))
 
 
-def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.ndarray:
+def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples, per_pixel: bool = True) -> np.ndarray:
     """Per candidate pose T (S, 4, 4) of one object: pixels it explains (observed depth on its camera-facing
     surface) less three for each pixel where the sensor sees through it (a pose that floats in front of the
     background) -> (S,). Pixels hidden behind something else count for nothing: an object may be occluded, and a
     pose buried inside another object explains little. All candidates at once, as ``project_samples`` projects
-    one."""
+    one. ``per_pixel=False`` counts samples instead of distinct pixels: several times faster, and as good for
+    ranking where the samples are sparser than the pixels."""
     cam, obs = problem.render_camera, problem.observed
     h, w = obs.shape
     Tc = cam.T_cam_world[None] @ T
@@ -145,6 +146,9 @@ def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.nda
     s = np.nonzero(inside)[0]
     v, u, d = v[inside], u[inside], p[..., 2][inside]
     o = obs[v, u]
+    if not per_pixel:
+        on, through = (o > 0) & (np.abs(o - d) < EXPLAINED), (o > 0) & (o > d + SEEN_THROUGH)
+        return np.bincount(s[on], minlength=len(T)) - 3.0 * np.bincount(s[through], minlength=len(T))
     key = s * (h * w) + v * w + u  # (candidate, pixel) pairs, counted once each
     on = np.unique(key[(o > 0) & (np.abs(o - d) < EXPLAINED)])
     through = np.unique(key[(o > 0) & (o > d + SEEN_THROUGH)])

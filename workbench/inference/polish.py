@@ -3,8 +3,8 @@
 The particle moves change one object of a *random* particle at a time, so a change that the estimate needs (its
 mustard bottle put on the candidate where the data shows it; two objects that took each other's places exchanged)
 is tried on the estimate only by chance; nor can a Gaussian step turn an object that came to rest turned by 180
-degrees about the vertical (a mustard bottle with its nozzle to the wrong side) and shifted to fit that way.
-Every time the candidates are refitted, these variants of the estimate
+degrees about the vertical (a mustard bottle with its nozzle to the wrong side) and shifted to fit that way, nor
+put a hidden base under the top it carries (``stacked``). Every time the candidates are refitted, these variants of the estimate
 are evaluated like any hypothesis (physics, then the likelihood). A variant that beats the estimate becomes the
 estimate and replaces the worst particles, so the particle set searches on from it.
 """
@@ -16,8 +16,13 @@ import numpy as np
 from workbench.geometry import rot_z, rotation_angle
 from workbench.inference.datadriven import Library, overlaps, place_order
 from workbench.inference.refine import refit
+from workbench.inference.resting import RestingPoses, lowest_point
 from workbench.inference.scenepoints import ModelSamples
+from workbench.inference.stacking import BASE_MIN, bases_under
+from workbench.problem import Problem
 
+MEMO_LIMIT = 2000  # tops whose bases ``stacked`` remembers
+MEMO_CELL = 0.01  # m; tops whose centres and bottoms fall in one cell of this size share their bases
 PER_OBJECT = 6  # candidates of each object tried in place of its pose in the estimate: the best of as many places
 # A candidate this close to the estimate's pose is no change; this close to one already tried, no new variant.
 SAME_M, SAME_RAD = 0.01, np.radians(10.0)
@@ -53,11 +58,10 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
         # put it back (+500 log-units). The latest refit sees only what the estimate leaves unexplained.
         tried = [estimate[k]]
         for T in _best_places(unexplained, k) + _best_places(library, k):
-            if any(np.linalg.norm(T[:3, 3] - U[:3, 3]) < SAME_M
-                   and rotation_angle(T[:3, :3].T @ U[:3, :3]) < SAME_RAD for U in tried):
+            if any(_same(T, U) for U in tried):
                 continue
             tried.append(T)
-            out.append(seat(estimate, k, T, library, radii))
+            out.append(seat(estimate, {k: T}, library, radii))
     for i in range(K):
         for j in range(i + 1, K):
             scene = estimate.copy()
@@ -67,6 +71,50 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
     return np.array(out).reshape(-1, K, 4, 4)
 
 
+def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplained: Library | None,
+            rest: list[RestingPoses], hulls: list[np.ndarray], samples: list[ModelSamples], radii: np.ndarray,
+            memo: dict) -> np.ndarray:
+    """Variants of the estimate (K, 4, 4) that build a stack: a top object on a candidate that does not rest on
+    the table (its pose in the estimate, or one tried by ``variants``), and under it, as its base, every other
+    object at each of its best places there (``stacking.bases_under``: by their resting faces ``rest``, convex-hull
+    vertices ``hulls`` and surface ``samples``); the top is lifted onto a base taller than its bottom,
+    and the objects either would sit inside are seated elsewhere (``seat``; ``radii`` (K,) m). ``memo`` keeps each
+    top's bases between calls (the library changes slowly). -> (V, K, 4, 4).
+
+    No one-object change can build such a stack when the base is hidden: the base alone, wherever it goes, explains
+    almost nothing, and the top alone on its candidate floats and falls."""
+    K = len(estimate)
+    out = []
+    if len(memo) > MEMO_LIMIT:
+        memo.clear()
+    for k in range(K):
+        tops = [estimate[k]]
+        for T in _best_places(unexplained, k) + _best_places(library, k):
+            if not any(_same(T, U) for U in tops):
+                tops.append(T)
+        for T in tops:
+            bottom = T[2, 3] + lowest_point(T[:3, :3], hulls[k])
+            if bottom < BASE_MIN:
+                continue
+            # Where the bases go depends on the top only through its centre and how high its bottom is; tops
+            # within MEMO_CELL of each other (the candidates shift by millimetres between refits) share them.
+            key = (k,) + tuple(np.round(np.array([*T[:2, 3], bottom]) / MEMO_CELL).astype(int))
+            if key not in memo:
+                memo[key] = [(j, B) for j in range(K) if j != k
+                             for B, _ in bases_under(problem, T, hulls[k], rest[j], hulls[j], samples[j])]
+            for j, B in memo[key]:
+                top = T.copy()
+                summit = B[2, 3] - lowest_point(-B[:3, :3], hulls[j])
+                top[2, 3] += max(0.0, summit - bottom) + LIFT
+                out.append(seat(estimate, {k: top, j: B}, library, radii))
+    return np.array(out).reshape(-1, K, 4, 4)
+
+
+def _same(T: np.ndarray, U: np.ndarray) -> bool:
+    """Whether poses T and U (4, 4) are one (SAME_M, SAME_RAD)."""
+    return bool(np.linalg.norm(T[:3, 3] - U[:3, 3]) < SAME_M and rotation_angle(T[:3, :3].T @ U[:3, :3]) < SAME_RAD)
+
+
 def _best_places(library: Library | None, k: int) -> list[np.ndarray]:
     """Object k's candidates (4, 4) at its ``PER_OBJECT`` best places in ``library`` (none if there is none)."""
     if library is None or not library.has(k):
@@ -74,11 +122,11 @@ def _best_places(library: Library | None, k: int) -> list[np.ndarray]:
     return list(library.poses[k][place_order(library.poses[k], library.weights[k])[:PER_OBJECT]])
 
 
-def seat(scene: np.ndarray, k: int, T: np.ndarray, library: Library, radii: np.ndarray) -> np.ndarray:
-    """``scene`` (K, 4, 4) with object k at pose T, and every object it would then sit inside (``overlaps``;
-    ``radii`` (K,) m) moved to its first candidate in ``place_order`` clear of all the others, else of the objects
-    already seated; an object moved so may push out the next (an ejection chain, each object moved at most once).
-    -> (K, 4, 4).
+def seat(scene: np.ndarray, changes: dict[int, np.ndarray], library: Library, radii: np.ndarray) -> np.ndarray:
+    """``scene`` (K, 4, 4) with each object k of ``changes`` at its pose (4, 4) there, and every object one of them
+    would then sit inside (``overlaps``; ``radii`` (K,) m) moved to its first candidate in ``place_order`` clear of
+    all the others, else of the objects already seated; an object moved so may push out the next (an ejection
+    chain, each object moved at most once). -> (K, 4, 4).
 
     An estimate that went wrong early is often a chain of objects each on another's place: on YCB-Video frame
     2:10 the pudding box sat on the potted meat can's place and the marker on the banana's, the can and the banana
@@ -86,10 +134,11 @@ def seat(scene: np.ndarray, k: int, T: np.ndarray, library: Library, radii: np.n
     pushes both out of, so no one-object change could gain; with the pudding box moved aside in the same variant,
     the chain unwinds one link per polish."""
     out = scene.copy()
-    out[k] = T
+    for k, T in changes.items():
+        out[k] = T
     K = len(out)
-    seated = [k]
-    queue = [k]
+    seated = list(changes)
+    queue = list(changes)
     while queue:
         i = queue.pop(0)
         for j in range(K):
