@@ -4,9 +4,9 @@ The particle moves change one object of a *random* particle at a time, so a chan
 mustard bottle put on the candidate where the data shows it; two objects that took each other's places exchanged)
 is tried on the estimate only by chance; nor can a Gaussian step turn an object that came to rest turned by 180
 degrees about the vertical (a mustard bottle with its nozzle to the wrong side) and shifted to fit that way, nor
-put a hidden base under the top it carries (``stacked``). Every time the candidates are refitted, these variants of the estimate
-are evaluated like any hypothesis (physics, then the likelihood). A variant that beats the estimate becomes the
-estimate and replaces the worst particles, so the particle set searches on from it.
+put a hidden base under the top it carries (``stacked``). Every time the candidates are refitted, these variants of
+the estimate are evaluated like any hypothesis (physics, then the likelihood). A variant that beats the estimate
+becomes the estimate and replaces the worst particles, so the particle set searches on from it.
 """
 
 from __future__ import annotations
