@@ -301,8 +301,9 @@ class Estimator:
             self._map, self._map_loglik = ev.projected[i].copy(), float(ev.loglik[i])
 
     def _polish(self) -> None:
-        """Evaluate the estimate's one- and two-object variants (``polish.variants``); those that beat the
-        estimate replace the worst particles (at most a tenth of them), the best becomes the estimate."""
+        """Evaluate the estimate's one- and two-object variants (``polish.variants``), the stacks it could be
+        (``polish.stacked``) and the assemblies; those that beat the estimate replace the worst particles (at most
+        a tenth of them), the best becomes the estimate."""
         if self._map is None or self._library is None:
             return
         ctx = self._context()
