@@ -307,14 +307,14 @@ class Estimator:
         if self._map is None or self._library is None:
             return
         ctx = self._context()
-        scenes = polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius,
-                                 ctx.points.viewpoint, self._unexplained)
-        scenes = np.concatenate([scenes, polish.stacked(self.problem, self._map, self._library, self._unexplained,
-                                                        ctx.rest, ctx.hulls, ctx.samples, ctx.radius,
-                                                        self._base_memo)])
-        joint = self._assemblies(self._map)
-        kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.ASSEMBLE], np.int8), [len(scenes), len(joint)])
-        scenes = np.concatenate([scenes.reshape(-1, *self._map.shape), joint.reshape(-1, *self._map.shape)])
+        parts = [polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius,
+                                 ctx.points.viewpoint, self._unexplained),
+                 polish.stacked(self.problem, self._map, self._library, self._unexplained, ctx.rest, ctx.hulls,
+                                ctx.samples, ctx.radius, self._base_memo),
+                 self._assemblies(self._map)]
+        kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.BASE, MoveKind.ASSEMBLE], np.int8),
+                          [len(p) for p in parts])
+        scenes = np.concatenate([p.reshape(-1, *self._map.shape) for p in parts])
         if not len(scenes):
             return
         ev = self._evaluate(scenes)

@@ -32,6 +32,7 @@ class MoveKind(IntEnum):
     RELOCATE = 9  # one object to a random place in the object region, dropped onto whatever is below
     POLISH = 10  # the estimate with one object on a candidate, or two objects' places exchanged (polish.py)
     ASSEMBLE = 11  # every object on a candidate, the joint assignment that explains the depth best (assemble.py)
+    BASE = 12  # the estimate with a base put under a top it or a candidate shows (polish.stacked)
 
     @property
     def label(self) -> str:
