@@ -219,7 +219,7 @@ def stacked_frame(tmp_path_factory):
 def test_a_base_is_put_under_the_top_it_carries(stacked_frame):
     """The base of a stack parked 30 cm away, its top floating where it was: a stacked variant puts the base back
     under the top (within 1.5 cm and 10 degrees), and after physics that scene beats the estimate. A top resting on
-    the table has no base."""
+    the table has no base; the bases found are distinct, best first."""
     from workbench.inference import polish
     from workbench.metrics import position_error, rotation_error
 
@@ -241,6 +241,12 @@ def test_a_base_is_put_under_the_top_it_carries(stacked_frame):
     assert memo and np.array_equal(scenes, polish.stacked(problem, estimate, *args, memo))
     ev = LocalEvaluator(problem).evaluate(np.stack([estimate, under[0]]))
     assert ev.loglik[1] > ev.loglik[0]
+    found = stacking.bases_under(problem, truth[top], ctx.hulls[top], ctx.rest[base], ctx.hulls[base],
+                                 ctx.samples[base])
+    assert 1 <= len(found) <= stacking.BASES
+    assert [s for _, s in found] == sorted((s for _, s in found), reverse=True)
+    assert all(np.linalg.norm(a[:3, 3] - b[:3, 3]) >= stacking.APART
+               for i, (a, _) in enumerate(found) for b, _ in found[i + 1:])
     assert stacking.bases_under(problem, truth[base], ctx.hulls[base], ctx.rest[top], ctx.hulls[top],
                                 ctx.samples[top]) == []
 
