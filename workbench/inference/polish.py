@@ -56,11 +56,7 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
         # places: YCB-Video's standing marker, parked 50 cm away by the search (frame 2:20), had its right
         # candidates in the library from the first refit on, behind the large cluster's places, and polish never
         # put it back (+500 log-units). The latest refit sees only what the estimate leaves unexplained.
-        tried = [estimate[k]]
-        for T in _best_places(unexplained, k) + _best_places(library, k):
-            if any(_same(T, U) for U in tried):
-                continue
-            tried.append(T)
+        for T in _poses_tried(estimate, k, library, unexplained)[1:]:
             out.append(seat(estimate, {k: T}, library, radii))
     for i in range(K):
         for j in range(i + 1, K):
@@ -88,11 +84,7 @@ def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplaine
     if len(memo) > MEMO_LIMIT:
         memo.clear()
     for k in range(K):
-        tops = [estimate[k]]
-        for T in _best_places(unexplained, k) + _best_places(library, k):
-            if not any(_same(T, U) for U in tops):
-                tops.append(T)
-        for T in tops:
+        for T in _poses_tried(estimate, k, library, unexplained):
             bottom = T[2, 3] + lowest_point(T[:3, :3], hulls[k])
             if bottom < BASE_MIN:
                 continue
@@ -108,6 +100,16 @@ def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplaine
                 top[2, 3] += max(0.0, summit - bottom) + LIFT
                 out.append(seat(estimate, {k: top, j: B}, library, radii))
     return np.array(out).reshape(-1, K, 4, 4)
+
+
+def _poses_tried(estimate: np.ndarray, k: int, library: Library, unexplained: Library | None) -> list[np.ndarray]:
+    """Object k's pose in the estimate (K, 4, 4), then its candidates (4, 4) at its best places in ``unexplained``
+    and then in ``library`` (``_best_places``), each unlike those before it (``_same``)."""
+    tried = [estimate[k]]
+    for T in _best_places(unexplained, k) + _best_places(library, k):
+        if not any(_same(T, U) for U in tried):
+            tried.append(T)
+    return tried
 
 
 def _same(T: np.ndarray, U: np.ndarray) -> bool:
