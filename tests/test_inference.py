@@ -82,6 +82,19 @@ def test_one_object_moves_keep_the_others(frame_and_problem, context):
         assert np.all(changed.sum(axis=1) <= 1), kind
 
 
+def test_icp_move_without_its_correction_proposes_the_same_scenes(frame_and_problem, context):
+    """PI-PF never uses the log-q correction, so its ICP moves skip the reverse fit: the same scenes from the same
+    draws, and NaN, not a made-up number, where the correction would be."""
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    parents = np.repeat(_truth(frame, problem)[None], 12, axis=0)
+    args = (parents, ctx.points.points, ctx.samples, ctx.reach, np.ones(problem.n_objects), ctx.points.viewpoint)
+    full = refine.propose_icp(np.random.default_rng(5), *args)
+    cheap = refine.propose_icp(np.random.default_rng(5), *args, log_q=False)
+    assert np.array_equal(full.hypotheses, cheap.hypotheses)
+    assert np.all(np.isfinite(full.log_q_ratio)) and np.all(np.isnan(cheap.log_q_ratio))
+
+
 def test_data_driven_start_finds_each_generated_object(frame_and_problem, context):
     """On a clean generated frame, the candidates fitted to the clusters of observed points include every object
     within 2 cm of where it is."""

@@ -443,7 +443,7 @@ class Estimator:
                 p = datadriven.propose_data(self.rng, sub, self._library, choose, ctx.radius)
             elif kind == MoveKind.ICP:
                 p = refine.propose_icp(self.rng, sub, ctx.points.points, ctx.samples, ctx.reach, choose,
-                                       ctx.points.viewpoint)
+                                       ctx.points.viewpoint, log_q=cfg.method == "mcpf")
             else:  # RELOCATE: the uniform move keeps every place reachable
                 p = Proposal.symmetric(random_relocations(
                     self.rng, sub, 1.0 / K, self.problem.models, self.problem.table))

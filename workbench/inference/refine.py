@@ -2,7 +2,8 @@
 
 It is a proposal like any other: the refined scene is projected by physics and weighed, and in PI-MCPF accepted
 or rejected. ICP is deterministic, so the proposal adds a small Gaussian jitter around the ICP result; its
-log-q correction needs the ICP result from the proposed pose too (the reverse move), which costs a second ICP.
+log-q correction needs the ICP result from the proposed pose too (the reverse move), which costs a second ICP;
+PI-PF, which never uses the correction, skips it.
 """
 
 from __future__ import annotations
@@ -143,12 +144,14 @@ def refit(points: np.ndarray, samples: ModelSamples, reach: float, T: np.ndarray
 
 
 def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarray, samples: list[ModelSamples],
-                reach: np.ndarray, weights: np.ndarray, viewpoint: np.ndarray) -> Proposal:
+                reach: np.ndarray, weights: np.ndarray, viewpoint: np.ndarray, log_q: bool = True) -> Proposal:
     """One object per particle (drawn by ``weights`` (K,)) is fitted by ICP to the observed points ``points``
     (P, 3) near it, seen from ``viewpoint`` (3,) (``refit``; ``reach`` (K,) m), then jittered.
     (B, K, 4, 4) -> Proposal.
 
-    All particles that move the same object are fitted as one ``icp_batch``, forward and reverse."""
+    All particles that move the same object are fitted as one ``icp_batch``. The log-q correction needs a second
+    ICP from each proposed pose (the reverse move); ``log_q`` False skips it, for PI-PF, which never uses the
+    correction, and gives NaN corrections instead."""
     B = len(parents)
     picks = pick_objects(rng, B, weights)
     rows = np.arange(B)
@@ -158,10 +161,12 @@ def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarra
         sel = picks == k
         fitted[sel] = refit(points, samples[k], reach[k], T0[sel], viewpoint)
     new = jitter(rng, fitted)
+    out = parents.copy()
+    out[rows, picks] = new
+    if not log_q:
+        return Proposal(out, np.full(B, np.nan))
     back = np.empty_like(T0)
     for k in np.unique(picks):
         sel = picks == k
         back[sel] = refit(points, samples[k], reach[k], new[sel], viewpoint)
-    out = parents.copy()
-    out[rows, picks] = new
     return Proposal(out, _log_kernel(T0, back) - _log_kernel(new, fitted))
