@@ -16,7 +16,7 @@ import numpy as np
 from workbench.geometry import rot_z, rotation_angle
 from workbench.inference.datadriven import Library, overlaps, place_order
 from workbench.inference.refine import refit
-from workbench.inference.resting import RestingPoses, lowest_point
+from workbench.inference.resting import RestingPoses, highest_point, lowest_point
 from workbench.inference.scenepoints import ModelSamples
 from workbench.inference.stacking import BASE_MIN, bases_under
 from workbench.problem import Problem
@@ -96,7 +96,7 @@ def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplaine
                              for B, _ in bases_under(problem, T, hulls[k], rest[j], hulls[j], samples[j])]
             for j, B in memo[key]:
                 top = T.copy()
-                summit = B[2, 3] - lowest_point(-B[:3, :3], hulls[j])
+                summit = B[2, 3] + highest_point(B[:3, :3], hulls[j])
                 top[2, 3] += max(0.0, summit - bottom) + LIFT
                 out.append(seat(estimate, {k: top, j: B}, library, radii))
     return np.array(out).reshape(-1, K, 4, 4)

@@ -100,6 +100,11 @@ def lowest_point(R: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     return np.min(np.einsum("...j,vj->...v", R[..., 2, :], vertices), axis=-1)
 
 
+def highest_point(R: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """z of the highest vertex, relative to the origin, for rotations (..., 3, 3) -> (...)."""
+    return -lowest_point(-R, vertices)
+
+
 def propose_face(rng: np.random.Generator, parents: np.ndarray, rest: list[RestingPoses],
                  hulls: list[np.ndarray], weights: np.ndarray) -> Proposal:
     """Put one object per particle (drawn by ``weights`` (K,)) on a resting face drawn by its probabilities,

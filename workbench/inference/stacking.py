@@ -12,7 +12,7 @@ import numpy as np
 from workbench.geometry import rot_z
 from workbench.inference.datadriven import fit_scores
 from workbench.inference.proposal import Proposal, pick_objects
-from workbench.inference.resting import RestingPoses, lowest_point
+from workbench.inference.resting import RestingPoses, highest_point, lowest_point
 from workbench.inference.scenepoints import ModelSamples
 from workbench.problem import Problem
 
@@ -39,7 +39,7 @@ def propose_stack(rng: np.random.Generator, parents: np.ndarray, hulls: list[np.
             out[b, k, 2, 3] = -low + 1e-3
         else:
             j = rng.choice([i for i in range(K) if i != k])
-            top = parents[b, j, 2, 3] - lowest_point(-parents[b, j, :3, :3], hulls[j])  # highest point of j
+            top = parents[b, j, 2, 3] + highest_point(parents[b, j, :3, :3], hulls[j])
             out[b, k, :2, 3] = parents[b, j, :2, 3] + rng.normal(scale=0.3 * reach[j], size=2)
             out[b, k, 2, 3] = top - low + 2e-3
     return Proposal.symmetric(out)
