@@ -22,7 +22,7 @@ from scipy.spatial import ConvexHull, QhullError
 from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, crops, icp_batch
-from workbench.inference.resting import RestingPoses
+from workbench.inference.resting import RestingPoses, height
 from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, viewpoint
 from workbench.problem import Problem
 
@@ -242,7 +242,7 @@ def _starts(cluster: np.ndarray, rest: RestingPoses, hull: np.ndarray, reach: fl
       there, in LEVEL_HEADINGS headings from the surface's minimum-area rectangle (one more place each)."""
     starts: list[np.ndarray] = []
     place: list[int] = []
-    heights = np.array([_height(R, hull) for R in rest.rotations])
+    heights = np.array([height(R, hull) for R in rest.rotations])
     n_places = 0
 
     def add(centres: np.ndarray, bases: list[tuple[int, float]], heading: float, turns: int) -> None:
@@ -286,12 +286,6 @@ def _levels(cluster: np.ndarray) -> list[tuple[float, np.ndarray]]:
         at = (z >= edges[b]) & (z < edges[b + 1])
         out.append((float(np.median(z[at])), cluster[at]))
     return out
-
-
-def _height(R: np.ndarray, hull: np.ndarray) -> float:
-    """Height (m) of an object with rotation R: its vertical extent."""
-    z = hull @ R[2]
-    return float(z.max() - z.min())
 
 
 def _distinct(candidates: list[tuple[float, np.ndarray]], keep: int) -> list[tuple[float, np.ndarray]]:

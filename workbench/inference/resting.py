@@ -105,6 +105,13 @@ def highest_point(R: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     return -lowest_point(-R, vertices)
 
 
+def height(R: np.ndarray, hull: np.ndarray) -> float:
+    """Height (m) of an object with rotation R (3, 3) and convex-hull vertices ``hull`` (V, 3): its vertical
+    extent."""
+    z = hull @ R[2]
+    return float(z.max() - z.min())
+
+
 def propose_face(rng: np.random.Generator, parents: np.ndarray, rest: list[RestingPoses],
                  hulls: list[np.ndarray], weights: np.ndarray) -> Proposal:
     """Put one object per particle (drawn by ``weights`` (K,)) on a resting face drawn by its probabilities,

@@ -12,7 +12,7 @@ import numpy as np
 from workbench.geometry import rot_z
 from workbench.inference.datadriven import fit_scores
 from workbench.inference.proposal import Proposal, pick_objects
-from workbench.inference.resting import RestingPoses, highest_point, lowest_point
+from workbench.inference.resting import RestingPoses, height, highest_point, lowest_point
 from workbench.inference.scenepoints import ModelSamples
 from workbench.problem import Problem
 
@@ -74,7 +74,7 @@ def bases_under(problem: Problem, top: np.ndarray, top_hull: np.ndarray, rest: R
     centre, in BASE_HEADINGS headings; the best FINE_STARTS distinct ones are refined on a finer grid, and the
     best BASES distinct refined poses returned."""
     bottom = top[2, 3] + lowest_point(top[:3, :3], top_hull)
-    heights = np.array([float(np.ptp(hull @ R[2])) for R in rest.rotations])
+    heights = np.array([height(R, hull) for R in rest.rotations])
     faces = np.nonzero(np.abs(heights - bottom) <= BASE_SLACK)[0]
     if bottom < BASE_MIN or not len(faces):
         return []
