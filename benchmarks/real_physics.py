@@ -35,9 +35,10 @@ class RecordingEvaluator(LocalEvaluator):
         super().__init__(problem)
         self.batches: list[np.ndarray] = []
 
-    def evaluate(self, hypotheses, sink=None):
-        self.batches.append(np.array(hypotheses))
-        return super().evaluate(hypotheses, sink)
+    def evaluate(self, hypotheses, sink=None, project=True):
+        if project:  # the batches physics projects
+            self.batches.append(np.array(hypotheses))
+        return super().evaluate(hypotheses, sink, project)
 
 
 def filter_hypotheses(problem, particles: int, iterations: int, seed: int) -> np.ndarray:

@@ -71,3 +71,11 @@ def test_bench_speed_measures_a_named_dataset(touching_dataset, tmp_path):
     assert "box (fills" in run.stdout  # the generated boxes collide as boxes, fit shown
     missing = _workbench("bench", "--speed", tmp_path / "nowhere")
     assert missing.returncode == 2 and "workbench: error:" in missing.stderr and "nowhere" in missing.stderr
+
+
+def test_no_settle_keeps_the_estimate_as_physics_put_it():
+    from workbench.cli import build_parser, estimator_config
+
+    parser = build_parser()
+    assert estimator_config(parser.parse_args(["estimate", "ds"])).settle_shift > 0
+    assert estimator_config(parser.parse_args(["estimate", "ds", "--no-settle"])).settle_shift == 0

@@ -185,8 +185,8 @@ class _EvaluatorActor:
         os.environ.setdefault("LP_NUM_THREADS", "1")
         self.evaluator = LocalEvaluator(problem)
 
-    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
-        return self.evaluator.evaluate(hypotheses, sink)
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
+        return self.evaluator.evaluate(hypotheses, sink, project)
 
     def pid(self) -> int:
         return os.getpid()
@@ -232,12 +232,13 @@ class RayEvaluator:
         """Process ids of the actors, on whichever node each runs (for the status line)."""
         return list(self._pids)
 
-    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
-        return self.submit(hypotheses, sink).result()
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
+        return self.submit(hypotheses, sink, project).result()
 
-    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> "_RayPending":
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> "_RayPending":
         chunks = split_batch(hypotheses, len(self._actors), sink)
-        return _RayPending(self._ray, [actor.evaluate.remote(h, s) for actor, (h, s) in zip(self._actors, chunks)])
+        return _RayPending(self._ray, [actor.evaluate.remote(h, s, project)
+                                       for actor, (h, s) in zip(self._actors, chunks)])
 
     def close(self) -> None:
         for actor in self._actors:

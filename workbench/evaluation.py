@@ -22,7 +22,7 @@ import numpy as np
 from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.likelihood import pixel_loglik, predicted_depth, scene_loglik
-from workbench.physics import STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
+from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
 from workbench.scene import Table
 from workbench.render import DepthRenderer
@@ -77,13 +77,14 @@ class Done:
 
 
 class Evaluator(Protocol):
-    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
         """(B, K, 4, 4) hypotheses in the table frame -> their evaluation. ``sink`` (B,) m, default 0: how far
         below the fitted table plane each hypothesis's objects rest (``PhysicsProjector.project``); the observed
-        table is drawn where it was fitted either way."""
+        table is drawn where it was fitted either way. ``project=False`` scores the hypotheses as given, without
+        physics (``inference.settle``): ``projected`` is then the hypotheses, with status ``STATUS_AS_GIVEN``."""
         ...
 
-    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Pending:
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Pending:
         """``evaluate``, but returning as soon as the batch is handed over; results are the same. Batches are
         evaluated in the order submitted."""
         ...
@@ -109,12 +110,16 @@ class LocalEvaluator:
             problem.render_camera, [m.mesh for m in problem.models], problem.config.render
         )
 
-    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
         hypotheses = check_rigid(hypotheses, "hypotheses")  # physics would turn a reflection into another pose
         t0 = time.perf_counter()
-        projected, status, _ = self.projector.project_batch(hypotheses, check_sink(sink, len(hypotheses)))
+        sink = check_sink(sink, len(hypotheses))
+        if project:
+            projected, status, _ = self.projector.project_batch(hypotheses, sink)
+        else:
+            projected, status = hypotheses.copy(), np.full(len(hypotheses), STATUS_AS_GIVEN, np.int8)
         t1 = time.perf_counter()
-        ok = (status == STATUS_REST) | (status == STATUS_STEP_CAP)
+        ok = (status == STATUS_REST) | (status == STATUS_STEP_CAP) | (status == STATUS_AS_GIVEN)
         outside = ok & ~in_region(projected, self.problem.table, self.problem.config.region_margin)
         status[outside] = STATUS_OUTSIDE
         ok &= ~outside
@@ -128,8 +133,8 @@ class LocalEvaluator:
         t3 = time.perf_counter()
         return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
 
-    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Done:
-        return Done(self.evaluate(hypotheses, sink))
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Done:
+        return Done(self.evaluate(hypotheses, sink, project))
 
     def explain(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
@@ -189,8 +194,8 @@ class WorkerCrashed(RuntimeError):
 class _PoolPending:
     """A batch submitted to a ``PoolEvaluator``: its chunks, and their evaluation once received."""
 
-    def __init__(self, pool: "PoolEvaluator", chunks: list[tuple[np.ndarray, np.ndarray]]):
-        self.pool, self.chunks = pool, chunks
+    def __init__(self, pool: "PoolEvaluator", chunks: list[tuple[np.ndarray, np.ndarray]], project: bool):
+        self.pool, self.chunks, self.project = pool, chunks, project
         self.evaluation: Evaluation | None = None
 
     def result(self) -> Evaluation:
@@ -228,11 +233,11 @@ class PoolEvaluator:
         """Process ids of the workers (for monitoring and crash tests)."""
         return [proc.pid for proc in self._procs]
 
-    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
-        return self.submit(hypotheses, sink).result()
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
+        return self.submit(hypotheses, sink, project).result()
 
-    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> _PoolPending:
-        pending = _PoolPending(self, split_batch(hypotheses, len(self._conns), sink))
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> _PoolPending:
+        pending = _PoolPending(self, split_batch(hypotheses, len(self._conns), sink), project)
         self._waiting.append(pending)
         if self._in_flight is None:
             self._send_next()
@@ -242,7 +247,7 @@ class PoolEvaluator:
         pending = self._in_flight = self._waiting.popleft()
         try:
             for conn, chunk in zip(self._conns, pending.chunks):
-                conn.send(chunk)
+                conn.send((*chunk, pending.project))
         except (ConnectionError, OSError) as err:
             self._fail(err)
 
@@ -288,8 +293,8 @@ class ChunkedEvaluator(LocalEvaluator):
         super().__init__(problem)
         self.chunks = chunks
 
-    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None) -> Evaluation:
-        return Evaluation.concatenate([LocalEvaluator.evaluate(self, h, s)
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
+        return Evaluation.concatenate([LocalEvaluator.evaluate(self, h, s, project)
                                        for h, s in split_batch(hypotheses, self.chunks, sink)])
 
 

@@ -12,7 +12,6 @@ ground truth is never touched unless asked for; then a timestamped backup is kep
 
 from __future__ import annotations
 
-import itertools
 from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
@@ -23,7 +22,8 @@ from workbench import bop
 from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
-from workbench.geometry import euler_to_matrix, invert_pose
+from workbench.inference.settle import pattern_search
+from workbench.geometry import invert_pose
 from workbench.likelihood import scene_loglik
 from workbench.metrics import add_s, model_points, position_error, rotation_error
 from workbench.problem import Problem
@@ -76,51 +76,19 @@ def scene_logliks(problem: Problem, evaluator: LocalEvaluator, scenes: np.ndarra
     return scene_loglik(problem.observed, problem.background, rendered, problem.config.likelihood)
 
 
-def _moves(T: np.ndarray, step_m: float, step_rad: float) -> np.ndarray:
-    """Every single-coordinate move of one object: +-step along the table's x, y, z, and +-step rotations about
-    table axes through the object's origin (as ``inference.gaussian``). (K, 4, 4) -> (K, 12, K, 4, 4)."""
-    K = len(T)
-    out = np.broadcast_to(T, (K, 12, K, 4, 4)).copy()
-    for k in range(K):
-        for j, (axis, sign) in enumerate(itertools.product(range(3), (1.0, -1.0))):
-            out[k, j, k, axis, 3] += sign * step_m
-            out[k, 6 + j, k, :3, :3] = euler_to_matrix(np.eye(3)[axis] * sign * step_rad) @ T[k, :3, :3]
-    return out
-
-
 def fit_label(problem: Problem, T_world_obj: np.ndarray, evaluator: LocalEvaluator | None = None,
               step_m: float = 0.01, step_deg: float = 4.0, min_step_m: float = 5e-4, max_rounds: int = 80,
               snap: bool = True) -> np.ndarray:
     """Refine a labelled scene (K, 4, 4) against the observed depth, then (``snap``) let physics put it at rest
     -> (K, 4, 4).
 
-    A pattern search on the likelihood of the scene as given (no physics while fitting, so every small move
-    counts): each round tries every object's +-step moves along and about the table axes, keeps the best move of
-    each object when together they beat the best single move (else that one), and halves the steps when nothing
-    improves, down to ``min_step_m`` (angles shrink alike). Local: it refines a label within about two steps of
-    the truth, it does not find one."""
+    ``settle.pattern_search`` on the likelihood of the scene as given (no physics while fitting, so every small
+    move counts), with no bound on how far it goes. Local: it refines a label within about two steps of the truth,
+    it does not find one."""
     T = _scene(problem, T_world_obj)
-    K = len(T)
-    scale = 1.0
     with _evaluator(problem, evaluator) as ev:
-        best = scene_logliks(problem, ev, T[None])[0]
-        for _ in range(max_rounds):
-            if step_m * scale < min_step_m:
-                break
-            moves = _moves(T, step_m * scale, np.radians(step_deg) * scale)  # (K, 12, K, 4, 4)
-            ll = scene_logliks(problem, ev, moves.reshape(-1, K, 4, 4)).reshape(K, 12)
-            own = ll.argmax(axis=1)  # each object's best move
-            combined = T.copy()
-            for k in np.flatnonzero(ll[np.arange(K), own] > best):
-                combined[k] = moves[k, own[k], k]
-            combined_ll = scene_logliks(problem, ev, combined[None])[0]
-            k, j = np.unravel_index(np.argmax(ll), ll.shape)
-            if combined_ll >= ll[k, j] and combined_ll > best:
-                T, best = combined, combined_ll
-            elif ll[k, j] > best:
-                T, best = moves[k, j], ll[k, j]
-            else:
-                scale /= 2.0
+        T, _, _ = pattern_search(T, lambda scenes: scene_logliks(problem, ev, scenes), step_m, step_deg, min_step_m,
+                                 max_rounds)
         if snap:
             T, _, _ = snap_to_plausible(problem, T, ev)
     return T

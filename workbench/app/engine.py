@@ -545,9 +545,13 @@ class Engine:
         est = self.estimator
         if est is None or est.projected is None:
             raise InputError("labels", "there is no estimate yet: take a step first")
-        best = est.best.copy()
-        self.adopt_labels(best, list(range(len(best))), "best",
-                          f"Labels set to the most likely scene of iteration {est.iteration}")
+        # Settled (Estimator.settle), as `workbench estimate` writes it: the search's scene fitted to the depth.
+        best = est.settle().copy()
+        moved = np.linalg.norm(best[:, :3, 3] - est.best[:, :3, 3], axis=-1)
+        note = f"Labels set to the most likely scene of iteration {est.iteration}"
+        if moved.any():
+            note += f", settled to the depth (objects moved up to {moved.max() * 1e3:.1f} mm)"
+        self.adopt_labels(best, list(range(len(best))), "best", note)
 
     def save_labels(self, overwrite_original: bool) -> None:
         from workbench import labels as labelling

@@ -1,0 +1,95 @@
+"""Settling: the estimate fitted to the depth without physics, within a trust region (inference.settle)."""
+
+import numpy as np
+import pytest
+
+from workbench.estimators import Estimator, EstimatorConfig
+from workbench.evaluation import LocalEvaluator, PoolEvaluator
+from workbench.geometry import invert_pose, rot_z
+from workbench.inference.settle import pattern_search, within
+from workbench.likelihood import predicted_depth
+from workbench.metrics import position_error, rotation_error
+from workbench.physics import STATUS_AS_GIVEN
+from workbench.pipeline import load_bop_problem
+
+
+@pytest.fixture(scope="module")
+def frame_and_problem(touching_dataset):
+    return load_bop_problem(touching_dataset, 0, 0)
+
+
+def _quadratic(target: np.ndarray):
+    """A score peaked where every object's origin is at ``target`` (K, 3): -(distance in mm)^2 summed."""
+    return lambda scenes: -(((scenes[:, :, :3, 3] - target) * 1e3) ** 2).sum(axis=(1, 2))
+
+
+def test_pattern_search_finds_a_nearby_optimum_and_stays_in_its_region():
+    start = np.tile(np.eye(4), (2, 1, 1))
+    target = np.array([[0.0071, -0.0033, 0.0012], [-0.0025, 0.0043, 0.0]])
+    free, best, scored = pattern_search(start, _quadratic(target), step_m=0.004)
+    assert np.abs(free[:, :3, 3] - target).max() < 6e-4 and best > -1.0 and scored > 24
+    held, _, _ = pattern_search(start, _quadratic(target), step_m=0.004, max_shift_m=0.005)
+    shift = np.linalg.norm(held[:, :3, 3], axis=-1)
+    assert shift[0] <= 0.005 + 1e-12 and shift[0] > 0.004  # pulled to the edge of its region, not past it
+    assert np.abs(held[1, :3, 3] - target[1]).max() < 6e-4  # within reach: found
+    assert within(held, start, 0.005, np.radians(1e-9)).all()  # no turn gains anything here
+
+
+def test_unprojected_evaluation_scores_the_scene_as_given(frame_and_problem):
+    frame, problem = frame_and_problem
+    gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
+    lifted = np.repeat(gt[None], 6, axis=0)
+    lifted[:, :, 2, 3] += np.linspace(0.0, 0.01, 6)[:, None]  # floating: physics would drop them
+    local, pool = LocalEvaluator(problem), PoolEvaluator(problem, workers=2)
+    try:
+        ev = local.evaluate(lifted, project=False)
+        pooled = pool.evaluate(lifted, project=False)
+        _, pixels = local.explain(lifted[3])
+    finally:
+        local.close()
+        pool.close()
+    assert np.array_equal(ev.projected, lifted) and np.all(ev.status == STATUS_AS_GIVEN)
+    assert np.isclose(ev.loglik[3], pixels.sum(dtype=np.float64), rtol=1e-6)
+    assert np.all(np.diff(ev.loglik) < 0)  # the higher they float, the worse they explain the depth
+    assert np.array_equal(pooled.projected, lifted) and np.allclose(pooled.loglik, ev.loglik, rtol=1e-5)
+
+
+def test_settling_fits_the_estimate_to_a_scene_physics_cannot_rest(frame_and_problem):
+    """The observation is drawn with the true boxes 5 mm into the table and one turned by 3 degrees and shifted
+    4 mm, where physics cannot rest them. Settled from the projected truth, each box comes closer to the drawn scene,
+    stays within the trust region, and the likelihood of the scene as given rises."""
+    from dataclasses import replace
+
+    frame, problem = frame_and_problem
+    gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
+    seen = gt.copy()
+    seen[:, 2, 3] -= 0.005
+    seen[0, :3, :3] = rot_z(np.radians(3.0)) @ seen[0, :3, :3]
+    seen[0, 0, 3] += 0.004
+    local = LocalEvaluator(problem)
+    try:
+        observed = predicted_depth(local.renderer.render(seen[None]), problem.background)[0].astype(np.float32)
+    finally:
+        local.close()
+    seen_problem = replace(problem, observed=observed)
+    evaluator = LocalEvaluator(seen_problem)
+    try:
+        estimator = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0), evaluator)
+        resting = evaluator.evaluate(gt[None])
+        estimator._map, estimator._map_loglik = resting.projected[0].copy(), float(resting.loglik[0])
+        settled = estimator.settle()
+        as_given = evaluator.evaluate(resting.projected, project=False).loglik[0]
+        paper = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0, proposals="paper"), evaluator)
+        paper._map, paper._map_loglik = estimator._map, estimator._map_loglik
+        unsettled = paper.settle()
+    finally:
+        evaluator.close()
+    estimate = estimator.best
+    assert estimator.settled_loglik > as_given + 50
+    for k in range(problem.n_objects):
+        assert position_error(seen[k], settled[k]) < 0.5 * position_error(seen[k], estimate[k]), k
+        assert position_error(seen[k], settled[k]) < 0.002, k
+    assert rotation_error(seen[0], settled[0]) < 0.6 * rotation_error(seen[0], estimate[0])
+    assert within(settled, estimate, EstimatorConfig.settle_shift, np.radians(EstimatorConfig.settle_turn)).all()
+    assert estimator.settle() is estimator.settled  # computed once per estimate
+    assert np.array_equal(unsettled, estimate)  # the paper's search returns its projected estimate as it is
