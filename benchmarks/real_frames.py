@@ -60,7 +60,7 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         local.close()
     objects = []
     for k, model in enumerate(problem.models):
-        pos = 100 * position_error(gt[k], best[k])
+        pos = 100 * position_error(gt[k], best[k], model.symmetries)
         rot = rotation_error(gt[k], best[k], model.symmetries)
         objects.append({"obj_id": model.obj_id, "position_cm": round(pos, 2), "rotation_deg": round(rot, 1),
                         "right": bool(pos < RIGHT_CM and rot < RIGHT_DEG),

@@ -43,6 +43,21 @@ def test_a_box_turned_180_degrees_has_no_symmetric_error():
     assert metrics.position_error(T_gt, T_est) == 0.0
 
 
+def test_a_symmetry_of_a_model_whose_origin_is_off_its_centre_moves_the_origin_and_costs_nothing():
+    """YCB-Video's wood block: its origin lies at one end, 3.5 cm from the centre along z, so the block upside
+    down (the symmetry turns it and shifts it back by 3.5 cm) is the same block with its origin 3.5 cm away."""
+    flip = make_pose(rot_x(np.pi), [0.0, 0.0, 0.035])
+    S = np.stack([np.eye(4), flip])
+    T_gt = pose_from_xyz_rpy([0.1, -0.05, 0.03, 0.2, -0.1, 1.0])
+    T_est = T_gt @ flip
+    assert metrics.position_error(T_gt, T_est) == pytest.approx(0.035)
+    assert metrics.position_error(T_gt, T_est, S) == pytest.approx(0.0, abs=1e-12)
+    assert metrics.rotation_error(T_gt, T_est, S) == pytest.approx(0.0, abs=1e-5)
+    shifted = T_est.copy()
+    shifted[:3, 3] += [0.01, 0.0, 0.0]
+    assert metrics.position_error(T_gt, shifted, S) == pytest.approx(0.01)
+
+
 def test_a_quarter_turn_is_not_a_symmetry_of_a_cracker_box():
     S = metrics.box_symmetries(CRACKER)
     T_gt = np.eye(4)

@@ -112,7 +112,7 @@ def label_errors(problem: Problem, estimate: np.ndarray, label) -> list[dict]:
         row = {"obj_id": model.obj_id, "position_error_m": None, "rotation_error_deg": None, "add_s_m": None}
         if L is not None and np.all(np.isfinite(L)):
             E = np.asarray(estimate[k], dtype=np.float64)
-            row.update(position_error_m=position_error(L, E),
+            row.update(position_error_m=position_error(L, E, model.symmetries),
                        rotation_error_deg=rotation_error(L, E, model.symmetries),
                        add_s_m=add_s(L, E, model_points(model.mesh)))
         out.append(row)

@@ -30,7 +30,7 @@ from workbench.estimators import Estimator, EstimatorConfig, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.metrics import (
-    add_s, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors,
+    add_s, closest_symmetric, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors,
 )
 from workbench.pipeline import load_bop_problem
 from workbench.problem import Problem
@@ -152,8 +152,8 @@ def score_object(T_gt: np.ndarray, T_est: np.ndarray, model: ObjectModel, points
     """Errors of one estimate against the truth, both (4, 4) in the ground-truth table frame."""
     sym = model.symmetries
     roll, pitch, yaw = rpy_errors(T_gt, T_est, sym)
-    pos = position_error(T_gt, T_est) * CM
-    height = float(T_est[2, 3] - T_gt[2, 3]) * CM
+    pos = position_error(T_gt, T_est, sym) * CM
+    height = float(T_est[2, 3] - closest_symmetric(T_gt, T_est, sym)[2, 3]) * CM
     rot = rotation_error(T_gt, T_est, sym)
     return {
         "position_cm": pos, "height_cm": height, "roll_deg": float(roll), "pitch_deg": float(pitch),
