@@ -33,6 +33,10 @@ METHODS = ("pipf", "mcpf")
 SINK_GRID = np.arange(0.0, 0.0201, 0.002)  # m
 # Settling's first steps, halved down to 0.5 mm: from a projected estimate the optimum is a few millimetres away.
 SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
+# A half turn of one object (settle.half_turns) replaces it only when the settled scene gains more than this many
+# log-units: turning over a symmetric box, which changes nothing the camera sees, and settling it again gained up to
+# 24 on the YCB-Video dev frames (docs/benchmarks.md, "Settling").
+TURN_MARGIN = 30.0
 
 
 @dataclass(frozen=True)
@@ -253,12 +257,38 @@ class Estimator:
         if self._settled_from is not None and np.array_equal(self._settled_from, self._map):
             return self.settled
         score = lambda scenes: self._evaluate(scenes, project=False).loglik  # noqa: E731
-        self.settled, self.settled_loglik, scored = settle.pattern_search(
+        scene, loglik, scored = settle.pattern_search(
             self._map, score, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=cfg.settle_shift,
             max_turn_deg=cfg.settle_turn)
+        self.settled, self.settled_loglik, turned = self._turn_over(scene, loglik, score)
         self._settled_from = self._map.copy()
-        self.settle_scenes += scored
+        self.settle_scenes += scored + turned
         return self.settled
+
+    def _turn_over(self, scene: np.ndarray, loglik: float, score) -> tuple[np.ndarray, float, int]:
+        """Each object of the settled ``scene`` turned over (``settle.half_turns``) and settled alone, the others
+        kept: the depth's near ties, which the search compares only after physics, where our models' few
+        millimetres of mismatch can decide them. A turn is kept when the scene as given gains more than TURN_MARGIN
+        and physics, resting that scene, keeps the object within the settling region -> (scene, log-likelihood,
+        scenes scored)."""
+        cfg = self.config
+        scored = 0
+        for k, model in enumerate(self.problem.models):
+            best = None
+            for pose in settle.half_turns(scene[k], model.mesh.bounds.mean(axis=0)):
+                start = scene.copy()
+                start[k] = pose
+                T, ll, n = settle.pattern_search(start, score, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES,
+                                                 max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn,
+                                                 objects=[k])
+                scored += n
+                if ll > loglik + TURN_MARGIN and (best is None or ll > best[1]):
+                    best = (T, ll)
+            if best is not None:
+                rested = self._evaluate(best[0][None]).projected[0, k]
+                if settle.within(rested, best[0][k], cfg.settle_shift, np.radians(cfg.settle_turn)):
+                    scene, loglik = best
+        return scene, loglik, scored
 
     # ------------------------------------------------------------------------------------------------ sessions
     def state_dict(self) -> dict:

@@ -43,17 +43,34 @@ def within(moved: np.ndarray, origin: np.ndarray, max_shift_m: float, max_turn_r
     return (shift <= max_shift_m) & (turn <= max_turn_rad)
 
 
+def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """One object's pose ``T`` (4, 4) turned by 180 degrees about the vertical and about each of its two most
+    horizontal axes, through its ``centre`` (3,) (object frame, m) -> (3, 4, 4). These are the depth's near ties:
+    a can upside down, a potted meat can or a mustard bottle facing the other way, a marker end for end."""
+    R = T[:3, :3]
+    c = R @ centre + T[:3, 3]
+    axes = R[:, np.argsort(np.abs(R[2]))[:2]].T.copy()  # the two object axes nearest the table plane
+    axes[:, 2] = 0.0
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    out = np.repeat(T[None], 3, axis=0)
+    for i, axis in enumerate([np.array([0.0, 0.0, 1.0]), *axes]):
+        H = 2.0 * np.outer(axis, axis) - np.eye(3)  # the half turn about a unit axis
+        out[i, :3, :3] = H @ R
+        out[i, :3, 3] = H @ (T[:3, 3] - c) + c
+    return out
+
+
 def pattern_search(T: np.ndarray, score: Score, step_m: float = 0.01, step_deg: float = 4.0,
                    min_step_m: float = 5e-4, max_rounds: int = 80, max_shift_m: float = np.inf,
-                   max_turn_deg: float = np.inf) -> tuple[np.ndarray, float, int]:
+                   max_turn_deg: float = np.inf, objects: list[int] | None = None) -> tuple[np.ndarray, float, int]:
     """Fit a scene (K, 4, 4) to the depth by ``score`` (the likelihood of scenes as given) -> (the fitted scene,
     its log-likelihood, how many scenes were scored).
 
     Each round tries every object's +-step moves along and about the table axes (``single_moves``), keeps the best
     move of each object when together they beat the best single move (else that one), and halves the steps when
     nothing improves, down to ``min_step_m`` (angles shrink alike). A move that takes an object more than
-    ``max_shift_m`` or ``max_turn_deg`` from its pose in ``T`` is not tried. Local: it refines a scene within
-    about two steps of the optimum, it does not find one."""
+    ``max_shift_m`` or ``max_turn_deg`` from its pose in ``T`` is not tried; only the ``objects`` listed move
+    (default: all). Local: it refines a scene within about two steps of the optimum, it does not find one."""
     origin = np.array(T, dtype=np.float64)
     T, K = origin.copy(), len(origin)
     best, scored = float(score(T[None])[0]), 1
@@ -64,6 +81,8 @@ def pattern_search(T: np.ndarray, score: Score, step_m: float = 0.01, step_deg: 
             break
         moves = single_moves(T, step_m * scale, np.radians(step_deg) * scale)  # (K, 12, K, 4, 4)
         allowed = within(moves[np.arange(K), :, np.arange(K)], origin[:, None], max_shift_m, max_turn)  # (K, 12)
+        if objects is not None:
+            allowed[np.setdiff1d(np.arange(K), objects)] = False
         ll = np.full((K, 12), -np.inf)
         if allowed.any():
             ll[allowed] = score(moves[allowed])
