@@ -7,6 +7,9 @@ projected scene, a few millimetres and degrees from what the depth shows. Settli
 pattern search on the likelihood of the scene as given, each object kept within a small trust region around its
 pose in the estimate, so the physics that chose the scene (support, stacking, what hides what) still holds to
 within that region. An object the camera does not see gains nothing from any move and stays where physics put it.
+``half_turns`` gives the turns that the depth can hardly tell apart (a can upside down, a bottle facing the other
+way): the search compares them only after physics, where the same few millimetres of mismatch decide them, so the
+estimator settles them too and keeps a turn that wins clearly (``Estimator._turn_over``).
 
 ``pattern_search`` is also how a ground-truth label is fitted to the depth (``labels.fit_label``, no region).
 """
