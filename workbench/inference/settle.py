@@ -91,15 +91,18 @@ def pattern_search(T: np.ndarray, score: Score, step_m: float = 0.01, step_deg: 
             ll[allowed] = score(moves[allowed])
             scored += int(allowed.sum())
         own = ll.argmax(axis=1)  # each object's best move
-        combined = T.copy()
-        for k in np.flatnonzero(ll[np.arange(K), own] > best):
-            combined[k] = moves[k, own[k], k]
-        combined_ll = float(score(combined[None])[0])
-        scored += 1
+        improving = np.flatnonzero(ll[np.arange(K), own] > best)
         k, j = np.unravel_index(np.argmax(ll), ll.shape)
-        if combined_ll >= ll[k, j] and combined_ll > best:
-            T, best = combined, combined_ll
-        elif ll[k, j] > best:
+        if len(improving) > 1:  # with one, the combination is that move: no need to score it again
+            combined = T.copy()
+            for i in improving:
+                combined[i] = moves[i, own[i], i]
+            combined_ll = float(score(combined[None])[0])
+            scored += 1
+            if combined_ll >= ll[k, j]:
+                T, best = combined, combined_ll
+                continue
+        if ll[k, j] > best:
             T, best = moves[k, j], float(ll[k, j])
         else:
             scale /= 2.0
