@@ -36,3 +36,25 @@ def private_cache(tmp_path_factory):
         os.environ.pop("XDG_CACHE_HOME", None)
     else:
         os.environ["XDG_CACHE_HOME"] = saved
+
+
+@pytest.fixture(scope="session")
+def seeing():
+    """``seeing(problem, scene)``: the problem with its observed depth replaced by ``scene`` (K, 4, 4, table frame)
+    drawn as given, over the problem's table: an observation that a test controls exactly."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from workbench.evaluation import LocalEvaluator
+    from workbench.likelihood import predicted_depth
+
+    def draw(problem, scene):
+        local = LocalEvaluator(problem)
+        try:
+            rendered = local.renderer.render(np.asarray(scene)[None])
+        finally:
+            local.close()
+        return replace(problem, observed=predicted_depth(rendered, problem.background)[0].astype(np.float32))
+
+    return draw

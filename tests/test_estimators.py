@@ -166,24 +166,15 @@ def test_ground_truth_poses_never_reach_the_estimator(touching_dataset, tmp_path
     assert np.array_equal(runs[0].loglik, runs[1].loglik)
 
 
-def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_problem):
+def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_problem, seeing):
     """Real frames show objects several millimetres below the plane fitted to the table's depth. Here the
     observation is drawn with the true objects 8 mm into the table (the table pixels unchanged): the fitted sink
     must come out near 8 mm, and it must raise the estimate's log-likelihood."""
-    from dataclasses import replace
-
-    from workbench.likelihood import predicted_depth
-
     frame, problem = frame_and_problem
     gt = _ground_truth_in_table_frame(frame, problem)
-    local = LocalEvaluator(problem)
-    try:
-        sunk = gt.copy()
-        sunk[:, 2, 3] -= 0.008
-        observed = predicted_depth(local.renderer.render(sunk[None]), problem.background)[0].astype(np.float32)
-    finally:
-        local.close()
-    sunk_problem = replace(problem, observed=observed)
+    sunk = gt.copy()
+    sunk[:, 2, 3] -= 0.008
+    sunk_problem = seeing(problem, sunk)
     evaluator = LocalEvaluator(sunk_problem)
     try:
         estimator = Estimator(sunk_problem, EstimatorConfig(particles=4, seed=0), evaluator)

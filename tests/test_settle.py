@@ -7,7 +7,6 @@ from workbench.estimators import Estimator, EstimatorConfig
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose, rot_z
 from workbench.inference.settle import half_turns, pattern_search, within
-from workbench.likelihood import predicted_depth
 from workbench.metrics import position_error, rotation_error
 from workbench.physics import STATUS_AS_GIVEN
 from workbench.pipeline import load_bop_problem
@@ -54,24 +53,17 @@ def test_unprojected_evaluation_scores_the_scene_as_given(frame_and_problem):
     assert np.array_equal(pooled.projected, lifted) and np.allclose(pooled.loglik, ev.loglik, rtol=1e-5)
 
 
-def test_settling_fits_the_estimate_to_a_scene_physics_cannot_rest(frame_and_problem):
+def test_settling_fits_the_estimate_to_a_scene_physics_cannot_rest(frame_and_problem, seeing):
     """The observation is drawn with the true boxes 5 mm into the table and one turned by 3 degrees and shifted
     4 mm, where physics cannot rest them. Settled from the projected truth, each box comes closer to the drawn scene,
     stays within the trust region, and the likelihood of the scene as given rises."""
-    from dataclasses import replace
-
     frame, problem = frame_and_problem
     gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
     seen = gt.copy()
     seen[:, 2, 3] -= 0.005
     seen[0, :3, :3] = rot_z(np.radians(3.0)) @ seen[0, :3, :3]
     seen[0, 0, 3] += 0.004
-    local = LocalEvaluator(problem)
-    try:
-        observed = predicted_depth(local.renderer.render(seen[None]), problem.background)[0].astype(np.float32)
-    finally:
-        local.close()
-    seen_problem = replace(problem, observed=observed)
+    seen_problem = seeing(problem, seen)
     evaluator = LocalEvaluator(seen_problem)
     try:
         estimator = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0), evaluator)
@@ -111,7 +103,7 @@ def test_half_turns_keep_the_centre_and_undo_themselves():
     assert np.allclose(turns[1][2, :3], -T[2, :3]) and np.allclose(turns[2][2, :3], -T[2, :3])
 
 
-def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem):
+def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem, seeing):
     """The depth is drawn from a standing mug with its handle towards +x; the estimate has it towards -x, resting
     where physics put it. Turned about the vertical and settled, the mug gains far more than the margin."""
     from dataclasses import replace
@@ -133,10 +125,9 @@ def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem
     local = LocalEvaluator(mug_problem)
     try:
         rested = local.evaluate(np.stack([truth, wrong]))
-        observed = predicted_depth(local.renderer.render(rested.projected[:1]), problem.background)[0]
     finally:
         local.close()
-    seen = replace(mug_problem, observed=observed.astype(np.float32))
+    seen = seeing(mug_problem, rested.projected[0])
     evaluator = LocalEvaluator(seen)
     try:
         estimator = Estimator(seen, EstimatorConfig(particles=4, seed=0), evaluator)

@@ -22,8 +22,8 @@ from workbench import bop
 from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
-from workbench.inference.settle import pattern_search
 from workbench.geometry import invert_pose
+from workbench.inference.settle import pattern_search
 from workbench.likelihood import scene_loglik
 from workbench.metrics import add_s, model_points, position_error, rotation_error
 from workbench.problem import Problem
