@@ -6,7 +6,7 @@ import pytest
 from workbench.estimators import Estimator, EstimatorConfig
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose, rot_z
-from workbench.inference.settle import half_turns, pattern_search, within
+from workbench.inference.settle import half_turns, pattern_search, ridge_moves, run, search, single_moves, within
 from workbench.metrics import position_error, rotation_error
 from workbench.physics import STATUS_AS_GIVEN
 from workbench.pipeline import load_bop_problem
@@ -32,6 +32,44 @@ def test_pattern_search_finds_a_nearby_optimum_and_stays_in_its_region():
     assert shift[0] <= 0.005 + 1e-12 and shift[0] > 0.004  # pulled to the edge of its region, not past it
     assert np.abs(held[1, :3, 3] - target[1]).max() < 6e-4  # within reach: found
     assert within(held, start, 0.005, np.radians(1e-9)).all()  # no turn gains anything here
+
+
+def _ridge(scenes: np.ndarray) -> np.ndarray:
+    """A score whose optimum lies along the diagonal x = y (mm): -100 (x - y)^2 - (x + y - 20)^2. From the origin
+    every single move along x or y loses; together they gain."""
+    x, y = scenes[:, 0, 0, 3] * 1e3, scenes[:, 0, 1, 3] * 1e3
+    return -100.0 * (x - y) ** 2 - (x + y - 20.0) ** 2
+
+
+def test_ridge_moves_climb_a_diagonal_that_no_single_move_can():
+    start = np.eye(4)[None]
+    moves = _ridge(single_moves(start, 0.004, 0.05)[0])[None]  # (1, 12): each single move's score
+    assert np.all(moves <= _ridge(start[None])[0])  # no single move gains: a coordinate search is stuck
+    ridge, sloped = ridge_moves(start, moves, 0.004, 0.05)
+    assert sloped[0] and np.allclose(ridge[0, :3, 3], [0.004, 0.004, 0.0])  # up the ridge, one step along each
+    assert np.allclose(ridge[0, :3, :3], np.eye(3))  # no turn gains anything
+    fitted, best, _ = pattern_search(start, _ridge, step_m=0.004)
+    assert np.abs(fitted[0, :2, 3] - 0.010).max() < 6e-4 and best > -1.0
+
+
+def test_searches_run_in_lockstep_give_what_each_gives_alone_in_fewer_calls():
+    target = np.array([[0.0071, -0.0033, 0.0012], [-0.0025, 0.0043, 0.0]])
+    calls = []
+
+    def score(scenes):
+        calls.append(len(scenes))
+        return _quadratic(target)(scenes)
+
+    starts = [np.tile(np.eye(4), (2, 1, 1)), np.tile(np.eye(4), (2, 1, 1))]
+    starts[1][:, 0, 3] += 0.006
+    alone = [pattern_search(T, score, step_m=0.004, objects=[i]) for i, T in enumerate(starts)]
+    calls_alone = len(calls)
+    calls.clear()
+    together = run([search(T, step_m=0.004, objects=[i]) for i, T in enumerate(starts)], score)
+    for (T1, ll1, n1), (T2, ll2, n2) in zip(alone, together):
+        assert np.array_equal(T1, T2) and ll1 == ll2 and n1 == n2
+    assert sum(calls) == sum(n for _, _, n in together)  # every scene scored once
+    assert len(calls) < 0.7 * calls_alone
 
 
 def test_unprojected_evaluation_scores_the_scene_as_given(frame_and_problem):

@@ -270,27 +270,45 @@ class Estimator:
     def _turn_over(self, scene: np.ndarray, loglik: float, score) -> tuple[np.ndarray, float, int]:
         """Each object of the settled ``scene`` turned over (``settle.half_turns``) and settled alone, the others
         kept: the depth's near ties, which the search compares only after physics, where our models' few
-        millimetres of mismatch can decide them. A turn is kept when the scene as given gains more than TURN_MARGIN
-        and physics, resting that scene, keeps the object within the settling region -> (scene, log-likelihood,
-        scenes scored)."""
+        millimetres of mismatch can decide them. Every object's turns are searched together, in lockstep
+        (``settle.run``). An object's best turn is kept when the scene as given gains more than TURN_MARGIN and
+        physics, resting that scene, keeps the object within the settling region; when several objects turn, their
+        turns are kept together if that scene scores at least as well as the best one alone -> (scene,
+        log-likelihood, scenes scored)."""
         cfg = self.config
-        scored = 0
+        owners, searches = [], []
         for k, model in enumerate(self.problem.models):
-            best = None
             for pose in settle.half_turns(scene[k], model.mesh.bounds.mean(axis=0)):
                 start = scene.copy()
                 start[k] = pose
-                T, ll, n = settle.pattern_search(start, score, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES,
-                                                 max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn,
-                                                 objects=[k])
-                scored += n
-                if ll > loglik + TURN_MARGIN and (best is None or ll > best[1]):
-                    best = (T, ll)
-            if best is not None:
-                rested = self._evaluate(best[0][None]).projected[0, k]
-                if settle.within(rested, best[0][k], cfg.settle_shift, np.radians(cfg.settle_turn)):
-                    scene, loglik = best
-        return scene, loglik, scored
+                owners.append(k)
+                searches.append(settle.search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES,
+                                              max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn,
+                                              objects=[k]))
+        found = settle.run(searches, score)
+        scored = sum(n for _, _, n in found)
+        best: dict[int, tuple[np.ndarray, float]] = {}
+        for k, (T, ll, _) in zip(owners, found):
+            if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
+                best[k] = (T, ll)
+        if not best:
+            return scene, loglik, scored
+        turned = list(best)
+        rested = self._evaluate(np.stack([best[k][0] for k in turned])).projected
+        held = [k for i, k in enumerate(turned)
+                if settle.within(rested[i, k], best[k][0][k], cfg.settle_shift, np.radians(cfg.settle_turn))]
+        if not held:
+            return scene, loglik, scored
+        first = max(held, key=lambda k: best[k][1])
+        if len(held) > 1:
+            together = scene.copy()
+            for k in held:
+                together[k] = best[k][0][k]
+            together_ll = float(score(together[None])[0])
+            scored += 1
+            if together_ll >= best[first][1]:
+                return together, together_ll, scored
+        return best[first][0], best[first][1], scored
 
     # ------------------------------------------------------------------------------------------------ sessions
     def state_dict(self) -> dict:

@@ -44,6 +44,17 @@ def euler_to_matrix(rpy: np.ndarray) -> np.ndarray:
     return rot_z(rpy[..., 2]) @ rot_y(rpy[..., 1]) @ rot_x(rpy[..., 0])
 
 
+def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
+    """Rotation by ``|v|`` radians about the unit axis ``v / |v|`` (Rodrigues). ``v``: (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    angle = np.linalg.norm(v, axis=-1)[..., None, None]
+    k = v / np.maximum(angle[..., 0], 1e-300)
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+
+
 def matrix_to_euler(R: np.ndarray) -> np.ndarray:
     """Rotation -> (roll, pitch, yaw), pitch in [-pi/2, pi/2]. ``R``: (..., 3, 3) -> (..., 3)."""
     R = np.asarray(R, dtype=np.float64)

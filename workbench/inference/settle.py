@@ -17,11 +17,11 @@ estimator settles them too and keeps a turn that wins clearly (``Estimator._turn
 from __future__ import annotations
 
 import itertools
-from typing import Callable
+from typing import Callable, Generator
 
 import numpy as np
 
-from workbench.geometry import euler_to_matrix, rotation_angle
+from workbench.geometry import euler_to_matrix, rotation_angle, rotvec_to_matrix
 
 Score = Callable[[np.ndarray], np.ndarray]  # scenes (B, K, 4, 4) as given -> log-likelihoods (B,)
 
@@ -63,47 +63,112 @@ def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return out
 
 
-def pattern_search(T: np.ndarray, score: Score, step_m: float = 0.01, step_deg: float = 4.0,
-                   min_step_m: float = 5e-4, max_rounds: int = 80, max_shift_m: float = np.inf,
-                   max_turn_deg: float = np.inf, objects: list[int] | None = None) -> tuple[np.ndarray, float, int]:
-    """Fit a scene (K, 4, 4) to the depth by ``score`` (the likelihood of scenes as given) -> (the fitted scene,
-    its log-likelihood, how many scenes were scored).
+def ridge_moves(T: np.ndarray, ll: np.ndarray, step_m: float, step_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each object moved along the direction in which the scene gains most, estimated by central differences of
+    the log-likelihoods ``ll`` (K, 12) of its ``single_moves`` (-inf: not tried), the largest component one step.
+    The depth often improves only along a diagonal (a banana tilted and turned at once): every single move loses
+    there, while the difference of each +-pair still points up the ridge. -> (poses (K, 4, 4), which have a
+    direction (K,) bool)."""
+    plus, minus = ll[:, 0::2], ll[:, 1::2]  # (K, 6): along x, y, z, then about x, y, z (``single_moves``' order)
+    tried = np.isfinite(plus) & np.isfinite(minus)
+    slope = np.where(tried, plus - np.where(tried, minus, 0.0), 0.0)
+    largest = np.abs(slope).max(axis=1)
+    d = slope / np.maximum(largest, 1e-300)[:, None]
+    out = np.array(T, dtype=np.float64, copy=True)
+    out[:, :3, 3] += step_m * d[:, :3]
+    out[:, :3, :3] = rotvec_to_matrix(step_rad * d[:, 3:]) @ out[:, :3, :3]
+    return out, largest > 0
 
-    Each round tries every object's +-step moves along and about the table axes (``single_moves``), keeps the best
-    move of each object when together they beat the best single move (else that one), and halves the steps when
-    nothing improves, down to ``min_step_m`` (angles shrink alike). A move that takes an object more than
-    ``max_shift_m`` or ``max_turn_deg`` from its pose in ``T`` is not tried; only the ``objects`` listed move
-    (default: all). Local: it refines a scene within about two steps of the optimum, it does not find one."""
+
+Search = Generator[np.ndarray, np.ndarray, tuple[np.ndarray, float, int]]
+
+
+def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_m: float = 5e-4,
+           max_rounds: int = 80, max_shift_m: float = np.inf, max_turn_deg: float = np.inf,
+           objects: list[int] | None = None) -> Search:
+    """One pattern search from the scene ``T`` (K, 4, 4), as a generator: it yields scenes (B, K, 4, 4) to score as
+    given and is sent their log-likelihoods (B,); it returns (the fitted scene, its log-likelihood, how many scenes
+    it scored). ``run`` drives it; ``pattern_search`` is the one-search shorthand.
+
+    Each round scores every object's +-step moves along and about the table axes (``single_moves``), then each
+    object's ``ridge_moves`` step, and the combinations of every improving object's best single move and of every
+    object's ridge step; it keeps the best of all, and halves the steps when nothing improves, down to
+    ``min_step_m`` (angles shrink alike). A move that takes an object more than ``max_shift_m`` or
+    ``max_turn_deg`` from its pose in ``T`` is not tried; only the ``objects`` listed move (default: all). Local: it
+    refines a scene within about two steps of the optimum, it does not find one."""
     origin = np.array(T, dtype=np.float64)
     T, K = origin.copy(), len(origin)
-    best, scored = float(score(T[None])[0]), 1
+    movable = np.zeros(K, dtype=bool)
+    movable[np.arange(K) if objects is None else objects] = True
+    best, scored = float((yield T[None])[0]), 1
     max_turn = np.radians(max_turn_deg)
     scale = 1.0
     for _ in range(max_rounds):
         if step_m * scale < min_step_m:
             break
-        moves = single_moves(T, step_m * scale, np.radians(step_deg) * scale)  # (K, 12, K, 4, 4)
+        step, turn = step_m * scale, np.radians(step_deg) * scale
+        moves = single_moves(T, step, turn)  # (K, 12, K, 4, 4)
         allowed = within(moves[np.arange(K), :, np.arange(K)], origin[:, None], max_shift_m, max_turn)  # (K, 12)
-        if objects is not None:
-            allowed[np.setdiff1d(np.arange(K), objects)] = False
+        allowed &= movable[:, None]
         ll = np.full((K, 12), -np.inf)
         if allowed.any():
-            ll[allowed] = score(moves[allowed])
+            ll[allowed] = yield moves[allowed]
             scored += int(allowed.sum())
-        own = ll.argmax(axis=1)  # each object's best move
+        # Round two: each object's ridge step alone, all ridge steps together, all improving best moves together.
+        ridge, sloped = ridge_moves(T, ll, step, turn)
+        sloped &= movable & within(ridge, origin, max_shift_m, max_turn)
+        own = ll.argmax(axis=1)
         improving = np.flatnonzero(ll[np.arange(K), own] > best)
         k, j = np.unravel_index(np.argmax(ll), ll.shape)
-        if len(improving) > 1:  # with one, the combination is that move: no need to score it again
-            combined = T.copy()
-            for i in improving:
-                combined[i] = moves[i, own[i], i]
-            combined_ll = float(score(combined[None])[0])
-            scored += 1
-            if combined_ll >= ll[k, j]:
-                T, best = combined, combined_ll
-                continue
-        if ll[k, j] > best:
-            T, best = moves[k, j], float(ll[k, j])
+        candidates, values = ([moves[k, j]], [float(ll[k, j])]) if np.isfinite(ll[k, j]) else ([], [])
+        second = []
+        for k in np.flatnonzero(sloped):
+            second.append(T.copy())
+            second[-1][k] = ridge[k]
+        if sloped.sum() > 1:
+            second.append(T.copy())
+            second[-1][sloped] = ridge[sloped]
+        if len(improving) > 1:  # with one, the combination is that move, already scored
+            second.append(T.copy())
+            second[-1][improving] = moves[improving, own[improving], improving]
+        if second:
+            candidates += second
+            values += [float(v) for v in (yield np.stack(second))]
+            scored += len(second)
+        i = int(np.argmax(values)) if values else -1
+        if i >= 0 and values[i] > best:
+            T, best = candidates[i], values[i]
         else:
             scale /= 2.0
     return T, best, scored
+
+
+def run(searches: list[Search], score: Score) -> list[tuple[np.ndarray, float, int]]:
+    """Drive ``searches`` in lockstep: every round trip scores the scenes all of them ask for in one call, so many
+    small searches (an object's turns, every object's) cost a few batches, not one call per step each -> each
+    search's (scene, log-likelihood, scenes scored), in order."""
+    results: list = [None] * len(searches)
+    asks = {}
+    for i, s in enumerate(searches):
+        asks[i] = next(s)
+    while asks:
+        order = list(asks)
+        ll = score(np.concatenate([asks[i] for i in order]))
+        at = 0
+        for i in order:
+            n = len(asks[i])
+            try:
+                asks[i] = searches[i].send(ll[at:at + n])
+            except StopIteration as done:
+                results[i] = done.value
+                del asks[i]
+            at += n
+    return results
+
+
+def pattern_search(T: np.ndarray, score: Score, step_m: float = 0.01, step_deg: float = 4.0,
+                   min_step_m: float = 5e-4, max_rounds: int = 80, max_shift_m: float = np.inf,
+                   max_turn_deg: float = np.inf, objects: list[int] | None = None) -> tuple[np.ndarray, float, int]:
+    """Fit a scene (K, 4, 4) to the depth by ``score`` (the likelihood of scenes as given) -> (the fitted scene,
+    its log-likelihood, how many scenes were scored). One ``search``, run on its own."""
+    return run([search(T, step_m, step_deg, min_step_m, max_rounds, max_shift_m, max_turn_deg, objects)], score)[0]
