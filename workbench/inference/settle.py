@@ -122,9 +122,9 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
         k, j = np.unravel_index(np.argmax(ll), ll.shape)
         candidates, values = ([moves[k, j]], [float(ll[k, j])]) if np.isfinite(ll[k, j]) else ([], [])
         second = []
-        for k in np.flatnonzero(sloped):
+        for obj in np.flatnonzero(sloped):
             second.append(T.copy())
-            second[-1][k] = ridge[k]
+            second[-1][obj] = ridge[obj]
         if sloped.sum() > 1:
             second.append(T.copy())
             second[-1][sloped] = ridge[sloped]
@@ -148,9 +148,7 @@ def run(searches: list[Search], score: Score) -> list[tuple[np.ndarray, float, i
     small searches (an object's turns, every object's) cost a few batches, not one call per step each -> each
     search's (scene, log-likelihood, scenes scored), in order."""
     results: list = [None] * len(searches)
-    asks = {}
-    for i, s in enumerate(searches):
-        asks[i] = next(s)
+    asks = {i: next(s) for i, s in enumerate(searches)}  # each search's scenes waiting to be scored
     while asks:
         order = list(asks)
         ll = score(np.concatenate([asks[i] for i in order]))
