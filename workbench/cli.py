@@ -39,7 +39,7 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-early-stop", action="store_true", help="run all iterations even after convergence")
     p.add_argument("--no-settle", action="store_true",
                    help="return the search's estimate as physics put it, not fitted to the depth at the end "
-                        "(within 1 cm and 8 degrees; see README, Settling)")
+                        "(within 1.5 cm and 12 degrees; see README, Settling)")
 
 
 def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
