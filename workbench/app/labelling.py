@@ -24,7 +24,9 @@ from workbench.app import protocol as p
 from workbench.app.colors import LABEL_COLOR
 from workbench.app.quiet import Quiet
 from workbench.app.views import HEATMAP_MODES, NO_SHADOW, HeatmapLayer, Nodes, split_pose
-from workbench.geometry import euler_to_matrix, make_pose, matrix_to_euler, quat_wxyz_to_matrix, rot_x, rot_y, rot_z
+from workbench.geometry import (
+    euler_to_matrix, make_pose, matrix_to_euler, quat_wxyz_to_matrix, rot_x, rot_y, rot_z, rotvec_to_matrix,
+)
 
 POSITION_FIELDS = ("x (cm)", "y (cm)", "z (cm)")
 ANGLE_FIELDS = ("roll (°)", "pitch (°)", "yaw (°)")
@@ -56,10 +58,8 @@ def laid_on(T: np.ndarray, face: tuple[float, float, float], vertices: np.ndarra
     s, c = np.linalg.norm(axis), float(np.dot(d, down))
     if s < 1e-9:  # already down, or straight up: a half turn about the table's x
         R = np.eye(3) if c > 0 else rot_x(np.pi)
-    else:  # the shortest rotation taking d onto down (Rodrigues)
-        k = axis / s
-        Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        R = np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+    else:  # the shortest rotation taking d onto down: about their cross product, by the angle between them
+        R = rotvec_to_matrix(axis / s * np.arctan2(s, c))
     out = make_pose(R @ T[:3, :3], T[:3, 3])
     out[2, 3] = -float(np.min(vertices @ out[:3, :3].T[:, 2]))  # lowest point on the table top
     return out
