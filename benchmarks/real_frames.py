@@ -3,7 +3,8 @@
 estimate's log-likelihood against the true scene's (projected by our physics, and as annotated), how far physics
 moves the true scene, evaluations used and seconds; per object, how much the estimate gains when only that object
 is put at its true pose (a gain: the search missed it; a loss: the likelihood prefers the estimate's pose), how far
-settling moved it from the search's projected estimate, and how far physics moves the settled scene.
+settling moved it from the search's projected estimate, how far physics moves the settled scene, and its near ties
+(``Estimator.ties``: turns the depth scores within the turn margin).
 
     .venv/bin/python benchmarks/real_frames.py ../shared/datasets/ycbv-real-dev [--proposals default|paper]
         [--method pipf|mcpf] [--particles N] [--iterations K] [--workers W] [--frames S:I S:I ...]
@@ -71,7 +72,13 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
                         "settled_mm": round(1e3 * float(np.linalg.norm(best[k, :3, 3] - projected[k, :3, 3])), 1),
                         "settled_deg": round(rotation_error(projected[k], best[k]), 1),
                         "settled_moved_cm": round(100 * float(np.linalg.norm(resettled[k, :3, 3]
-                                                                             - best[k, :3, 3])), 2)})
+                                                                             - best[k, :3, 3])), 2),
+                        # the estimate's near ties for this object (Estimator.ties), and whether the tied pose is
+                        # the right one (within 2 cm and 10 degrees of the truth)
+                        "ties": [{"turn": t.turn, "gap": round(t.gap, 1),
+                                  "right": bool(100 * position_error(gt[k], t.T, model.symmetries) < RIGHT_CM
+                                                and rotation_error(gt[k], t.T, model.symmetries) < RIGHT_DEG)}
+                                 for t in estimator.ties if t.obj == k]})
     return {
         "scene_id": scene_id, "im_id": im_id, "objects": objects,
         "all_right": all(o["right"] for o in objects),
@@ -120,6 +127,11 @@ def main() -> None:
           f"median position error {np.median([o['position_cm'] for r in results for o in r['objects']]):.1f} cm, "
           f"estimate >= projected truth in {sum(r['estimate_loglik'] >= r['truth_loglik_projected'] for r in results)}"
           f"/{len(results)}, median {np.median([r['seconds'] for r in results]):.0f} s per frame", file=sys.stderr)
+    objects = [o for r in results for o in r["objects"]]
+    tied = [o for o in objects if o["ties"]]
+    print(f"# near ties: {len(tied)} objects have one ({sum(not o['right'] for o in tied)} of them wrong, "
+          f"{sum(any(t['right'] for t in o['ties']) for o in tied)} with the right pose among the ties); "
+          f"{sum(not o['right'] and not o['ties'] for o in objects)} wrong objects have none", file=sys.stderr)
 
 
 if __name__ == "__main__":

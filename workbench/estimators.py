@@ -18,6 +18,7 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
 from workbench.geometry import rotation_angle
+from workbench.metrics import position_error, rotation_error
 from workbench.inference import assemble, datadriven, gaussian, polish, refine, resting, settle, stacking
 from workbench.inference.proposal import Proposal
 from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix
@@ -37,6 +38,9 @@ SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
 # log-units: turning over a symmetric box, which changes nothing the camera sees, and settling it again gained up to
 # 24 on the YCB-Video dev frames (docs/benchmarks.md, "Settling").
 TURN_MARGIN = 30.0
+# A tie (``Tie``) that lands this close to the estimate's pose, up to the model's symmetries, is the same pose: the
+# "right" tolerances of the benchmarks (2 cm, 10 degrees).
+SAME_POSE_M, SAME_POSE_DEG = 0.02, 10.0
 
 
 @dataclass(frozen=True)
@@ -120,6 +124,24 @@ class IterationReport:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class Tie:
+    """A pose of one object that the depth can hardly tell from the estimate's: one of its half turns
+    (``settle.half_turns``: a can upside down, a marker end for end), settled, that scores within TURN_MARGIN of
+    the estimate's pose with the other objects kept, and is not the same pose up to the model's symmetries. The
+    estimator keeps a turn only when it wins by more than TURN_MARGIN, so for such an object the depth did not
+    decide: another view, or the object's texture, must."""
+
+    obj: int  # index into problem.models
+    turn: str  # settle.half_turn_names: "about the vertical", "over its x axis", ...
+    T: np.ndarray  # (4, 4) the tied pose, table frame, m
+    gap: float  # log-units: the scene with this pose minus the scene with the estimate's (as given, not projected)
+
+    def describe(self, problem: Problem) -> str:
+        """e.g. "002_master_chef_can turned over its x axis (-3.1 log-units)"."""
+        return f"{problem.models[self.obj].name} turned {self.turn} ({self.gap:+.1f} log-units)"
+
+
 def symmetric_angle(problem: Problem, A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Per object, the rotation angle (rad) between scenes A and B (K, 4, 4), up to each model's symmetries -> (K,)."""
     out = np.empty(len(problem.models))
@@ -168,6 +190,7 @@ class Estimator:
         self.settle_scenes = 0  # scenes settling scored as given (a render each, no physics)
         self.settled: np.ndarray | None = None  # the estimate fitted to the depth (``settle``), once asked for
         self.settled_loglik = float("-inf")  # its log-likelihood as given (no physics)
+        self.ties: list[Tie] = []  # the settled estimate's near ties, found with it
         self._settled_from: np.ndarray | None = None  # the estimate it was settled from
 
     def set_config(self, config: EstimatorConfig) -> None:
@@ -256,7 +279,7 @@ class Estimator:
         off. Computed once per estimate: stepping on and settling again starts from the new estimate."""
         cfg = self.config
         if self._map is None or cfg.proposals == "paper" or cfg.settle_shift == 0 or cfg.settle_turn == 0:
-            self.settled, self.settled_loglik = self.best.copy(), self.best_loglik
+            self.settled, self.settled_loglik, self.ties = self.best.copy(), self.best_loglik, []
             return self.settled
         if self._settled_from is not None and np.array_equal(self._settled_from, self._map):
             return self.settled
@@ -264,22 +287,23 @@ class Estimator:
         scene, loglik, scored = settle.pattern_search(
             self._map, score, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=cfg.settle_shift,
             max_turn_deg=cfg.settle_turn)
-        self.settled, self.settled_loglik, turned = self._turn_over(scene, loglik, score)
+        self.settled, self.settled_loglik, turned, self.ties = self._turn_over(scene, loglik, score)
         self._settled_from = self._map.copy()
         self.settle_scenes += scored + turned
         return self.settled
 
-    def _turn_over(self, scene: np.ndarray, loglik: float, score) -> tuple[np.ndarray, float, int]:
+    def _turn_over(self, scene: np.ndarray, loglik: float, score) -> tuple[np.ndarray, float, int, list[Tie]]:
         """Each object of the settled ``scene`` turned over (``settle.half_turns``) and settled alone, the others
         kept: the depth's near ties, which the search compares only after physics, where our models' few
         millimetres of mismatch can decide them. Every object's turns are searched together, in lockstep
         (``settle.run``). An object's best turn is kept when the scene as given gains more than TURN_MARGIN and
         physics, resting that scene, keeps the object within the settling region; when several objects turn, their
         turns are kept together if that scene scores at least as well as the best one alone -> (scene,
-        log-likelihood, scenes scored)."""
+        log-likelihood, scenes scored, the ties left: ``Tie``)."""
         cfg = self.config
-        owners, searches = [], []
+        owners, names, searches = [], [], []
         for k, model in enumerate(self.problem.models):
+            names += settle.half_turn_names(scene[k])
             for pose in settle.half_turns(scene[k], model.mesh.bounds.mean(axis=0)):
                 start = scene.copy()
                 start[k] = pose
@@ -293,24 +317,34 @@ class Estimator:
         for k, (T, ll, _) in zip(owners, found):
             if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
                 best[k] = (T, ll)
-        if not best:
-            return scene, loglik, scored
-        turned = list(best)
-        rested = self._evaluate(np.stack([best[k][0] for k in turned])).projected
-        held = [k for i, k in enumerate(turned)
-                if settle.within(rested[i, k], best[k][0][k], cfg.settle_shift, np.radians(cfg.settle_turn))]
-        if not held:
-            return scene, loglik, scored
-        first = max(held, key=lambda k: best[k][1])
-        if len(held) > 1:
-            together = scene.copy()
-            for k in held:
-                together[k] = best[k][0][k]
-            together_ll = float(score(together[None])[0])
-            scored += 1
-            if together_ll >= best[first][1]:
-                return together, together_ll, scored
-        return best[first][0], best[first][1], scored
+        kept: dict[int, float] = {}  # object -> the log-likelihood of its kept turn alone
+        result = scene, loglik
+        if best:
+            turned = list(best)
+            rested = self._evaluate(np.stack([best[k][0] for k in turned])).projected
+            held = [k for i, k in enumerate(turned)
+                    if settle.within(rested[i, k], best[k][0][k], cfg.settle_shift, np.radians(cfg.settle_turn))]
+            if held:
+                first = max(held, key=lambda k: best[k][1])
+                kept, result = {first: best[first][1]}, best[first][:2]
+                if len(held) > 1:
+                    together = scene.copy()
+                    for k in held:
+                        together[k] = best[k][0][k]
+                    together_ll = float(score(together[None])[0])
+                    scored += 1
+                    if together_ll >= best[first][1]:
+                        kept, result = {k: best[k][1] for k in held}, (together, together_ll)
+        final = result[0]
+        ties = []
+        for k, name, (T, ll, _) in zip(owners, names, found):
+            gap = ll - kept.get(k, loglik)  # against the same object's pose in the result, the others as settled
+            model = self.problem.models[k]
+            if (gap > -TURN_MARGIN and not np.array_equal(T[k], final[k])
+                    and not (position_error(final[k], T[k], model.symmetries) < SAME_POSE_M
+                             and rotation_error(final[k], T[k], model.symmetries) < SAME_POSE_DEG)):
+                ties.append(Tie(k, name, T[k].copy(), float(gap)))
+        return final, float(result[1]), scored, ties
 
     # ------------------------------------------------------------------------------------------------ sessions
     def state_dict(self) -> dict:

@@ -41,8 +41,9 @@ def estimate_frame(
     show_progress: bool = False,
 ) -> list[ResultRow]:
     """Estimate one frame with the evaluator ``evaluator_for(problem)`` (closed afterwards) -> its BOP result rows,
-    ``time`` the frame's wall seconds. ``show_progress``: a progress bar of its iterations on stderr, opened once
-    the frame has loaded (a bad frame fails before any bar)."""
+    ``time`` the frame's wall seconds. The estimate's near ties (``Estimator.ties``) are named on stderr.
+    ``show_progress``: a progress bar of its iterations on stderr, opened once the frame has loaded (a bad frame
+    fails before any bar)."""
     t0 = time.perf_counter()
     frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
     evaluator = evaluator_for(problem)
@@ -56,6 +57,9 @@ def estimate_frame(
             best = estimator.run(stop_on_convergence=early_stop, callback=progress)
     finally:
         evaluator.close()
+    if estimator.ties:
+        print(f"scene {scene_id} frame {im_id}: the depth hardly decides between the estimate and "
+              + "; ".join(t.describe(problem) for t in estimator.ties), file=sys.stderr)
     scores = object_confidence(problem, estimator.projected, estimator.weights(), best)
     return result_rows(frame, problem, best, scores, time.perf_counter() - t0)
 

@@ -551,6 +551,10 @@ class Engine:
         note = f"Labels set to the most likely scene of iteration {est.iteration}"
         if moved.any():
             note += f", settled to the depth (objects moved up to {moved.max() * 1e3:.1f} mm)"
+        if est.ties:
+            # The turns the depth scores about as well: a labeller checks these against the image or another view.
+            note += ("\n\nThe depth hardly decides between these and the labels (check them; **Turn** or **Lay on "
+                     "face** sets one):\n" + "\n".join(f"- {t.describe(self.problem)}" for t in est.ties))
         self.adopt_labels(best, list(range(len(best))), "best", note)
 
     def save_labels(self, overwrite_original: bool) -> None:

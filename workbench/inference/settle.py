@@ -52,7 +52,7 @@ def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     a can upside down, a potted meat can or a mustard bottle facing the other way, a marker end for end."""
     R = T[:3, :3]
     c = R @ centre + T[:3, 3]
-    axes = R[:, np.argsort(np.abs(R[2]))[:2]].T.copy()  # the two object axes nearest the table plane
+    axes = R[:, _level_axes(R)].T.copy()
     axes[:, 2] = 0.0
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     out = np.repeat(T[None], 3, axis=0)
@@ -61,6 +61,17 @@ def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
         out[i, :3, :3] = H @ R
         out[i, :3, 3] = H @ (T[:3, 3] - c) + c
     return out
+
+
+def _level_axes(R: np.ndarray) -> np.ndarray:
+    """Indices of the two object axes (columns of ``R`` (3, 3)) nearest the table plane -> (2,)."""
+    return np.argsort(np.abs(R[2]))[:2]
+
+
+def half_turn_names(T: np.ndarray) -> list[str]:
+    """What each of ``half_turns(T, ...)`` does, in its order, in words: "about the vertical", then e.g.
+    "over its x axis" for a half turn about the object's own x axis (as levelled onto the table)."""
+    return ["about the vertical", *(f"over its {'xyz'[i]} axis" for i in _level_axes(T[:3, :3]))]
 
 
 def ridge_moves(T: np.ndarray, ll: np.ndarray, step_m: float, step_rad: float) -> tuple[np.ndarray, np.ndarray]:
