@@ -27,8 +27,7 @@ from workbench.geometry import invert_pose
 from workbench.likelihood import scene_loglik
 from workbench.metrics import position_error, rotation_error
 from workbench.pipeline import load_bop_problem
-
-RIGHT_CM, RIGHT_DEG = 2.0, 10.0
+from workbench.scoring import RIGHT_CM, RIGHT_DEG
 
 
 def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig, workers: int) -> dict:

@@ -1,4 +1,4 @@
-"""The `workbench` command line: estimate, serve, make-scenes, bench."""
+"""The `workbench` command line: estimate, score, serve, make-scenes, bench."""
 
 from __future__ import annotations
 
@@ -123,6 +123,27 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_score(args: argparse.Namespace) -> int:
+    import json
+
+    from workbench import bop
+    from workbench.scoring import report, score_results
+
+    if not args.dataset.is_dir():
+        raise InputError(args.dataset, "no such dataset folder")
+    frames = score_results(args.dataset, bop.read_results_csv(args.results), split=args.split,
+                           results_path=args.results)
+    print("\n".join(report(frames)))
+    if args.json is not None:
+        objects = [o.to_dict() for f in frames for o in f.objects]
+        # NaN is not JSON: an object without an estimate has null errors
+        objects = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in o.items()}
+                   for o in objects]
+        args.json.write_text(json.dumps({"dataset": str(args.dataset), "results": str(args.results),
+                                         "objects": objects}, indent=1))
+    return 0
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
@@ -242,6 +263,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-retries", type=int, default=3,
                    help="--engine ray: times a frame is started again after its worker died (default 3)")
     p.set_defaults(func=_cmd_estimate)
+
+    p = sub.add_parser("score", help="score a BOP results CSV against the dataset's scene_gt.json")
+    p.add_argument("dataset", type=Path, help="BOP dataset folder (root or split folder)")
+    p.add_argument("results", type=Path, help="BOP results CSV (e.g. from `workbench estimate`)")
+    p.add_argument("--split", default=None, help="split folder (default: test, or the only one)")
+    p.add_argument("--json", type=Path, default=None, help="also write every object's errors to this JSON file")
+    p.set_defaults(func=_cmd_score)
 
     p = sub.add_parser("serve", help="the browser workbench")
     p.add_argument("dataset", type=Path, nargs="?")

@@ -18,15 +18,16 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
 from workbench.geometry import rotation_angle
-from workbench.metrics import position_error, rotation_error
 from workbench.inference import assemble, datadriven, gaussian, polish, refine, resting, settle, stacking
-from workbench.inference.proposal import Proposal
 from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix
+from workbench.inference.proposal import Proposal
 from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points, unexplained
+from workbench.metrics import position_error, rotation_error
 from workbench.particles import STATES, Sigma, initial_particles, random_relocations
 from workbench.problem import Problem
 from workbench.render import DepthRenderer
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
+from workbench.scoring import RIGHT_CM, RIGHT_DEG
 
 METHODS = ("pipf", "mcpf")
 # The sink (see ``Estimator._fit_sink``) is chosen from 0 to 2 cm in steps of 2 mm. On the real YCB-Video dev frames
@@ -39,8 +40,8 @@ SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
 # 24 on the YCB-Video dev frames (docs/benchmarks.md, "Settling").
 TURN_MARGIN = 30.0
 # A tie (``Tie``) that lands this close to the estimate's pose, up to the model's symmetries, is the same pose: the
-# "right" tolerances of the benchmarks (2 cm, 10 degrees).
-SAME_POSE_M, SAME_POSE_DEG = 0.02, 10.0
+# tolerances an object is scored right within (2 cm, 10 degrees).
+SAME_POSE_M, SAME_POSE_DEG = RIGHT_CM / 100, RIGHT_DEG
 
 
 @dataclass(frozen=True)

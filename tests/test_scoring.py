@@ -1,0 +1,69 @@
+"""`workbench score`: a results CSV against the dataset's ground truth."""
+
+import subprocess
+import sys
+
+import numpy as np
+
+from workbench import bop
+from workbench.geometry import make_pose, rot_z
+from workbench.scoring import match, score_results
+
+
+def _workbench(*args):
+    return subprocess.run([sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600)
+
+
+def _truth_rows(dataset):
+    frame = bop.load_frame(dataset, 0, 0)
+    return frame, [bop.ResultRow(0, 0, obj_id, 1.0, T.copy(), 1.0)
+                   for obj_id, T in zip(frame.object_ids, frame.gt_T_cam_obj)]
+
+
+def test_the_truth_scores_right_and_a_moved_object_does_not(touching_dataset):
+    frame, rows = _truth_rows(touching_dataset)
+    [scored] = score_results(touching_dataset, rows)
+    assert scored.right and len(scored.objects) == len(frame.object_ids)
+    assert all(o.position_cm < 1e-6 and o.rotation_deg < 1e-3 and o.add_s_mm < 1e-6 for o in scored.objects)
+
+    rows[0].T_cam_obj[:3, 3] += [0.03, 0.0, 0.0]  # 3 cm off
+    # the other box turned half about its own z axis: the same box, a declared symmetry of the dataset
+    rows[1].T_cam_obj = rows[1].T_cam_obj @ make_pose(rot_z(np.pi), np.zeros(3))
+    [scored] = score_results(touching_dataset, rows)
+    assert not scored.right
+    assert not scored.objects[0].right and abs(scored.objects[0].position_cm - 3.0) < 1e-6
+    assert scored.objects[1].right and scored.objects[1].rotation_deg < 1e-3
+
+
+def test_a_missing_estimate_is_wrong_and_an_extra_row_is_counted(touching_dataset):
+    frame, rows = _truth_rows(touching_dataset)
+    extra = bop.ResultRow(0, 0, frame.object_ids[0], 0.5, rows[0].T_cam_obj.copy(), 1.0)
+    [scored] = score_results(touching_dataset, [rows[0], extra])
+    assert scored.unmatched_rows == 1
+    assert scored.objects[0].right and not scored.objects[1].estimated and not scored.objects[1].right
+
+
+def test_instances_of_one_object_are_matched_nearest_first():
+    gt = np.repeat(np.eye(4)[None], 3, axis=0)
+    gt[:, 0, 3] = [0.0, 0.1, 0.2]
+    gt[2] = np.nan  # an instance without ground truth is never matched
+    est = gt[[1, 0]].copy()
+    est[:, 0, 3] = [0.11, 0.01]
+    assert sorted(match(gt, est, np.eye(4)[None])) == [(0, 1), (1, 0)]
+
+
+def test_score_command_prints_the_summary_and_names_a_foreign_frame(touching_dataset, tmp_path):
+    _, rows = _truth_rows(touching_dataset)
+    good = tmp_path / "good.csv"
+    bop.write_results_csv(good, rows)
+    run = _workbench("score", touching_dataset, good, "--json", tmp_path / "scores.json")
+    assert run.returncode == 0, run.stderr
+    assert f"{len(rows)}/{len(rows)} objects right" in run.stdout and "1 with every object right" in run.stdout
+    assert (tmp_path / "scores.json").is_file()
+
+    foreign = tmp_path / "foreign.csv"
+    bop.write_results_csv(foreign, [bop.ResultRow(7, 3, r.obj_id, r.score, r.T_cam_obj, r.time) for r in rows])
+    run = _workbench("score", touching_dataset, foreign)
+    assert run.returncode == 2 and "foreign.csv" in run.stderr and "scene 7 image 3" in run.stderr
+    assert "Traceback" not in run.stderr

@@ -1,0 +1,136 @@
+"""A BOP results CSV scored against a dataset's ground truth (``workbench score``).
+
+Each ground-truth instance of a frame is matched to one estimate row of the same object (greedily, nearest
+first, when a frame holds several instances), and scored up to the model's symmetries (models_info.json):
+position error (cm), rotation error (deg), ADD-S (mm). An object is *right* within ``RIGHT_CM`` and
+``RIGHT_DEG``, the tolerances of docs/benchmarks.md; a frame is right when all its objects are. Poses stay in the
+camera frame (OpenCV, metres): both errors are the same in any frame both poses share.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from workbench import bop
+from workbench.errors import InputError
+from workbench.metrics import add_s, model_points, position_error, rotation_error
+
+RIGHT_CM, RIGHT_DEG = 2.0, 10.0
+
+
+@dataclass(frozen=True)
+class ObjectScore:
+    """One ground-truth instance against its estimate; errors NaN and ``right`` False when it has none."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    position_cm: float
+    rotation_deg: float
+    add_s_mm: float
+    right: bool
+
+    @property
+    def estimated(self) -> bool:
+        return bool(np.isfinite(self.position_cm))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class FrameScore:
+    scene_id: int
+    im_id: int
+    objects: list[ObjectScore]
+    unmatched_rows: int  # estimate rows of objects the ground truth does not hold (or holds fewer of)
+
+    @property
+    def right(self) -> bool:
+        return all(o.right for o in self.objects)
+
+
+def match(gt: np.ndarray, est: np.ndarray, symmetries: np.ndarray) -> list[tuple[int, int]]:
+    """Instances of one object: pairs (ground-truth index, estimate index), nearest first, each used once.
+    ``gt`` (G, 4, 4), ``est`` (E, 4, 4), one frame; ground truth rows that are NaN are never matched."""
+    pairs = sorted((position_error(g, e, symmetries), i, j)
+                   for i, g in enumerate(gt) if np.isfinite(g).all() for j, e in enumerate(est))
+    used_gt, used_est, out = set(), set(), []
+    for _, i, j in pairs:
+        if i not in used_gt and j not in used_est:
+            used_gt.add(i)
+            used_est.add(j)
+            out.append((i, j))
+    return out
+
+
+def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = None,
+                  results_path: Path | None = None) -> list[FrameScore]:
+    """Every frame that ``rows`` (a results CSV, ``bop.read_results_csv``) holds, scored against the dataset's
+    scene_gt.json, frames in (scene, image) order. InputError, naming the file, when a frame is not in the dataset
+    or has no ground truth."""
+    frames: dict[tuple[int, int], list[bop.ResultRow]] = {}
+    for r in rows:
+        frames.setdefault((r.scene_id, r.im_id), []).append(r)
+    known = set(bop.list_frames(dataset, split=split))
+    missing = sorted(set(frames) - known)
+    if missing:
+        raise InputError(results_path, f"{len(missing)} frame(s) are not in {dataset}, e.g. scene {missing[0][0]} "
+                         f"image {missing[0][1]}: is this the dataset the results were made on?")
+    models: dict[int, tuple] = {}  # obj_id -> (symmetries, ADD-S points)
+    out = []
+    for (scene_id, im_id), mine in sorted(frames.items()):
+        frame = bop.load_frame(dataset, scene_id, im_id, split)
+        if frame.gt_T_cam_obj is None:
+            raise InputError(dataset, f"scene {scene_id} image {im_id} has no scene_gt.json: nothing to score against")
+        for obj_id in set(frame.object_ids) - set(models):
+            m = bop.load_models(dataset, [obj_id])[obj_id]
+            models[obj_id] = (m.symmetries, model_points(m.mesh, 500))
+        objects, matched = [], 0
+        for obj_id in dict.fromkeys(frame.object_ids):
+            gi = [k for k, o in enumerate(frame.object_ids) if o == obj_id]
+            est = [r.T_cam_obj for r in mine if r.obj_id == obj_id]
+            sym, points = models[obj_id]
+            pairs = dict(match(frame.gt_T_cam_obj[gi], np.array(est).reshape(-1, 4, 4), sym))
+            matched += len(pairs)
+            for i, k in enumerate(gi):
+                T_gt = frame.gt_T_cam_obj[k]
+                if i not in pairs:
+                    objects.append(ObjectScore(scene_id, im_id, obj_id, np.nan, np.nan, np.nan, False))
+                    continue
+                T_est = est[pairs[i]]
+                pos, rot = 100 * position_error(T_gt, T_est, sym), rotation_error(T_gt, T_est, sym)
+                objects.append(ObjectScore(scene_id, im_id, obj_id, pos, rot, 1000 * add_s(T_gt, T_est, points),
+                                           bool(pos < RIGHT_CM and rot < RIGHT_DEG)))
+        out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched))
+    return out
+
+
+def report(frames: list[FrameScore]) -> list[str]:
+    """Lines for the terminal: one per object, then the summary."""
+    lines = ["scene  image  obj  position_cm  rotation_deg  add_s_mm  right"]
+    for f in frames:
+        for o in f.objects:
+            if o.estimated:
+                lines.append(f"{o.scene_id:5d}  {o.im_id:5d}  {o.obj_id:3d}  {o.position_cm:11.2f}  "
+                             f"{o.rotation_deg:12.1f}  {o.add_s_mm:8.1f}  {'yes' if o.right else 'no'}")
+            else:
+                lines.append(f"{o.scene_id:5d}  {o.im_id:5d}  {o.obj_id:3d}  {'no estimate':>11s}")
+    objects = [o for f in frames for o in f.objects]
+    estimated = [o for o in objects if o.estimated]
+    lines.append(f"# {len(frames)} frame(s): {sum(f.right for f in frames)} with every object right; "
+                 f"{sum(o.right for o in objects)}/{len(objects)} objects right (within {RIGHT_CM:g} cm and "
+                 f"{RIGHT_DEG:g} deg, up to the models' symmetries)")
+    if estimated:
+        lines.append(f"# median position error {np.median([o.position_cm for o in estimated]):.2f} cm, median "
+                     f"rotation error {np.median([o.rotation_deg for o in estimated]):.1f} deg, median ADD-S "
+                     f"{np.median([o.add_s_mm for o in estimated]):.1f} mm")
+    missing = len(objects) - len(estimated)
+    extra = sum(f.unmatched_rows for f in frames)
+    if missing or extra:
+        lines.append(f"# {missing} object(s) without an estimate, {extra} estimate row(s) without a ground-truth "
+                     "object")
+    return lines
