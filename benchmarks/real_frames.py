@@ -25,9 +25,8 @@ from workbench.estimators import Estimator, EstimatorConfig
 from workbench.evaluation import LocalEvaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.likelihood import scene_loglik
-from workbench.metrics import position_error, rotation_error
+from workbench.metrics import is_right, position_error, rotation_error
 from workbench.pipeline import load_bop_problem
-from workbench.scoring import RIGHT_CM, RIGHT_DEG
 
 
 def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig, workers: int) -> dict:
@@ -63,7 +62,7 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         pos = 100 * position_error(gt[k], best[k], model.symmetries)
         rot = rotation_error(gt[k], best[k], model.symmetries)
         objects.append({"obj_id": model.obj_id, "position_cm": round(pos, 2), "rotation_deg": round(rot, 1),
-                        "right": bool(pos < RIGHT_CM and rot < RIGHT_DEG),
+                        "right": is_right(gt[k], best[k], model.symmetries),
                         "truth_swap_gain": round(float(swapped[k + 1] - swapped[0]), 1),
                         "truth_moved_cm": round(100 * float(np.linalg.norm(truth.projected[0, k, :3, 3]
                                                                            - gt[k, :3, 3])), 2),
@@ -73,10 +72,9 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
                         "settled_moved_cm": round(100 * float(np.linalg.norm(resettled[k, :3, 3]
                                                                              - best[k, :3, 3])), 2),
                         # the estimate's near ties for this object (Estimator.ties), and whether the tied pose is
-                        # the right one (within 2 cm and 10 degrees of the truth)
+                        # the right one
                         "ties": [{"turn": t.turn, "gap": round(t.gap, 1),
-                                  "right": bool(100 * position_error(gt[k], t.T, model.symmetries) < RIGHT_CM
-                                                and rotation_error(gt[k], t.T, model.symmetries) < RIGHT_DEG)}
+                                  "right": is_right(gt[k], t.T, model.symmetries)}
                                  for t in estimator.ties if t.obj == k]})
     return {
         "scene_id": scene_id, "im_id": im_id, "objects": objects,

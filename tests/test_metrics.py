@@ -106,3 +106,17 @@ def test_iterations_to_converge():
     S = [metrics.box_symmetries(CRACKER)] * 2
     assert metrics.iterations_to_converge(flip) == 2
     assert metrics.iterations_to_converge(flip, symmetries=S) == 0
+
+
+def test_is_right_within_two_cm_and_ten_degrees_up_to_symmetry():
+    T = make_pose(rot_z(0.3), np.array([0.1, 0.2, 0.05]))
+    assert metrics.is_right(T, T)
+    shifted = T.copy()
+    shifted[0, 3] += 0.99 * metrics.RIGHT_CM / 100
+    assert metrics.is_right(T, shifted)
+    shifted[0, 3] += 0.02 * metrics.RIGHT_CM / 100
+    assert not metrics.is_right(T, shifted)
+    assert metrics.is_right(T, T @ make_pose(rot_z(np.radians(0.99 * metrics.RIGHT_DEG)), np.zeros(3)))
+    half = T @ make_pose(rot_z(np.pi), np.zeros(3))
+    assert not metrics.is_right(T, half)
+    assert metrics.is_right(T, half, np.stack([np.eye(4), make_pose(rot_z(np.pi), np.zeros(3))]))

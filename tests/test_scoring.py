@@ -1,18 +1,11 @@
 """`workbench score`: a results CSV against the dataset's ground truth."""
 
-import subprocess
-import sys
-
 import numpy as np
+from test_cli import _workbench
 
 from workbench import bop
 from workbench.geometry import make_pose, rot_z
 from workbench.scoring import match, score_results
-
-
-def _workbench(*args):
-    return subprocess.run([sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=600)
 
 
 def _truth_rows(dataset):

@@ -6,7 +6,9 @@ import pytest
 from workbench.estimators import TURN_MARGIN, Estimator, EstimatorConfig
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose, rot_z
-from workbench.inference.settle import half_turn_names, half_turns, pattern_search, ridge_moves, run, search, single_moves, within
+from workbench.inference.settle import (
+    half_turn_names, half_turns, pattern_search, ridge_moves, run, search, single_moves, within,
+)
 from workbench.metrics import position_error, rotation_error
 from workbench.physics import STATUS_AS_GIVEN
 from workbench.pipeline import load_bop_problem

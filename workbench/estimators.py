@@ -22,12 +22,11 @@ from workbench.inference import assemble, datadriven, gaussian, polish, refine, 
 from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix
 from workbench.inference.proposal import Proposal
 from workbench.inference.scenepoints import clusters, model_samples, object_badness, observed_points, unexplained
-from workbench.metrics import position_error, rotation_error
+from workbench.metrics import is_right
 from workbench.particles import STATES, Sigma, initial_particles, random_relocations
 from workbench.problem import Problem
 from workbench.render import DepthRenderer
 from workbench.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
-from workbench.scoring import RIGHT_CM, RIGHT_DEG
 
 METHODS = ("pipf", "mcpf")
 # The sink (see ``Estimator._fit_sink``) is chosen from 0 to 2 cm in steps of 2 mm. On the real YCB-Video dev frames
@@ -39,9 +38,6 @@ SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
 # log-units: turning over a symmetric box, which changes nothing the camera sees, and settling it again gained up to
 # 24 on the YCB-Video dev frames (docs/benchmarks.md, "Settling").
 TURN_MARGIN = 30.0
-# A tie (``Tie``) that lands this close to the estimate's pose, up to the model's symmetries, is the same pose: the
-# tolerances an object is scored right within (2 cm, 10 degrees).
-SAME_POSE_M, SAME_POSE_DEG = RIGHT_CM / 100, RIGHT_DEG
 
 
 @dataclass(frozen=True)
@@ -341,9 +337,8 @@ class Estimator:
         for k, name, (T, ll, _) in zip(owners, names, found):
             gap = ll - kept.get(k, loglik)  # against the same object's pose in the result, the others as settled
             model = self.problem.models[k]
-            if (gap > -TURN_MARGIN and not np.array_equal(T[k], final[k])
-                    and not (position_error(final[k], T[k], model.symmetries) < SAME_POSE_M
-                             and rotation_error(final[k], T[k], model.symmetries) < SAME_POSE_DEG)):
+            # a turn that lands within the benchmarks' "right" tolerances of the result is the same pose
+            if gap > -TURN_MARGIN and not is_right(final[k], T[k], model.symmetries):
                 ties.append(Tie(k, name, T[k].copy(), float(gap)))
         return final, float(result[1]), scored, ties
 

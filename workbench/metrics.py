@@ -59,6 +59,16 @@ def rotation_error(T_gt: np.ndarray, T_est: np.ndarray, symmetries: np.ndarray |
     return float(np.degrees(rotation_angle(T_sym[:3, :3].T @ np.asarray(T_est)[:3, :3])))
 
 
+RIGHT_CM, RIGHT_DEG = 2.0, 10.0  # an estimate is right within these, up to the model's symmetries
+
+
+def is_right(T_gt: np.ndarray, T_est: np.ndarray, symmetries: np.ndarray | None = None) -> bool:
+    """Whether the estimate lies within RIGHT_CM (``position_error``) and RIGHT_DEG (``rotation_error``) of the
+    ground truth, up to its ``symmetries``: the tolerances every benchmark counts objects right by."""
+    return (100 * position_error(T_gt, T_est, symmetries) < RIGHT_CM
+            and rotation_error(T_gt, T_est, symmetries) < RIGHT_DEG)
+
+
 def rpy_errors(T_gt: np.ndarray, T_est: np.ndarray, symmetries: np.ndarray | None = None) -> np.ndarray:
     """|roll|, |pitch|, |yaw| errors (deg) about the x, y, z axes of the frame the poses are in (the table frame).
 

@@ -16,9 +16,7 @@ import numpy as np
 
 from workbench import bop
 from workbench.errors import InputError
-from workbench.metrics import add_s, model_points, position_error, rotation_error
-
-RIGHT_CM, RIGHT_DEG = 2.0, 10.0
+from workbench.metrics import RIGHT_CM, RIGHT_DEG, add_s, is_right, model_points, position_error, rotation_error
 
 
 @dataclass(frozen=True)
@@ -86,8 +84,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
         frame = bop.load_frame(dataset, scene_id, im_id, split)
         if frame.gt_T_cam_obj is None:
             raise InputError(dataset, f"scene {scene_id} image {im_id} has no scene_gt.json: nothing to score against")
-        for obj_id in set(frame.object_ids) - set(models):
-            m = bop.load_models(dataset, [obj_id])[obj_id]
+        for obj_id, m in bop.load_models(dataset, sorted(set(frame.object_ids) - set(models))).items():
             models[obj_id] = (m.symmetries, model_points(m.mesh, 500))
         objects, matched = [], 0
         for obj_id in dict.fromkeys(frame.object_ids):
@@ -102,9 +99,9 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
                     objects.append(ObjectScore(scene_id, im_id, obj_id, np.nan, np.nan, np.nan, False))
                     continue
                 T_est = est[pairs[i]]
-                pos, rot = 100 * position_error(T_gt, T_est, sym), rotation_error(T_gt, T_est, sym)
-                objects.append(ObjectScore(scene_id, im_id, obj_id, pos, rot, 1000 * add_s(T_gt, T_est, points),
-                                           bool(pos < RIGHT_CM and rot < RIGHT_DEG)))
+                objects.append(ObjectScore(scene_id, im_id, obj_id, 100 * position_error(T_gt, T_est, sym),
+                                           rotation_error(T_gt, T_est, sym), 1000 * add_s(T_gt, T_est, points),
+                                           is_right(T_gt, T_est, sym)))
         out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched))
     return out
 
