@@ -202,3 +202,24 @@ def test_decimated_render_stays_within_the_depth_bound():
     assert inside.sum() > 1000
     error = np.abs(a - b)[inside]
     assert np.percentile(error, 99) <= bound and np.max(error) < 3 * bound
+
+
+def test_back_face_culling_leaves_closed_meshes_unchanged(renderer, meshes):
+    particles = random_particles(np.random.default_rng(3), 12, 2)
+    with DepthRenderer(CAMERA, meshes, RenderConfig(cull_back_faces=False)) as whole:
+        assert_same_depth(renderer.render(particles), whole.render(particles))
+
+
+def test_open_mesh_is_drawn_with_its_back_faces():
+    # A box without its top, seen from above: the floor and the far walls are seen from inside, as back faces.
+    box = trimesh.creation.box(BOX)
+    tray = trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] < 0.5])
+    assert not tray.is_watertight
+    pose = pose_from_xyz_rpy(np.array([[[0.0, 0.0, 0.02, 0.0, 0.0, 0.0]]]))
+    with DepthRenderer(CAMERA, [tray]) as culled, \
+            DepthRenderer(CAMERA, [tray], RenderConfig(cull_back_faces=False)) as whole:
+        depth = culled.render(pose)[0]
+        assert_same_depth(depth, whole.render(pose)[0])
+    closed = render_depth(CAMERA, [box], pose[0])
+    inside = eroded(closed > 0)
+    assert np.mean(depth[inside] > closed[inside] + 0.01) > 0.3  # the floor, deeper than the missing lid

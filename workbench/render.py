@@ -62,11 +62,13 @@ class RenderConfig:
     """``backend``: "auto" (the process's backend, see the module docstring) | "osmesa" | "egl".
     ``max_framebuffer``: pixels per side of the tiled framebuffer; larger batches take several passes.
     ``max_depth_error``: metres; each mesh is drawn as its coarsest quadric decimation whose surface stays this
-    close to the full mesh (``render_mesh``), 0 draws the full meshes."""
+    close to the full mesh (``render_mesh``), 0 draws the full meshes. ``cull_back_faces``: skip the back faces of
+    closed, outward-wound meshes (``closed_outward``); the depth is the same, a third cheaper to draw."""
 
     backend: str = "auto"
     max_framebuffer: int = 2048
     max_depth_error: float = 1e-3
+    cull_back_faces: bool = True
 
 
 # Decimation halves the face count until the surface leaves the bound: a few decimations (~50 ms each for 16k
@@ -220,6 +222,13 @@ void main() {
 """
 
 
+def closed_outward(mesh: trimesh.Trimesh) -> bool:
+    """Whether ``mesh`` is closed with its faces wound outward: then no back face is ever the nearest surface, and
+    culling back faces (a third off a software render) leaves the depth unchanged. An open or inside-out mesh
+    can show a back face through its hole, so it is drawn whole."""
+    return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
+
+
 def projection_matrix(K: np.ndarray, fb_width: int, fb_height: int) -> np.ndarray:
     """OpenCV camera frame -> GL clip space for the tile at the framebuffer's origin. -> (4, 4) float32.
 
@@ -358,6 +367,7 @@ class DepthRenderer:
         # Drawn as decimated meshes within the depth bound: the cost of a batch grows with the faces drawn.
         self.meshes = [render_mesh(mesh, config.max_depth_error) for mesh in meshes]
         self._meshes = [self._upload_mesh(GL, mesh) for mesh in self.meshes]
+        self._cull = [config.cull_back_faces and closed_outward(mesh) for mesh in self.meshes]
         self._fbo = GL.glGenFramebuffers(1)
         self._colour_rb, self._depth_rb = GL.glGenRenderbuffers(2)
         # One fixed tile layout: a particle's pixels then depend only on its place in the batch, never on the batch
@@ -458,13 +468,19 @@ class DepthRenderer:
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._instance_vbo)
         GL.glBufferData(GL.GL_ARRAY_BUFFER, T_cam_obj.nbytes, T_cam_obj, GL.GL_STREAM_DRAW)
         block = n * 64  # bytes of one object's matrices
+        # The image is drawn with v along GL's window y, a mirror of GL's convention, so outward (counter-
+        # clockwise) faces arrive clockwise.
+        GL.glFrontFace(GL.GL_CW)
+        GL.glCullFace(GL.GL_BACK)
         for k, (vao, _, _, count) in enumerate(self._meshes):
+            (GL.glEnable if self._cull[k] else GL.glDisable)(GL.GL_CULL_FACE)
             GL.glBindVertexArray(vao)
             for column in range(4):
                 offset = k * block + column * 16
                 GL.glVertexAttribPointer(1 + column, 4, GL.GL_FLOAT, GL.GL_FALSE, 64, ctypes.c_void_p(offset))
             GL.glDrawElementsInstanced(GL.GL_TRIANGLES, count, GL.GL_UNSIGNED_INT, None, n)
         GL.glBindVertexArray(0)
+        GL.glDisable(GL.GL_CULL_FACE)
 
         GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 4)
