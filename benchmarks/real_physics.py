@@ -97,6 +97,7 @@ def main() -> None:
         "residual 1e-7 (Bullet's)": dataclasses.replace(base, solver_residual=1e-7),
         "pyramid friction": dataclasses.replace(base, cone_friction=False),
         "damping 0.5": dataclasses.replace(base, linear_damping=0.5, angular_damping=0.5),
+        "calm bodies awake": dataclasses.replace(base, sleep_calm=False),
     }
     firsts: dict[int, int] = {}
     for scene_id, im_id in bop.list_frames(args.dataset):

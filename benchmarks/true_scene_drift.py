@@ -70,8 +70,9 @@ def main() -> None:
                         help="override PhysicsConfig's rolling and spinning friction (m)")
     parser.add_argument("--solver-residual", type=float, default=None, help="override PhysicsConfig's")
     parser.add_argument("--pyramid-friction", action="store_true", help="Bullet's pyramid friction, not its cone")
+    parser.add_argument("--awake", action="store_true", help="calm bodies stay awake (PhysicsConfig.sleep_calm off)")
     args = parser.parse_args()
-    physics = PhysicsConfig(cone_friction=not args.pyramid_friction)
+    physics = PhysicsConfig(cone_friction=not args.pyramid_friction, sleep_calm=not args.awake)
     if args.rolling_friction is not None:
         physics = dataclasses.replace(physics, rolling_friction=args.rolling_friction,
                                       spinning_friction=args.rolling_friction)

@@ -147,6 +147,39 @@ def test_result_depends_only_on_the_particle_itself(cache_dir):
     assert np.array_equal(rest[0], rest_alone[0]) and rest[1:] == rest_alone[1:]
 
 
+def test_a_sleeping_body_is_woken_when_something_falls_on_it():
+    # A 3 cm cube rests from the start, so it is asleep after the first two checks; a 20 cm board standing on its
+    # edge, tilted 23 degrees towards it, topples onto it a few tenths of a second later and shoves it.
+    models = [box([0.03, 0.03, 0.03], 1), box([0.06, 0.06, 0.2], 2)]
+    lean = 0.4
+    start = poses([0, 0, 0.015, 0, 0, 0], [-0.12, 0, 0.1 * np.cos(lean) + 0.03 * np.sin(lean) + 0.002, 0, lean, 0])
+    results = {}
+    for sleep in (True, False):
+        with PhysicsProjector(models, TABLE, PhysicsConfig(sleep_calm=sleep)) as projector:
+            results[sleep] = projector.project(start)
+    (out, status, _), (awake, _, _) = results[True], results[False]
+    assert status == STATUS_REST
+    assert np.linalg.norm(out[0, :3, 3] - start[0, :3, 3]) > 3 * MM  # a cube left asleep would not move at all
+    assert tilt(out[0]) > np.radians(2)  # the board rests propped on it
+    assert np.max(np.linalg.norm(out[:, :3, 3] - awake[:, :3, 3], axis=1)) < 1 * MM
+
+
+def test_sleeping_calm_bodies_hardly_moves_resting_poses():
+    rng = np.random.default_rng(4)
+    models = [box(rng.uniform(0.03, 0.1, 3), k) for k in range(4)]
+    xyz = np.concatenate([rng.uniform(-0.12, 0.12, (30, 4, 2)), rng.uniform(0.03, 0.12, (30, 4, 1))], axis=2)
+    rpy = rng.uniform(-np.pi, np.pi, (30, 4, 3))
+    starts = pose_from_xyz_rpy(np.concatenate([xyz, rpy], axis=2))
+    out = {}
+    for sleep in (True, False):
+        with PhysicsProjector(models, TABLE, PhysicsConfig(sleep_calm=sleep)) as projector:
+            out[sleep] = projector.project_batch(starts)
+    assert np.mean(out[True][1] == out[False][1]) >= 0.9
+    both = (out[True][1] == STATUS_REST) & (out[False][1] == STATUS_REST)
+    moved = np.linalg.norm(out[True][0][both, :, :3, 3] - out[False][0][both, :, :3, 3], axis=-1)
+    assert both.sum() >= 20 and np.median(moved) < 0.5 * MM
+
+
 def test_a_sunk_table_rests_objects_that_far_down_and_leaves_no_state():
     models = [box([0.06, 0.06, 0.06], 1), cylinder(obj_id=2)]
     scene = poses([0, 0, 0.04, 0, 0, 0], [0.1, 0, 0.07, 0, 0, 0])

@@ -223,6 +223,22 @@ def test_damaged_session_is_refused_and_nothing_changes(saved, tmp_path, case):
         assert listed["base"].problem
 
 
+def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
+    # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
+    folder, original = saved
+    work = tmp_path / "sessions"
+    shutil.copytree(folder, work)
+    json_path = work / original.name
+    doc = json.loads(json_path.read_text())
+    assert doc["format_version"] == 2 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    del doc["problem_config"]["physics"]["sleep_calm"]
+    json_path.write_text(json.dumps({**doc, "format_version": 1}))
+    assert load_session(json_path).problem_config.physics.sleep_calm is False
+    json_path.write_text(json.dumps(doc))  # a format-2 file must carry the setting
+    with pytest.raises(InputError, match="sleep_calm"):
+        load_session(json_path)
+
+
 @pytest.mark.parametrize("name", ["../../etc/x", "a/b", "..", ".hidden", "-x", "", "x" * 65, "naïve", "a b"])
 def test_unsafe_names_are_refused_and_nothing_is_written(saved, tmp_path, name):
     folder, original = saved

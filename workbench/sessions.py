@@ -53,7 +53,10 @@ from workbench.evaluation import Evaluator
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+# Settings added since format 1, with the values format-1 sessions ran with (not today's defaults): a restored
+# session steps as it did when saved.
+FORMAT_1_PHYSICS = {"sleep_calm": False}
 KIND = "workbench-session"
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 ARRAYS_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}\.[0-9a-f]{16}\.npz")
@@ -406,7 +409,18 @@ def _read_document(path: Path) -> dict:
     if version > FORMAT_VERSION:
         raise InputError(path, f"written by a newer workbench (session format {version}; this one reads up to "
                                f"{FORMAT_VERSION}): update the workbench to open it")
+    if version == 1:
+        _upgrade_format_1(document)
     return document
+
+
+def _upgrade_format_1(document: dict) -> None:
+    """Fill in the physics settings format 1 lacked with the values its sessions ran with (in place)."""
+    config = document.get("problem_config")
+    physics = config.get("physics") if isinstance(config, dict) else None
+    if isinstance(physics, dict):
+        for name, value in FORMAT_1_PHYSICS.items():
+            physics.setdefault(name, value)
 
 
 def _parse_document(d: dict) -> tuple[SessionState, dict]:
