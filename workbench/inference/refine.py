@@ -99,13 +99,16 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
 
 
 def _point_to_plane_steps(p: np.ndarray, q: np.ndarray, n: np.ndarray, owner: np.ndarray, S: int) -> np.ndarray:
-    """Per start s, the small rigid motion (4, 4) that best moves its points p (M, 3) (those with ``owner`` (M,)
-    == s) onto the planes through q (M, 3) with normals n (M, 3), linearised: minimise sum(((R p + t - q) . n)^2)
+    """Per start s, the small rigid motion (4, 4) that best moves its points p (M, 3) (those with ``owner`` (M,),
+    non-decreasing, == s) onto the planes through q (M, 3) with normals n (M, 3), linearised: minimise sum(((R p + t - q) . n)^2)
     with R = I + [w]x. -> (S, 4, 4); identity for starts without points."""
     A = np.concatenate([np.cross(p, n), n], axis=1)  # (M, 6)
     b = np.einsum("md,md->m", q - p, n)
-    # Per-start sums of the normal equations' entries, as one sparse (S, M) indicator product.
-    member = csr_matrix((np.ones(len(owner)), (owner, np.arange(len(owner)))), shape=(S, len(owner)))
+    # Per-start sums of the normal equations' entries, as one sparse (S, M) indicator product. ``owner`` is sorted
+    # (points are grouped by start), so the rows' extents are where each start's run begins: built directly in
+    # CSR form, a third cheaper than from coordinates, and the same matrix.
+    rows = np.searchsorted(owner, np.arange(S + 1))
+    member = csr_matrix((np.ones(len(owner)), np.arange(len(owner)), rows), shape=(S, len(owner)))
     AtA = member @ (A[:, :, None] * A[:, None, :]).reshape(-1, 36)
     Atb = member @ (A * b[:, None])
     x = np.linalg.solve(AtA.reshape(S, 6, 6) + 1e-9 * np.eye(6), Atb[..., None])[..., 0]
