@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import trimesh
@@ -345,3 +348,10 @@ def test_collision_kind_override_and_fit_are_data():
     assert "convex" in shape.describe() and np.isfinite(shape.fit_volume) and np.isfinite(shape.fit_deviation)
     with pytest.raises(InputError):
         PhysicsConfig(shape_overrides=((7, "sphere"),))
+
+
+def test_importing_physics_prints_nothing():
+    # pybullet's C module prints its build time on import; every command's output would open with it.
+    done = subprocess.run([sys.executable, "-c", "import workbench.physics, workbench.synth"], capture_output=True,
+                          text=True, check=True)
+    assert done.stdout == "" and done.stderr == ""

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pybullet
+from workbench.bullet import pybullet
 import trimesh
 
 from workbench.errors import InputError

@@ -27,7 +27,7 @@ import tempfile
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet
+from workbench.bullet import pybullet
 import trimesh
 
 from workbench.collision import BOX, COMPOUND, CYLINDER, KINDS, CollisionShape, collision_shape_for

@@ -33,7 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 import open3d as o3d
-import pybullet as pb
+from workbench.bullet import pybullet as pb
 import trimesh
 from PIL import Image
 from scipy.spatial import cKDTree
