@@ -158,7 +158,7 @@ def run_frame_tasks(
     remote = ray.remote(num_cpus=1, max_retries=config.max_retries, retry_exceptions=False)(task)
     shared = [ray.put(a) for a in args]
     pending = {remote.remote(scene_id, im_id, *shared): (scene_id, im_id) for scene_id, im_id in frames}
-    with tqdm(total=len(frames), desc=desc, unit="frame", file=sys.stderr) as bar:
+    with tqdm(total=len(frames), desc=desc, unit="frame", file=sys.stderr, disable=None) as bar:  # terminals only
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             frame = pending.pop(done[0])

@@ -42,15 +42,17 @@ def estimate_frame(
 ) -> list[ResultRow]:
     """Estimate one frame with the evaluator ``evaluator_for(problem)`` (closed afterwards) -> its BOP result rows,
     ``time`` the frame's wall seconds. The estimate's near ties (``Estimator.ties``) are named on stderr.
-    ``show_progress``: a progress bar of its iterations on stderr, opened once the frame has loaded (a bad frame
-    fails before any bar)."""
+    ``show_progress``: a progress bar of its iterations on stderr when stderr is a terminal, opened once the frame
+    has loaded (a bad frame fails before any bar)."""
     t0 = time.perf_counter()
     frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
     evaluator = evaluator_for(problem)
     try:
         estimator = Estimator(problem, config, evaluator)
+        # On a terminal only (disable=None): in a log file the bar's carriage returns would share lines with the
+        # messages after it.
         with tqdm(total=config.iterations + 1, desc=f"scene {scene_id} frame {im_id}", file=sys.stderr,
-                  leave=False, disable=not show_progress) as bar:
+                  leave=False, disable=None if show_progress else True) as bar:
             def progress(report):
                 bar.update(1)
                 bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")

@@ -9,6 +9,7 @@ camera frame (OpenCV, metres): both errors are the same in any frame both poses 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -51,6 +52,16 @@ class FrameScore:
         return all(o.right for o in self.objects)
 
 
+def _load_shapes(dataset: Path, obj_ids: list[int]) -> dict:
+    """The models, for their shapes and symmetries only: the loader's warning that an open mesh's mass comes from
+    its convex hull concerns physics, not scoring, so it is not shown here."""
+    level = bop.log.level
+    bop.log.setLevel(logging.ERROR)
+    try:
+        return bop.load_models(dataset, obj_ids)
+    finally:
+        bop.log.setLevel(level)
+
 def match(gt: np.ndarray, est: np.ndarray, symmetries: np.ndarray) -> list[tuple[int, int]]:
     """Instances of one object: pairs (ground-truth index, estimate index), nearest first, each used once.
     ``gt`` (G, 4, 4), ``est`` (E, 4, 4), one frame; ground truth rows that are NaN are never matched."""
@@ -84,7 +95,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
         frame = bop.load_frame(dataset, scene_id, im_id, split)
         if frame.gt_T_cam_obj is None:
             raise InputError(dataset, f"scene {scene_id} image {im_id} has no scene_gt.json: nothing to score against")
-        for obj_id, m in bop.load_models(dataset, sorted(set(frame.object_ids) - set(models))).items():
+        for obj_id, m in _load_shapes(dataset, sorted(set(frame.object_ids) - set(models))).items():
             models[obj_id] = (m.symmetries, model_points(m.mesh, 500))
         objects, matched = [], 0
         for obj_id in dict.fromkeys(frame.object_ids):

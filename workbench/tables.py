@@ -586,7 +586,7 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
         run_frame_tasks(bench_frame_task, frames, (dataset.resolve(), cats, settings), ray, results.__setitem__,
                         failures.append, desc="bench")
     else:
-        bar = tqdm(total=len(frames) * len(methods), file=sys.stderr, desc="bench", unit="run")
+        bar = tqdm(total=len(frames) * len(methods), file=sys.stderr, desc="bench", unit="run", disable=None)
 
         def on_run(description):
             bar.set_description(description)
