@@ -97,6 +97,38 @@ def test_submitted_batches_equal_their_evaluation_whichever_is_collected_first(f
     assert len(late.loglik) == 1500 and np.isfinite(late.loglik).mean() > 0.9
 
 
+def test_map_runs_calls_on_the_workers_in_order_behind_a_pending_batch(frame_and_problem):
+    """``Evaluator.map`` (the search's candidate fits) gives what the calls give in this process, in order, also when
+    queued behind a batch that has not been collected yet; that batch still comes back as ``evaluate`` gives it."""
+    from workbench.inference.datadriven import fit_scores
+    from workbench.inference.scenepoints import model_samples
+
+    frame, problem = frame_and_problem
+    truth = _ground_truth_in_table_frame(frame, problem)
+    rng = np.random.default_rng(1)
+    samples = model_samples(problem.models[0].mesh)
+    calls = []
+    for n in (1, 7, 3, 12, 5):
+        T = np.repeat(truth[:1], n, axis=0)
+        T[:, :2, 3] += rng.uniform(-0.03, 0.03, size=(n, 2))
+        calls.append((T, samples))
+    local = LocalEvaluator(problem)
+    pool = PoolEvaluator(problem, workers=2)
+    try:
+        want = local.map(fit_scores, calls)
+        pending = pool.submit(np.repeat(truth[None], 30, axis=0))
+        got = pool.map(fit_scores, calls)
+        batch = pending.result()
+        assert pool.map(fit_scores, []) == []
+        alone = local.evaluate(np.repeat(truth[None], 30, axis=0))
+    finally:
+        local.close()
+        pool.close()
+    assert len(got) == len(calls) and all(np.array_equal(a, b) for a, b in zip(got, want))
+    assert [len(a) for a in got] == [1, 7, 3, 12, 5] and max(a.max() for a in got) > 0
+    assert np.array_equal(batch.projected, alone.projected)
+
+
 def test_a_scene_with_an_object_resting_outside_the_object_region_is_ruled_out(frame_and_problem):
     """The table may go on out of view, but no object is seen beyond the object region: a scene that parks an
     object there gets no likelihood, whatever it would explain."""

@@ -179,6 +179,15 @@ def test_ray_evaluator_equals_the_local_pool(cluster, dataset):
             assert np.array_equal(results[0].projected, other.projected)
             assert np.array_equal(results[0].loglik, other.loglik)
             assert np.array_equal(results[0].status, other.status)
+        # The search's candidate fits (``Evaluator.map``) give the same on the actors as on the pool and here.
+        from workbench.inference.datadriven import fit_scores
+        from workbench.inference.scenepoints import model_samples
+
+        calls = [(hypotheses[:n, 0], model_samples(problem.models[0].mesh)) for n in (2, 5, 1)]
+        mapped = [e.map(fit_scores, calls) for e in evaluators]
+        assert [len(a) for a in mapped[0]] == [2, 5, 1]
+        for other in mapped[1:]:
+            assert all(np.array_equal(a, b) for a, b in zip(mapped[0], other))
         # An actor that dies is a crashed worker, as in the local pool: the app rebuilds its evaluator on it.
         ray_evaluator = evaluators[0]
         os.kill(ray_evaluator.pids[1], signal.SIGKILL)

@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from workbench.errors import InputError
-from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed, split_batch
+from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed, split_batch, split_calls
 from workbench.problem import Problem
 
 INSTALL_HINT = "pip install 'workbench[ray]' (in a checkout: .venv/bin/pip install -e '.[ray]')"
@@ -188,6 +188,9 @@ class _EvaluatorActor:
     def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
         return self.evaluator.evaluate(hypotheses, sink, project)
 
+    def map(self, fn, calls: list[tuple]) -> list:
+        return self.evaluator.map(fn, calls)
+
     def pid(self) -> int:
         return os.getpid()
 
@@ -239,6 +242,15 @@ class RayEvaluator:
         chunks = split_batch(hypotheses, len(self._actors), sink)
         return _RayPending(self._ray, [actor.evaluate.remote(h, s, project)
                                        for actor, (h, s) in zip(self._actors, chunks)])
+
+    def map(self, fn, calls: list[tuple]) -> list:
+        """The calls split over the actors as a batch is (each actor runs them after the batches sent before)."""
+        chunks = split_calls(list(calls), len(self._actors))
+        try:
+            parts = self._ray.get([actor.map.remote(fn, chunk) for actor, chunk in zip(self._actors, chunks)])
+        except self._ray.exceptions.RayActorError as err:
+            raise WorkerCrashed(f"an evaluation actor died: {err}") from err
+        return [r for part in parts for r in part]
 
     def close(self) -> None:
         for actor in self._actors:

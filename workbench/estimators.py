@@ -428,7 +428,7 @@ class Estimator:
         parts = [polish.variants(self._map, self._library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius,
                                  ctx.points.viewpoint, self._unexplained),
                  polish.stacked(self.problem, self._map, self._library, self._unexplained, ctx.rest, ctx.hulls,
-                                ctx.samples, ctx.radius, self._base_memo),
+                                ctx.samples, ctx.radius, self._base_memo, self._run),
                  self._assemblies(self._map)]
         kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.BASE, MoveKind.ASSEMBLE], np.int8),
                           [len(p) for p in parts])
@@ -447,6 +447,12 @@ class Estimator:
         self.kinds[worst] = kinds[better]
 
     # ---------------------------------------------------------------------------------------------- proposals
+    @property
+    def _run(self):
+        """Where the candidate fits run: on the evaluator's workers (``Evaluator.map``), which would otherwise wait
+        for this process; here when there is no evaluator."""
+        return None if self.evaluator is None else self.evaluator.map
+
     def _context(self):
         """Per-object geometry the default proposals use, computed once: resting poses, surface samples, hull
         vertices and horizontal reach of each model, and the observed points above the table."""
@@ -473,7 +479,7 @@ class Estimator:
         loose = unexplained(self.problem, ctx.points, self._map, ctx.samples)
         groups = clusters(ctx.points.points[loose])
         fresh = datadriven.build_library(self.problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls,
-                                         self._cluster_memo)
+                                         self._cluster_memo, self._run)
         self._library = fresh if self._library is None else self._library.merged(fresh)
         self._unexplained = fresh
 

@@ -15,7 +15,7 @@ import os
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -89,6 +89,12 @@ class Evaluator(Protocol):
         evaluated in the order submitted."""
         ...
 
+    def map(self, fn: Callable, calls: list[tuple]) -> list:
+        """``[fn(problem, *args) for args in calls]``, run where the evaluations run: the search's own pure work
+        (candidate fits), which would otherwise keep one core busy while the workers wait. ``fn`` must be a
+        module-level function (it is pickled by name); the results are the same as in this process."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -136,6 +142,9 @@ class LocalEvaluator:
     def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Done:
         return Done(self.evaluate(hypotheses, sink, project))
 
+    def map(self, fn: Callable, calls: list[tuple]) -> list:
+        return [fn(self.problem, *args) for args in calls]
+
     def explain(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
         log-likelihood (h, w)) on the problem's grid."""
@@ -156,10 +165,11 @@ def _worker(problem: Problem, conn) -> None:
     evaluator = LocalEvaluator(problem)
     try:
         while True:
-            batch = conn.recv()
-            if batch is None:
+            message = conn.recv()
+            if message is None:
                 break
-            conn.send(evaluator.evaluate(*batch))
+            kind, *args = message
+            conn.send(evaluator.evaluate(*args) if kind == "evaluate" else evaluator.map(*args))
     except (EOFError, KeyboardInterrupt):
         pass
     finally:
@@ -187,30 +197,36 @@ def split_batch(hypotheses: np.ndarray, parts: int, sink: np.ndarray | None = No
     return [(h, s) for h, s in zip(np.array_split(hypotheses, parts), np.array_split(sink, parts)) if len(h)]
 
 
+def split_calls(calls: list[tuple], parts: int) -> list[list[tuple]]:
+    """``calls`` in up to ``parts`` contiguous non-empty chunks, in order, as ``split_batch`` splits a batch."""
+    return [[calls[i] for i in idx] for idx in np.array_split(np.arange(len(calls)), parts) if len(idx)]
+
+
 class WorkerCrashed(RuntimeError):
     """A worker process died mid-evaluation; the pool must be rebuilt."""
 
 
 class _PoolPending:
-    """A batch submitted to a ``PoolEvaluator``: its chunks, and their evaluation once received."""
+    """A job submitted to a ``PoolEvaluator``: one message per worker (a chunk of a batch to evaluate, or of calls
+    to map), how the workers' replies combine, and the combined result once received."""
 
-    def __init__(self, pool: "PoolEvaluator", chunks: list[tuple[np.ndarray, np.ndarray]], project: bool):
-        self.pool, self.chunks, self.project = pool, chunks, project
-        self.evaluation: Evaluation | None = None
+    def __init__(self, pool: "PoolEvaluator", messages: list[tuple], combine: Callable):
+        self.pool, self.messages, self.combine = pool, messages, combine
+        self.done, self.value = False, None
 
-    def result(self) -> Evaluation:
-        while self.evaluation is None:
+    def result(self):
+        while not self.done:
             self.pool._advance()
-        return self.evaluation
+        return self.value
 
 
 class PoolEvaluator:
     """Splits each batch into contiguous chunks over ``workers`` spawned processes, each holding its own physics
     client and renderer, created once. ``spawn`` because forking after any OpenGL context exists hangs the child.
 
-    One batch is with the workers at a time; later submissions wait here and go out as soon as the one before is
-    received. (Sending a second batch while a worker is still sending back the first can fill both directions of
-    its pipe and hang both sides.)"""
+    One job (a batch, or calls to ``map``) is with the workers at a time; later ones wait here and go out as soon as
+    the one before is received. (Sending a second job while a worker is still sending back the first can fill both
+    directions of its pipe and hang both sides.)"""
 
     def __init__(self, problem: Problem, workers: int = 2):
         if workers < 1:
@@ -237,7 +253,19 @@ class PoolEvaluator:
         return self.submit(hypotheses, sink, project).result()
 
     def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> _PoolPending:
-        pending = _PoolPending(self, split_batch(hypotheses, len(self._conns), sink), project)
+        chunks = split_batch(hypotheses, len(self._conns), sink)
+        return self._queue(_PoolPending(self, [("evaluate", h, s, project) for h, s in chunks],
+                                        Evaluation.concatenate))
+
+    def map(self, fn: Callable, calls: list[tuple]) -> list:
+        """The calls split over the workers as a batch is; queued behind the batches submitted before."""
+        chunks = split_calls(list(calls), len(self._conns))
+        if not chunks:
+            return []
+        return self._queue(_PoolPending(self, [("map", fn, chunk) for chunk in chunks],
+                                        lambda parts: [r for part in parts for r in part])).result()
+
+    def _queue(self, pending: _PoolPending) -> _PoolPending:
         self._waiting.append(pending)
         if self._in_flight is None:
             self._send_next()
@@ -246,18 +274,19 @@ class PoolEvaluator:
     def _send_next(self) -> None:
         pending = self._in_flight = self._waiting.popleft()
         try:
-            for conn, chunk in zip(self._conns, pending.chunks):
-                conn.send((*chunk, pending.project))
+            for conn, message in zip(self._conns, pending.messages):
+                conn.send(message)
         except (ConnectionError, OSError) as err:
             self._fail(err)
 
     def _advance(self) -> None:
-        """Receive the batch in flight, then send the next waiting one."""
+        """Receive the job in flight, then send the next waiting one."""
         pending = self._in_flight
         try:
-            pending.evaluation = Evaluation.concatenate([conn.recv() for conn in self._conns[: len(pending.chunks)]])
+            pending.value = pending.combine([conn.recv() for conn in self._conns[: len(pending.messages)]])
         except (EOFError, ConnectionError, OSError) as err:
             self._fail(err)
+        pending.done = True
         self._in_flight = None
         if self._waiting:
             self._send_next()

@@ -14,6 +14,7 @@ whose density is a Gaussian mixture, so its log-q correction is exact.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -171,7 +172,7 @@ def _in_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.ndarray,
                   rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray],
-                  memo: dict | None = None) -> Library:
+                  memo: dict | None = None, run: Callable | None = None) -> Library:
     """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
     ``all_points`` (P, 3) near each start. -> Library.
 
@@ -182,20 +183,23 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
     ``memo``: a dict kept by the caller across calls with the same problem, ``all_points`` and models. A cluster's
     candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
     explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
-    without it."""
+    without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``run_here``), the same
+    library either way."""
     K = len(rest)
     found: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(K)]
     clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP][:MAX_CLUSTERS]
-    for cluster in clusters:
-        key = hashlib.sha1(np.ascontiguousarray(cluster, dtype=np.float64).tobytes()).hexdigest()
-        fitted = memo.get(key) if memo is not None else None
-        if fitted is None:
-            fitted = [cluster_candidates(problem, cluster, all_points, rest[k], samples[k], hulls[k])
-                      for k in range(K)]
-            if memo is not None:
-                memo[key] = fitted
+    keys = [hashlib.sha1(np.ascontiguousarray(c, dtype=np.float64).tobytes()).hexdigest() for c in clusters]
+    memo = {} if memo is None else memo
+    # Every (cluster, object) fit not remembered, all at once: ``run`` may spread them over the workers.
+    new = list(dict.fromkeys(key for key in keys if key not in memo))
+    first = {key: clusters[keys.index(key)] for key in new}
+    fits = (run or run_here(problem))(cluster_candidates, [(first[key], all_points, rest[k], samples[k], hulls[k])
+                                                           for key in new for k in range(K)])
+    for i, key in enumerate(new):
+        memo[key] = fits[i * K:(i + 1) * K]
+    for key in keys:
         for k in range(K):
-            found[k] += fitted[k]
+            found[k] += memo[key][k]
     poses, weights = [], []
     for k in range(K):
         kept = _distinct(sorted(found[k], key=lambda c: -c[0]), PER_OBJECT)
@@ -212,6 +216,11 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
         poses.append(np.stack([T for _, T in kept]))
         weights.append(w / w.sum())
     return Library(poses, weights)
+
+
+def run_here(problem: Problem) -> Callable[[Callable, list[tuple]], list]:
+    """``Evaluator.map`` done in this process: ``run(fn, calls)`` -> ``[fn(problem, *args) for args in calls]``."""
+    return lambda fn, calls: [fn(problem, *args) for args in calls]
 
 
 def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.ndarray, rest: RestingPoses,

@@ -11,10 +11,12 @@ becomes the estimate and replaces the worst particles, so the particle set searc
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from workbench.geometry import rot_z, rotation_angle
-from workbench.inference.datadriven import Library, overlaps, place_order
+from workbench.inference.datadriven import Library, overlaps, place_order, run_here
 from workbench.inference.refine import refit
 from workbench.inference.resting import RestingPoses, highest_point, lowest_point
 from workbench.inference.scenepoints import ModelSamples
@@ -69,13 +71,14 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
 
 def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplained: Library | None,
             rest: list[RestingPoses], hulls: list[np.ndarray], samples: list[ModelSamples], radii: np.ndarray,
-            memo: dict) -> np.ndarray:
+            memo: dict, run: Callable | None = None) -> np.ndarray:
     """Variants of the estimate (K, 4, 4) that build a stack: a top object on a candidate that does not rest on
     the table (its pose in the estimate, or one tried by ``variants``), and under it, as its base, every other
     object at each of its best places there (``stacking.bases_under``: by their resting faces ``rest``, convex-hull
     vertices ``hulls`` and surface ``samples``); the top is lifted onto a base taller than its bottom,
     and the objects either would sit inside are seated elsewhere (``seat``; ``radii`` (K,) m). ``memo`` keeps each
-    top's bases between calls (the library changes slowly). -> (V, K, 4, 4).
+    top's bases between calls (the library changes slowly); ``run(fn, calls)`` runs the base searches
+    (``Evaluator.map``; default ``datadriven.run_here``). -> (V, K, 4, 4).
 
     No one-object change can build such a stack when the base is hidden: the base alone, wherever it goes, explains
     almost nothing, and the top alone on its candidate floats and falls."""
@@ -83,22 +86,34 @@ def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplaine
     out = []
     if len(memo) > MEMO_LIMIT:
         memo.clear()
+    tops = []  # (k, top pose, its bottom's height, memo key)
     for k in range(K):
         for T in _poses_tried(estimate, k, library, unexplained):
             bottom = T[2, 3] + lowest_point(T[:3, :3], hulls[k])
-            if bottom < BASE_MIN:
-                continue
-            # Where the bases go depends on the top only through its centre and how high its bottom is; tops
-            # within MEMO_CELL of each other (the candidates shift by millimetres between refits) share them.
-            key = (k,) + tuple(np.round(np.array([*T[:2, 3], bottom]) / MEMO_CELL).astype(int))
-            if key not in memo:
-                memo[key] = [(j, B) for j in range(K) if j != k
-                             for B, _ in bases_under(problem, T, hulls[k], rest[j], hulls[j], samples[j])]
-            for j, B in memo[key]:
-                top = T.copy()
-                summit = B[2, 3] + highest_point(B[:3, :3], hulls[j])
-                top[2, 3] += max(0.0, summit - bottom) + LIFT
-                out.append(seat(estimate, {k: top, j: B}, library, radii))
+            if bottom >= BASE_MIN:
+                # Where the bases go depends on the top only through its centre and how high its bottom is; tops
+                # within MEMO_CELL of each other (the candidates shift by millimetres between refits) share them.
+                cell = np.round(np.array([*T[:2, 3], bottom]) / MEMO_CELL).astype(int)
+                tops.append((k, T, bottom, (k, *cell.tolist())))
+    # The base searches of the tops not remembered (the first top of each key), all at once: ``run`` may spread
+    # them over the workers.
+    searched: dict[tuple, tuple[int, np.ndarray]] = {}
+    for k, T, _, key in tops:
+        if key not in memo:
+            searched.setdefault(key, (k, T))
+    calls = [(key, j) for key, (k, _) in searched.items() for j in range(K) if j != k]
+    found = (run or run_here(problem))(bases_under, [(searched[key][1], hulls[searched[key][0]], rest[j], hulls[j],
+                                                      samples[j]) for key, j in calls])
+    for key in searched:
+        memo[key] = []
+    for (key, j), bases in zip(calls, found):
+        memo[key] += [(j, B) for B, _ in bases]
+    for k, T, bottom, key in tops:
+        for j, B in memo[key]:
+            top = T.copy()
+            summit = B[2, 3] + highest_point(B[:3, :3], hulls[j])
+            top[2, 3] += max(0.0, summit - bottom) + LIFT
+            out.append(seat(estimate, {k: top, j: B}, library, radii))
     return np.array(out).reshape(-1, K, 4, 4)
 
 
