@@ -182,6 +182,7 @@ class Estimator:
         self._base_memo: dict = {}  # polish.stacked's bases found under each top so far: a cache, not saved
         self._search = None  # per-object geometry for the default proposals, built at the first step
         self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
+        self._map_wait = 0.0  # seconds this iteration's proposals waited for fits on the workers (_run)
         self.sink = 0.0
         self.evaluations = 0  # hypotheses projected and weighed so far: particles, the sink's and the polish's scenes
         self.settle_scenes = 0  # scenes settling scored as given (a render each, no physics)
@@ -235,7 +236,9 @@ class Estimator:
             accepted = None
         else:
             idx = systematic_resample(self._beta * self.loglik, self.rng, cfg.particles)
+            self._map_wait = 0.0
             proposals, log_q, kinds, ev, waited = self._propose_and_evaluate(self.projected[idx])
+            waited += self._map_wait
             t_resample = time.perf_counter() - t0 - waited  # the main process's own work
             if cfg.method == "pipf":
                 self._adopt(proposals, ev, kinds, np.ones(len(idx), bool))
@@ -447,11 +450,17 @@ class Estimator:
         self.kinds[worst] = kinds[better]
 
     # ---------------------------------------------------------------------------------------------- proposals
-    @property
-    def _run(self):
-        """Where the candidate fits run: on the evaluator's workers (``Evaluator.map``), which would otherwise wait
-        for this process; here when there is no evaluator."""
-        return None if self.evaluator is None else self.evaluator.map
+    def _run(self, fn, calls: list[tuple]) -> list:
+        """``Evaluator.map``: the candidate fits run on the evaluator's workers, which would otherwise wait for this
+        process (here when there is no evaluator). The wait is counted in ``_map_wait``, not as this process's
+        own work."""
+        if self.evaluator is None:
+            return datadriven.run_here(self.problem)(fn, calls)
+        t0 = time.perf_counter()
+        try:
+            return self.evaluator.map(fn, calls)
+        finally:
+            self._map_wait += time.perf_counter() - t0
 
     def _context(self):
         """Per-object geometry the default proposals use, computed once: resting poses, surface samples, hull
