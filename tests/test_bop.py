@@ -101,6 +101,10 @@ def test_open_mesh_warns_naming_the_file(dataset, caplog):
         model = bop.load_models(dataset, [3])[3]
     assert "obj_000003.ply" in caplog.text and "not watertight" in caplog.text
     assert model.mass == pytest.approx(0.05**3 * 1000.0, rel=1e-6)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # every frame of a dataset loads its models again: said once is enough
+        bop.load_models(dataset, [3])
+    assert "not watertight" not in caplog.text
 
 
 def test_frames_round_trip(dataset):

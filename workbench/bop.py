@@ -38,6 +38,7 @@ from .geometry import make_pose
 from .scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
+_WARNED_OPEN: set[tuple[str, int, int]] = set()  # open meshes already warned about (read_mesh)
 
 MM = 1e-3  # metres per millimetre
 # Folders that hold the meshes, in order of preference (T-LESS ships models_cad/models_reconst, no models/).
@@ -278,8 +279,8 @@ def check_principal_point(K: np.ndarray, width: int, height: int, path: Path) ->
 def read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
     """Any mesh trimesh reads, times ``scale`` -> metres, vertices merged by position, vertex colours kept.
 
-    Raises InputError when missing, unreadable, empty or degenerate; warns (naming the file) when not watertight,
-    because its mass then comes from the convex hull."""
+    Raises InputError when missing, unreadable, empty or degenerate; warns (naming the file, once per process while
+    the file is unchanged) when not watertight, because its mass then comes from the convex hull."""
     if not path.is_file():
         raise InputError(path, "mesh file not found")
     try:
@@ -306,7 +307,12 @@ def read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
         extents = np.round(mesh.extents / scale, 6).tolist()
         raise InputError(path, f"mesh is degenerate (extents {extents} in file units)")
     if not mesh.is_watertight:
-        log.warning("%s: mesh is not watertight; its mass is taken from its convex hull", path)
+        stat = path.stat()
+        # Once per file (as it is now) and process: estimating many frames of one dataset reloads its models.
+        seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+        if seen not in _WARNED_OPEN:
+            _WARNED_OPEN.add(seen)
+            log.warning("%s: mesh is not watertight; its mass is taken from its convex hull", path)
     return mesh
 
 
