@@ -2,7 +2,8 @@
 out. The estimators see only ``Evaluator``; where the work runs (this process, a pool of local workers, or Ray actors
 on a cluster: ``workbench.distributed.RayEvaluator``) is the evaluator's business. ``submit`` hands a batch over and
 returns at once where the work runs elsewhere, so that the caller can prepare the next batch meanwhile;
-``evaluate`` is ``submit(...).result()``.
+``evaluate`` is ``submit(...).result()``. ``map`` runs the search's own pure work (candidate fits) on the same
+workers, so that they do not wait while the main process fits.
 
 Each evaluation is independent of every other (physics rebuilds its world per particle), so splitting a batch
 across workers never changes a result.
