@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from workbench.errors import InputError
-from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed, split_batch, split_calls
+from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed, joined, split_batch, split_calls
 from workbench.problem import Problem
 
 INSTALL_HINT = "pip install 'workbench[ray]' (in a checkout: .venv/bin/pip install -e '.[ray]')"
@@ -250,7 +250,7 @@ class RayEvaluator:
             parts = self._ray.get([actor.map.remote(fn, chunk) for actor, chunk in zip(self._actors, chunks)])
         except self._ray.exceptions.RayActorError as err:
             raise WorkerCrashed(f"an evaluation actor died: {err}") from err
-        return [r for part in parts for r in part]
+        return joined(parts)
 
     def close(self) -> None:
         for actor in self._actors:

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
+from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending, run_here
 from workbench.geometry import rotation_angle
 from workbench.inference import assemble, datadriven, gaussian, polish, refine, resting, settle, stacking
 from workbench.inference.moves import PROPOSALS, MoveKind, MoveMix
@@ -455,7 +455,7 @@ class Estimator:
         process (here when there is no evaluator). The wait is counted in ``_map_wait``, not as this process's
         own work."""
         if self.evaluator is None:
-            return datadriven.run_here(self.problem)(fn, calls)
+            return run_here(self.problem)(fn, calls)
         t0 = time.perf_counter()
         try:
             return self.evaluator.map(fn, calls)

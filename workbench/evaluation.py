@@ -144,7 +144,7 @@ class LocalEvaluator:
         return Done(self.evaluate(hypotheses, sink, project))
 
     def map(self, fn: Callable, calls: list[tuple]) -> list:
-        return [fn(self.problem, *args) for args in calls]
+        return run_here(self.problem)(fn, calls)
 
     def explain(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
@@ -198,9 +198,19 @@ def split_batch(hypotheses: np.ndarray, parts: int, sink: np.ndarray | None = No
     return [(h, s) for h, s in zip(np.array_split(hypotheses, parts), np.array_split(sink, parts)) if len(h)]
 
 
+def run_here(problem: Problem) -> Callable[[Callable, list[tuple]], list]:
+    """``Evaluator.map`` done in this process: ``run(fn, calls)`` -> ``[fn(problem, *args) for args in calls]``."""
+    return lambda fn, calls: [fn(problem, *args) for args in calls]
+
+
 def split_calls(calls: list[tuple], parts: int) -> list[list[tuple]]:
     """``calls`` in up to ``parts`` contiguous non-empty chunks, in order, as ``split_batch`` splits a batch."""
     return [[calls[i] for i in idx] for idx in np.array_split(np.arange(len(calls)), parts) if len(idx)]
+
+
+def joined(parts: list[list]) -> list:
+    """The results of ``split_calls``' chunks, back in one list in call order."""
+    return [r for part in parts for r in part]
 
 
 class WorkerCrashed(RuntimeError):
@@ -263,8 +273,7 @@ class PoolEvaluator:
         chunks = split_calls(list(calls), len(self._conns))
         if not chunks:
             return []
-        return self._queue(_PoolPending(self, [("map", fn, chunk) for chunk in chunks],
-                                        lambda parts: [r for part in parts for r in part])).result()
+        return self._queue(_PoolPending(self, [("map", fn, chunk) for chunk in chunks], joined)).result()
 
     def _queue(self, pending: _PoolPending) -> _PoolPending:
         self._waiting.append(pending)

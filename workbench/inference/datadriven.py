@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from workbench.evaluation import run_here
 from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, crops, icp_batch
@@ -183,8 +184,8 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
     ``memo``: a dict kept by the caller across calls with the same problem, ``all_points`` and models. A cluster's
     candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
     explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
-    without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``run_here``), the same
-    library either way."""
+    without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``evaluation.run_here``), the
+    same library either way."""
     K = len(rest)
     found: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(K)]
     clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP][:MAX_CLUSTERS]
@@ -216,11 +217,6 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
         poses.append(np.stack([T for _, T in kept]))
         weights.append(w / w.sum())
     return Library(poses, weights)
-
-
-def run_here(problem: Problem) -> Callable[[Callable, list[tuple]], list]:
-    """``Evaluator.map`` done in this process: ``run(fn, calls)`` -> ``[fn(problem, *args) for args in calls]``."""
-    return lambda fn, calls: [fn(problem, *args) for args in calls]
 
 
 def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.ndarray, rest: RestingPoses,

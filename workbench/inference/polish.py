@@ -15,8 +15,9 @@ from collections.abc import Callable
 
 import numpy as np
 
+from workbench.evaluation import run_here
 from workbench.geometry import rot_z, rotation_angle
-from workbench.inference.datadriven import Library, overlaps, place_order, run_here
+from workbench.inference.datadriven import Library, overlaps, place_order
 from workbench.inference.refine import refit
 from workbench.inference.resting import RestingPoses, highest_point, lowest_point
 from workbench.inference.scenepoints import ModelSamples
@@ -78,7 +79,7 @@ def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplaine
     vertices ``hulls`` and surface ``samples``); the top is lifted onto a base taller than its bottom,
     and the objects either would sit inside are seated elsewhere (``seat``; ``radii`` (K,) m). ``memo`` keeps each
     top's bases between calls (the library changes slowly); ``run(fn, calls)`` runs the base searches
-    (``Evaluator.map``; default ``datadriven.run_here``). -> (V, K, 4, 4).
+    (``Evaluator.map``; default ``evaluation.run_here``). -> (V, K, 4, 4).
 
     No one-object change can build such a stack when the base is hidden: the base alone, wherever it goes, explains
     almost nothing, and the top alone on its candidate floats and falls."""
