@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from workbench.bullet import pybullet
 import trimesh
 
+from workbench.bullet import pybullet
 from workbench.errors import InputError
 from workbench.geometry import make_pose
 

@@ -62,6 +62,7 @@ def _load_shapes(dataset: Path, obj_ids: list[int]) -> dict:
     finally:
         bop.log.setLevel(level)
 
+
 def match(gt: np.ndarray, est: np.ndarray, symmetries: np.ndarray) -> list[tuple[int, int]]:
     """Instances of one object: pairs (ground-truth index, estimate index), nearest first, each used once.
     ``gt`` (G, 4, 4), ``est`` (E, 4, 4), one frame; ground truth rows that are NaN are never matched."""

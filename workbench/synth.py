@@ -33,12 +33,12 @@ from typing import ClassVar
 
 import numpy as np
 import open3d as o3d
-from workbench.bullet import pybullet as pb
 import trimesh
 from PIL import Image
 from scipy.spatial import cKDTree
 
 from workbench import bop
+from workbench.bullet import pybullet as pb
 from workbench.geometry import (
     invert_pose, make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix, rot_z, wxyz_to_xyzw, xyzw_to_wxyz,
 )

@@ -100,8 +100,8 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
 
 def _point_to_plane_steps(p: np.ndarray, q: np.ndarray, n: np.ndarray, owner: np.ndarray, S: int) -> np.ndarray:
     """Per start s, the small rigid motion (4, 4) that best moves its points p (M, 3) (those with ``owner`` (M,),
-    non-decreasing, == s) onto the planes through q (M, 3) with normals n (M, 3), linearised: minimise sum(((R p + t - q) . n)^2)
-    with R = I + [w]x. -> (S, 4, 4); identity for starts without points."""
+    non-decreasing, == s) onto the planes through q (M, 3) with normals n (M, 3), linearised: minimise
+    sum(((R p + t - q) . n)^2) with R = I + [w]x. -> (S, 4, 4); identity for starts without points."""
     A = np.concatenate([np.cross(p, n), n], axis=1)  # (M, 6)
     b = np.einsum("md,md->m", q - p, n)
     # Per-start sums of the normal equations' entries, as one sparse (S, M) indicator product. ``owner`` is sorted
