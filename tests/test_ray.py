@@ -18,8 +18,8 @@ import ray
 from ray.cluster_utils import Cluster
 
 from workbench.cli import main
-from workbench.distributed import RayConfig, RayEvaluator
 from workbench.evaluation import ChunkedEvaluator, PoolEvaluator, WorkerCrashed
+from workbench.evaluation.ray import RayConfig, RayEvaluator
 from workbench.pipeline import load_bop_problem
 from workbench.synth import make_scenes
 

@@ -65,9 +65,9 @@ def _add_engine_args(p: argparse.ArgumentParser, what: str) -> None:
 
 
 def ray_config(args: argparse.Namespace):
-    """``--engine``/``--ray-address``/``--max-retries`` -> a distributed.RayConfig, or None for the local engine;
+    """``--engine``/``--ray-address``/``--max-retries`` -> an evaluation.ray.RayConfig, or None for the local engine;
     InputError, before any work, when Ray is asked for and not installed."""
-    from workbench.distributed import RayConfig, check_reachable, require_ray
+    from workbench.evaluation.ray import RayConfig, check_reachable, require_ray
 
     if args.engine == "local":
         if args.ray_address is not None:

@@ -20,10 +20,10 @@ from tqdm import tqdm
 from workbench import bop
 from workbench.bop import ResultRow
 from workbench.checks import check_workers
-from workbench.distributed import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
+from workbench.evaluation.ray import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.pipeline import load_bop_problem, result_rows
 from workbench.problem import Problem, ProblemConfig
 

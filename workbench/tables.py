@@ -24,10 +24,10 @@ from tqdm import tqdm
 from workbench import bop
 from workbench.baseline import estimate_icp_fits
 from workbench.bop import ResultRow
-from workbench.distributed import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
+from workbench.evaluation.ray import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
 from workbench.geometry import invert_pose
 from workbench.metrics import (
     add_s, closest_symmetric, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors,

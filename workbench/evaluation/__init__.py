@@ -1,6 +1,6 @@
 """Particle evaluation behind one small interface: a batch of hypotheses in, projected poses and log-likelihoods
 out. The estimators see only ``Evaluator``; where the work runs (this process, a pool of local workers, or Ray actors
-on a cluster: ``workbench.distributed.RayEvaluator``) is the evaluator's business. ``submit`` hands a batch over and
+on a cluster: ``workbench.evaluation.ray.RayEvaluator``) is the evaluator's business. ``submit`` hands a batch over and
 returns at once where the work runs elsewhere, so that the caller can prepare the next batch meanwhile;
 ``evaluate`` is ``submit(...).result()``. ``map`` runs the search's own pure work (candidate fits) on the same
 workers, so that they do not wait while the main process fits.
@@ -338,10 +338,10 @@ class ChunkedEvaluator(LocalEvaluator):
 
 
 def make_evaluator(problem: Problem, workers: int, ray=None) -> Evaluator:
-    """A local evaluator for ``workers`` <= 1, else a process pool; with ``ray`` (a ``distributed.RayConfig``),
+    """A local evaluator for ``workers`` <= 1, else a process pool; with ``ray`` (an ``evaluation.ray.RayConfig``),
     ``workers`` Ray actors. Results are the same for the same ``workers`` whichever it is."""
     if ray is not None:
-        from workbench.distributed import RayEvaluator  # Ray is an optional extra
+        from workbench.evaluation.ray import RayEvaluator  # Ray is an optional extra
 
         return RayEvaluator(problem, workers, ray)
     return LocalEvaluator(problem) if workers <= 1 else PoolEvaluator(problem, workers)
