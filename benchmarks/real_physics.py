@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from workbench import bop
-from workbench.collision import collision_shape_for
 from workbench.estimators import Estimator, EstimatorConfig
 from workbench.evaluation import LocalEvaluator
 from workbench.metrics import model_points
 from workbench.physics import STATUS_NAMES, STATUS_REST, STATUS_STEP_CAP, PhysicsConfig, PhysicsProjector
+from workbench.physics.collision import collision_shape_for
 from workbench.pipeline import load_bop_problem
 
 

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from workbench import bop
-from workbench.collision import collision_shape_for
 from workbench.geometry import invert_pose, rotation_angle
 from workbench.metrics import model_points
 from workbench.physics import STATUS_NAMES, PhysicsConfig, PhysicsProjector
+from workbench.physics.collision import collision_shape_for
 from workbench.pipeline import load_bop_problem
 
 

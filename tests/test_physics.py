@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from workbench.collision import collision_shape_for
 from workbench.errors import InputError
 from workbench.geometry import pose_from_xyz_rpy
 from workbench.physics import (
     STATUS_OFF_TABLE, STATUS_REST, STATUS_STEP_CAP, STATUS_UNSTABLE, PhysicsConfig, PhysicsProjector)
+from workbench.physics.collision import collision_shape_for
 from workbench.scene import ObjectModel, Table
 
 TABLE = Table(-0.3, 0.3, -0.3, 0.3)

@@ -38,13 +38,13 @@ from PIL import Image
 from scipy.spatial import cKDTree
 
 from workbench import bop
-from workbench.bullet import pybullet as pb
 from workbench.geometry import (
     invert_pose, make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix, rot_z, wxyz_to_xyzw, xyzw_to_wxyz,
 )
 from workbench.errors import InputError
 from workbench.meshes import MugShape, can_mesh, mug_collision_parts, mug_mesh, tube_mesh
 from workbench.metrics import box_symmetries
+from workbench.physics.bullet import pybullet as pb
 from workbench.sensor import SensorModel, apply_sensor
 
 PAPER_CATEGORIES = ("touching", "stacked", "slant", "occluded", "three", "four")

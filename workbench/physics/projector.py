@@ -29,10 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from workbench.bullet import pybullet
-from workbench.collision import BOX, COMPOUND, CYLINDER, KINDS, CollisionShape, collision_shape_for
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, matrix_to_quat_wxyz, wxyz_to_xyzw
+from workbench.physics.bullet import pybullet
+from workbench.physics.collision import BOX, COMPOUND, CYLINDER, KINDS, CollisionShape, collision_shape_for
 from workbench.scene import ObjectModel, Table
 
 STATUS_REST, STATUS_STEP_CAP, STATUS_UNSTABLE, STATUS_OFF_TABLE = 0, 1, 2, 3

@@ -1,6 +1,6 @@
 """pybullet, imported without the line its C module prints on import ("pybullet build time: ..."), which would
 otherwise open the output of every command, each worker process's included. Modules use
-``from workbench.bullet import pybullet``."""
+``from workbench.physics.bullet import pybullet``."""
 
 from __future__ import annotations
 

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from workbench.bullet import pybullet
 from workbench.errors import InputError
 from workbench.geometry import make_pose
+from workbench.physics.bullet import pybullet
 
 BOX, CYLINDER, CONVEX, COMPOUND = "box", "cylinder", "convex", "compound"
 REFERENCE = "reference"
