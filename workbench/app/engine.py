@@ -2,7 +2,7 @@
 
 It runs in a ``spawn``ed process (forking after an OpenGL context exists hangs the child) so that the browser
 server never waits for an iteration: the server puts commands on a queue and reads messages from a pipe (see
-``EngineClient``). Commands are drained between iterations, so a Pause takes effect after the iteration in
+``engine_process``). Commands are drained between iterations, so a Pause takes effect after the iteration in
 progress. A run starts an iteration only once the server has shown the last one (``protocol.Shown``): a slow
 display holds the run back instead of falling behind it, and a Pause stops the run one iteration after the one on
 display at the latest.
@@ -12,21 +12,16 @@ them. Label edits arrive as ``SetLabels`` on every gizmo move; the engine keeps 
 once the command queue is empty, so a fast drag costs one render per pass, not one per mouse event.
 
 A dead evaluation worker surfaces as ``WorkerCrashed`` (or a broken pipe): the pool is rebuilt and the iteration
-retried once, and the user is told. If this whole process dies, ``EngineClient`` (the server side) restarts it
-and reloads the frame.
+retried once, and the user is told. If this whole process dies, ``engine_process.EngineClient`` (the server side)
+restarts it and reloads the frame.
 """
 
 from __future__ import annotations
 
-import atexit
 import logging
-import multiprocessing as mp
 import os
-import queue
 import shutil
-import signal
 import tempfile
-import threading
 import time
 import traceback
 from dataclasses import replace
@@ -131,7 +126,8 @@ def expected_distinct(weights: np.ndarray, n: int) -> float:
 
 
 class Engine:
-    def __init__(self, results: "Outbox", workers: int, ray=None):
+    def __init__(self, results, workers: int, ray=None):
+        # results: what the engine tells the server, anything with a put (engine_process.Outbox, a test's list)
         self.results = results
         self.workers = workers
         self.ray = ray  # a distributed.RayConfig: evaluate on Ray actors; None: here or on local processes
@@ -681,158 +677,3 @@ class Engine:
 
     def close(self) -> None:
         self.close_evaluators()
-
-
-class Outbox:
-    """The engine's end of the results pipe, with a queue's ``put``."""
-
-    def __init__(self, conn):
-        self.conn = conn
-
-    def put(self, msg) -> None:
-        self.conn.send(msg)
-
-
-def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
-    """Entry point of the spawned process. ``results``: the writing end of a one-way pipe; ``ray``: a
-    distributed.RayConfig to evaluate on Ray actors."""
-    # Ctrl-C in a terminal reaches the whole process group; the server shuts this process down in order instead.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    logging.basicConfig(level=logging.WARNING, format="engine: %(message)s")
-    outbox = Outbox(results)
-    engine = Engine(outbox, workers, ray)
-    parent = mp.parent_process()
-    try:
-        outbox.put(p.Ready(os.getpid()))
-        while True:
-            try:
-                # Block briefly while idle or waiting for the server to show the last iteration; never while an
-                # iteration may start or label work waits, so iterations follow each other at once and a heatmap
-                # follows its edit.
-                busy = engine.may_step() or engine.label_dirty
-                cmd = commands.get(timeout=0.5) if not busy else commands.get_nowait()
-            except queue.Empty:
-                cmd = None
-            if isinstance(cmd, p.Shutdown):
-                break
-            try:
-                if cmd is not None:
-                    engine.handle(cmd)
-                    continue  # drain every queued command before the next iteration
-                if engine.label_dirty:
-                    engine.label_work()  # for the latest labels only: the edits drained above were overwritten
-                if engine.may_step():
-                    engine.step()
-            except Exception as err:  # noqa: BLE001 - every error becomes a message; the loop must survive
-                engine.fail(err)
-            if parent is not None and not parent.is_alive():
-                break
-    except BrokenPipeError:  # the server went away while we were telling it something (even about an error)
-        pass
-    finally:
-        engine.close()
-        results.close()
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# The server side
-
-
-class EngineClient:
-    """Starts the engine process, sends it commands and hands its messages to ``on_message`` on a reader thread.
-    When the process dies it is restarted and ``on_restart(exitcode, gave_up=False)`` is called (the owner then
-    reloads); after MAX_RESTARTS deaths within RESTART_WINDOW_S it stops trying and calls it with ``gave_up=True``,
-    so a process that cannot even start does not respawn forever.
-
-    Results come over a one-way pipe whose writing end only the engine holds: if the engine dies halfway through
-    a message, the reader gets EOF instead of waiting forever for the rest (as it would on a ``Queue``, whose
-    writing end this process also holds)."""
-
-    MAX_RESTARTS = 3
-    RESTART_WINDOW_S = 60.0
-
-    def __init__(self, workers: int, on_message: Callable[[object], None],
-                 on_restart: Callable[[int | None, bool], None], ray=None):
-        self.workers = workers
-        self.ray = ray
-        self.on_message = on_message
-        self.on_restart = on_restart
-        self._ctx = mp.get_context("spawn")
-        self._stopping = threading.Event()  # no restarts from now on
-        self._lock = threading.Lock()
-        self._deaths: list[float] = []
-        self.process = None
-        self.results = None
-        self._start_process()
-        self._reader = threading.Thread(target=self._read, name="engine-reader", daemon=True)
-        self._reader.start()
-        # multiprocessing joins non-daemonic children at exit, and the engine waits for our Shutdown: send it first.
-        atexit.register(self.stop)
-
-    def _start_process(self) -> None:
-        if self.results is not None:
-            self.results.close()
-        self.commands = self._ctx.Queue()
-        self.results, writer = self._ctx.Pipe(duplex=False)
-        # Not a daemon: it starts the worker pool, and daemonic processes may not have children. It exits on its
-        # own when this process dies (it polls its parent).
-        self.process = self._ctx.Process(
-            target=engine_main, args=(self.commands, writer, self.workers, self.ray), name="workbench-engine"
-        )
-        self.process.start()
-        writer.close()  # from now on only the engine holds the writing end
-
-    def send(self, cmd) -> None:
-        with self._lock:
-            self.commands.put(cmd)
-
-    def _read(self) -> None:
-        while True:
-            try:
-                if not self.results.poll(0.25):
-                    if not self.process.is_alive() and not self._stopping.is_set():
-                        self._restart()
-                    continue
-                msg = self.results.recv()
-            except (EOFError, OSError):  # the engine is gone, maybe halfway through a message
-                if self._stopping.is_set():
-                    return
-                self.process.join(5)
-                self._restart()
-                continue
-            try:
-                self.on_message(msg)
-            except Exception:  # a display bug must not stop the reader
-                log.exception("handling %s", type(msg).__name__)
-
-    def _restart(self) -> None:
-        code = self.process.exitcode
-        now = time.monotonic()
-        self._deaths = [t for t in self._deaths if now - t < self.RESTART_WINDOW_S] + [now]
-        if len(self._deaths) > self.MAX_RESTARTS:
-            self._stopping.set()
-            self.on_restart(code, True)
-            return
-        with self._lock:
-            self._start_process()
-        self.on_restart(code, False)
-
-    def stop(self, timeout: float = 10.0) -> None:
-        # The reader keeps draining while the engine exits (a blocked send would hold the engine up), then ends at
-        # the pipe's EOF.
-        if self._stopping.is_set() and not self.process.is_alive():
-            return  # stopped already (or gave up restarting)
-        atexit.unregister(self.stop)
-        self._stopping.set()
-        try:
-            self.commands.put(p.Shutdown())
-        except (OSError, ValueError):
-            pass
-        self.process.join(timeout)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join(2)
-        self._reader.join(5)
-        self.commands.cancel_join_thread()
-        self.commands.close()
-        self.results.close()

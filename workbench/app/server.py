@@ -25,7 +25,8 @@ import viser
 from workbench.app import protocol as p
 from workbench.app.camera import FRAME_OBJECTS, CameraPose, apply_camera, frame_objects, from_sensor
 from workbench.app.colors import VIRIDIS, legend_html, view_legend_html
-from workbench.app.engine import DEMO_DIR, EngineClient
+from workbench.app.engine import DEMO_DIR
+from workbench.app.engine_process import EngineClient
 from workbench.app.labelling import Labelling
 from workbench.app.panel import Panel, build_panel
 from workbench.app.quiet import Quiet
