@@ -17,7 +17,6 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import viser
@@ -30,6 +29,7 @@ from workbench.app.engine_process import EngineClient
 from workbench.app.labelling import Labelling
 from workbench.app.panel import Panel, build_panel
 from workbench.app.quiet import Quiet
+from workbench.app.scene_throttle import SceneThrottle
 from workbench.app.sessions_panel import Sessions
 from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
 from workbench.errors import InputError
@@ -49,58 +49,6 @@ CAMERA_REST_S = 0.5  # a tab's camera is remembered (for reloads and new tabs) o
 # and plots still follow every iteration.
 SCENE_INTERVAL_S = 1.0
 SCENE_GATHER_S = 0.1  # a deferred redraw waits this long at least, for the rest of its iteration (Chosen)
-
-
-class SceneThrottle:
-    """Draws into the 3D view at most once per ``interval`` seconds: the latest drawing submitted under each key
-    runs at once, or (deferred) by a timer once the interval since the last flush is over and at least ``gather``
-    seconds after it was submitted. All of one flush go out as one atomic batch, so the browser draws once for them."""
-
-    def __init__(self, server: viser.ViserServer, lock: threading.RLock, interval: float, gather: float,
-                 on_error: Callable[[str, Exception], None]):
-        self.server, self.lock, self.on_error = server, lock, on_error
-        self.interval, self.gather = interval, gather
-        self.pending: dict[str, Callable[[], None]] = {}  # key -> a function that draws
-        self.last = -np.inf  # time.monotonic() of the last flush
-        self.timer: threading.Timer | None = None
-
-    def submit(self, key: str, draw: Callable[[], None], defer: bool) -> None:
-        """Draw with ``draw()`` now, or (``defer``) by the timer: once the interval since the last flush is over,
-        and no sooner than ``gather`` seconds from now. A later drawing under the same key replaces this one."""
-        with self.lock:
-            self.pending[key] = draw
-            if not defer:
-                self.flush()
-            elif self.timer is None:
-                wait = max(self.gather, self.last + self.interval - time.monotonic())
-                self.timer = threading.Timer(wait, self.flush)
-                self.timer.daemon = True
-                self.timer.start()
-
-    def flush(self) -> None:
-        """Run every pending drawing now."""
-        with self.lock:
-            if self.timer is not None:
-                self.timer.cancel()
-                self.timer = None
-            draws, self.pending = self.pending, {}
-            if not draws:
-                return
-            self.last = time.monotonic()
-            with self.server.atomic():
-                for key, draw in draws.items():
-                    try:
-                        draw()
-                    except Exception as err:  # a drawing bug must not stop the other drawings
-                        self.on_error(key, err)
-
-    def cancel(self) -> None:
-        """Drop the pending drawings (a new frame or a reset replaces what they would draw)."""
-        with self.lock:
-            if self.timer is not None:
-                self.timer.cancel()
-                self.timer = None
-            self.pending = {}
 
 
 @dataclass
