@@ -202,7 +202,7 @@ def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem
     where physics put it. Turned about the vertical and settled, the mug gains far more than the margin."""
     from dataclasses import replace
 
-    from workbench.meshes import mug_mesh
+    from workbench.synth.meshes import mug_mesh
     from workbench.scene import ObjectModel
 
     frame, problem = frame_and_problem

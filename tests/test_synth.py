@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench import bop, metrics, synth
+from workbench import bop, metrics
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_z
-from workbench.sensor import SensorModel, apply_sensor, axial_sigma
+from workbench.synth import scenes as synth
+from workbench.synth.sensor import SensorModel, apply_sensor, axial_sigma
 from workbench.support import estimate_support
 
 W, H = 320, 240

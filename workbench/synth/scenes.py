@@ -42,10 +42,10 @@ from workbench.geometry import (
     invert_pose, make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix, rot_z, wxyz_to_xyzw, xyzw_to_wxyz,
 )
 from workbench.errors import InputError
-from workbench.meshes import MugShape, can_mesh, mug_collision_parts, mug_mesh, tube_mesh
 from workbench.metrics import box_symmetries
 from workbench.physics.bullet import pybullet as pb
-from workbench.sensor import SensorModel, apply_sensor
+from workbench.synth.meshes import MugShape, can_mesh, mug_collision_parts, mug_mesh, tube_mesh
+from workbench.synth.sensor import SensorModel, apply_sensor
 
 PAPER_CATEGORIES = ("touching", "stacked", "slant", "occluded", "three", "four")
 CATEGORIES = PAPER_CATEGORIES + ("clutter", "mixed")  # new ones go last: a category's index seeds its scenes
