@@ -13,9 +13,14 @@ from PIL import Image
 from workbench import bop, metrics
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_z
-from workbench.synth import scenes as synth
-from workbench.synth.sensor import SensorModel, apply_sensor, axial_sigma
 from workbench.support import estimate_support
+from workbench.synth import CATEGORIES, load_distractors, make_demo, make_scenes, true_table_pose, visible_masks
+from workbench.synth.config import PAPER_CATEGORIES, SynthConfig
+from workbench.synth.objects import BOX_BY_ID, BOXES, OBJECT_BY_ID, OBJECTS, ROUND, item_mesh, tilt_deg
+from workbench.synth.scenes import generate_scene
+from workbench.synth.sensor import SensorModel, apply_sensor, axial_sigma
+from workbench.synth.sim import Sim, contact_distances, item_distances
+from workbench.synth.views import pixel_rays, raycast
 
 W, H = 320, 240
 TOUCH = 1e-3  # m: boxes closer than this touch
@@ -24,25 +29,25 @@ TOUCH = 1e-3  # m: boxes closer than this touch
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> tuple[Path, list[dict]]:
     out = tmp_path_factory.mktemp("synth")
-    return out, synth.make_scenes(out, list(synth.CATEGORIES), 1, seed=0, width=W, height=H)
+    return out, make_scenes(out, list(CATEGORIES), 1, seed=0, width=W, height=H)
 
 
 def _world(frame, dataset=None) -> np.ndarray:
     """Ground-truth T_world_obj (K, 4, 4); the table pose from scene_table.json where the frame omits it."""
     T_cam_world = frame.camera.T_cam_world
     if T_cam_world is None:
-        T_cam_world = synth.true_table_pose(dataset, frame.scene_id, frame.im_id)
+        T_cam_world = true_table_pose(dataset, frame.scene_id, frame.im_id)
     return invert_pose(T_cam_world) @ frame.gt_T_cam_obj
 
 
 def test_every_category_written_once_with_its_relations(dataset):
     out, meta = dataset
-    assert [m["category"] for m in meta] == list(synth.CATEGORIES)
+    assert [m["category"] for m in meta] == list(CATEGORIES)
     expected = {"touching": {"touch"}, "stacked": {"stack"}, "slant": {"slant"}, "occluded": {"hide"}}
     sizes = {"three": 3, "four": 4}
     for m in meta:
         rels = [r for r, _ in m["relations"][1:]]
-        kinds = [synth.OBJECT_BY_ID[i].kind for i in m["obj_ids"]]
+        kinds = [OBJECT_BY_ID[i].kind for i in m["obj_ids"]]
         if m["category"] in expected:
             assert set(rels) == expected[m["category"]] and len(m["obj_ids"]) == 2
         elif m["category"] in sizes:
@@ -53,7 +58,7 @@ def test_every_category_written_once_with_its_relations(dataset):
         else:  # mixed
             assert 2 <= len(m["obj_ids"]) <= 3 and "box" in kinds and set(kinds) - {"box"}, m
             assert 1 <= len(m["distractors"]) <= 3 and m["table_pose"] is False, m
-        if m["category"] in synth.PAPER_CATEGORIES:
+        if m["category"] in PAPER_CATEGORIES:
             assert set(kinds) == {"box"} and "distractors" not in m and "table_pose" not in m
         assert len(set(m["obj_ids"])) == len(m["obj_ids"])
 
@@ -64,10 +69,10 @@ def test_relations_hold_in_the_reloaded_poses(dataset):
         frame = bop.load_frame(out, m["scene_id"], 0)
         assert frame.object_ids == m["obj_ids"] and frame.depth.shape == (H, W)
         T = _world(frame, out)
-        d = synth.item_distances([synth.OBJECT_BY_ID[i] for i in frame.object_ids], T)
+        d = item_distances([OBJECT_BY_ID[i] for i in frame.object_ids], T)
         table = len(T)
         for child, (rel, parent) in enumerate(m["relations"]):
-            tilt = synth.tilt_deg(T[child, :3, :3])
+            tilt = tilt_deg(T[child, :3, :3])
             if rel in ("base", "free"):
                 assert d[child, table] < TOUCH and tilt < 3, m
                 if rel == "free":  # clear of every other object
@@ -88,10 +93,10 @@ def test_visibility_info_matches_masks_and_hides_the_occluded_box(dataset):
         scene_dir = out / "test" / f"{m['scene_id']:06d}"
         info = json.loads((scene_dir / "scene_gt_info.json").read_text())["0"]
         frame = bop.load_frame(out, m["scene_id"], 0)
-        meshes = [synth.item_mesh(synth.OBJECT_BY_ID[i]) for i in frame.object_ids]
-        distractors = synth.load_distractors(out, m["scene_id"])  # they hide objects too
+        meshes = [item_mesh(OBJECT_BY_ID[i]) for i in frame.object_ids]
+        distractors = load_distractors(out, m["scene_id"])  # they hide objects too
         poses = np.concatenate([frame.gt_T_cam_obj, np.array([T for _, T in distractors]).reshape(-1, 4, 4)])
-        recomputed = synth.visible_masks(frame.camera.K, W, H, meshes + [mesh for mesh, _ in distractors], poses)
+        recomputed = visible_masks(frame.camera.K, W, H, meshes + [mesh for mesh, _ in distractors], poses)
         for k, entry in enumerate(info):
             png = np.asarray(Image.open(scene_dir / "mask_visib" / f"000000_{k:06d}.png")) > 0
             assert png.sum() == entry["px_count_visib"]
@@ -107,18 +112,18 @@ def test_visibility_info_matches_masks_and_hides_the_occluded_box(dataset):
 def test_models_carry_box_symmetries(dataset):
     out, _ = dataset
     models = bop.load_models(out)
-    assert sorted(models) == [o.obj_id for o in synth.OBJECTS]
-    for b in synth.BOXES:
+    assert sorted(models) == [o.obj_id for o in OBJECTS]
+    for b in BOXES:
         assert np.allclose(sorted(models[b.obj_id].mesh.extents), sorted(b.extents), atol=1e-6)
     assert len(models[1].symmetries) == 4  # cracker box: three different sides
     assert len(models[5].symmetries) == 8  # wood block: square section
 
 
 def test_scene_noise_matches_the_sensor_model():
-    cfg = synth.SynthConfig(width=W, height=H)
-    sim = synth.Sim(cfg)
+    cfg = SynthConfig(width=W, height=H)
+    sim = Sim(cfg)
     try:
-        sample = synth.generate_scene(sim, "touching", np.random.default_rng(3), cfg)
+        sample = generate_scene(sim, "touching", np.random.default_rng(3), cfg)
     finally:
         sim.close()
     both = (sample.depth > 0) & (sample.clean_depth > 0)
@@ -150,22 +155,22 @@ def test_sensor_noise_at_known_depth_and_dropouts():
 
 
 def test_same_seed_same_scene_and_unknown_category(tmp_path):
-    a = synth.make_scenes(tmp_path / "a", ["slant"], 1, seed=5, width=160, height=120)
-    b = synth.make_scenes(tmp_path / "b", ["slant"], 1, seed=5, width=160, height=120)
+    a = make_scenes(tmp_path / "a", ["slant"], 1, seed=5, width=160, height=120)
+    b = make_scenes(tmp_path / "b", ["slant"], 1, seed=5, width=160, height=120)
     fa, fb = bop.load_frame(tmp_path / "a", 0, 0), bop.load_frame(tmp_path / "b", 0, 0)
     assert a == b and np.allclose(fa.gt_T_cam_obj, fb.gt_T_cam_obj) and np.array_equal(fa.depth, fb.depth)
     with pytest.raises(InputError, match="unknown"):
-        synth.make_scenes(tmp_path / "c", ["piled"], 1, seed=0)
+        make_scenes(tmp_path / "c", ["piled"], 1, seed=0)
 
 
 def test_demo_is_small_and_two_touching_boxes(tmp_path):
-    meta = synth.make_demo(tmp_path)
+    meta = make_demo(tmp_path)
     size = sum(p.stat().st_size for p in tmp_path.rglob("*") if p.is_file())
     assert size < 1_000_000
     frame = bop.load_frame(tmp_path, 0, 0)
     assert frame.depth.shape == (480, 640) and len(frame.object_ids) == 2 == len(meta[0]["obj_ids"])
-    ext = np.array([synth.BOX_BY_ID[i].extents for i in frame.object_ids])
-    d = synth.contact_distances(ext, _world(frame))
+    ext = np.array([BOX_BY_ID[i].extents for i in frame.object_ids])
+    d = contact_distances(ext, _world(frame))
     assert d[0, 1] < TOUCH and d[1, 0] < TOUCH
 
 
@@ -186,18 +191,18 @@ def test_distractors_are_in_the_depth_but_not_in_scene_gt(dataset):
         assert [e["kind"] for e in entries] == m["distractors"]
         frame = bop.load_frame(out, m["scene_id"], 0)
         K = frame.camera.K
-        distractors = synth.load_distractors(out, m["scene_id"])
-        objects = [synth.item_mesh(synth.OBJECT_BY_ID[i]).apply_transform(T)
+        distractors = load_distractors(out, m["scene_id"])
+        objects = [item_mesh(OBJECT_BY_ID[i]).apply_transform(T)
                    for i, T in zip(frame.object_ids, frame.gt_T_cam_obj)]
         posed = [mesh.copy().apply_transform(T) for mesh, T in distractors]
-        depth, idx = synth.raycast(objects + posed, synth.pixel_rays(K, W, H))
+        depth, idx = raycast(objects + posed, pixel_rays(K, W, H))
         shown = (idx >= len(objects)) & (frame.depth > 0)  # pixels where a distractor is the nearest thing
         assert shown.sum() > 30, m  # unexplained by the objects the estimator is told about
         # The sensor saw the distractor there: within 5 sigma of the noise (holes and edges aside).
         err = np.abs(frame.depth[shown] - depth[shown])
         assert np.mean(err < 5 * axial_sigma(depth[shown]) + 1e-3) > 0.9, (m, np.median(err))
         # ... and no distractor touches an object: they were placed clear of every relation.
-        world = invert_pose(synth.true_table_pose(out, m["scene_id"]))
+        world = invert_pose(true_table_pose(out, m["scene_id"]))
         for mesh, T in distractors:
             lowest = (mesh.copy().apply_transform(world @ T)).bounds[0, 2]
             assert abs(lowest) < 1e-6  # resting on the table
@@ -205,7 +210,7 @@ def test_distractors_are_in_the_depth_but_not_in_scene_gt(dataset):
 
 def test_frames_without_the_table_pose_load_and_the_table_is_found(dataset):
     out, meta = dataset
-    omitted = [(m, d) for m, d in _scene_dirs(out, meta, synth.CATEGORIES) if not m.get("table_pose", True)]
+    omitted = [(m, d) for m, d in _scene_dirs(out, meta, CATEGORIES) if not m.get("table_pose", True)]
     assert omitted and all(m["category"] in ("clutter", "mixed") for m, _ in omitted)
     for m, scene_dir in omitted:
         cam = json.loads((scene_dir / "scene_camera.json").read_text())["0"]
@@ -213,7 +218,7 @@ def test_frames_without_the_table_pose_load_and_the_table_is_found(dataset):
         frame = bop.load_frame(out, m["scene_id"], 0)
         assert frame.camera.T_cam_world is None
         camera, _ = estimate_support(frame)
-        T_true = synth.true_table_pose(out, m["scene_id"])
+        T_true = true_table_pose(out, m["scene_id"])
         n_est, n_true = camera.T_cam_world[:3, 2], T_true[:3, 2]  # the table normal in the camera frame
         assert np.degrees(np.arccos(np.clip(n_est @ n_true, -1, 1))) < 1.0, m
         # The estimated plane passes within 5 mm of the true table origin (both in the camera frame).
@@ -223,7 +228,7 @@ def test_frames_without_the_table_pose_load_and_the_table_is_found(dataset):
 def test_can_and_mug_models_are_watertight_with_their_dimensions(dataset):
     out, _ = dataset
     models = bop.load_models(out)
-    can, mug = synth.ROUND
+    can, mug = ROUND
     for item in (can, mug):
         mesh = models[item.obj_id].mesh
         assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
@@ -238,7 +243,7 @@ def test_can_and_mug_models_are_watertight_with_their_dimensions(dataset):
     # The mug is hollow: looking down its axis from 10 cm above the rim, one sees its inner bottom.
     axis_x = -(s.handle_reach + s.handle_thickness / 2) / 2  # the body's axis in the centred model frame
     down = np.array([[axis_x, 0.0, s.height / 2 + 0.1, 0.0, 0.0, -1.0]], dtype=np.float32)
-    hit, _ = synth.raycast([models[mug.obj_id].mesh], down)
+    hit, _ = raycast([models[mug.obj_id].mesh], down)
     assert hit[0] == pytest.approx(0.1 + s.height - s.bottom, abs=1e-5)
     # The can looks the same turned about its axis (BOP symmetries_continuous), the mug does not.
     info = json.loads((out / "models" / "models_info.json").read_text())
@@ -250,15 +255,15 @@ def test_can_and_mug_models_are_watertight_with_their_dimensions(dataset):
 
 
 def test_desk_options_override_the_category(tmp_path):
-    meta = synth.make_scenes(tmp_path, ["touching"], 1, seed=0, width=W, height=H, distractors=2, table_pose=0.0)
+    meta = make_scenes(tmp_path, ["touching"], 1, seed=0, width=W, height=H, distractors=2, table_pose=0.0)
     scene_dir = tmp_path / "test" / "000000"
     assert meta[0]["table_pose"] is False and len(meta[0]["distractors"]) == 2
     assert "cam_R_w2c" not in json.loads((scene_dir / "scene_camera.json").read_text())["0"]
-    assert len(synth.load_distractors(tmp_path, 0)) == 2
+    assert len(load_distractors(tmp_path, 0)) == 2
     with pytest.raises(InputError, match="distractors"):
-        synth.make_scenes(tmp_path / "b", ["touching"], 1, seed=0, distractors=-1)
+        make_scenes(tmp_path / "b", ["touching"], 1, seed=0, distractors=-1)
     with pytest.raises(InputError, match="table pose"):
-        synth.make_scenes(tmp_path / "c", ["touching"], 1, seed=0, table_pose=1.5)
+        make_scenes(tmp_path / "c", ["touching"], 1, seed=0, table_pose=1.5)
 
 
 def test_estimate_runs_on_a_frame_without_the_table_pose(dataset, tmp_path):
