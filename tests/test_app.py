@@ -126,7 +126,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
         engine.step()
         label = engine.estimator.best[1].copy()
         engine.handle(p.SetLabels((None, label), heatmap=True))
-        engine.label_work()
+        engine.labels.work()
         assert first.of(p.LabelHeatmap)[-1].filled == "best estimate"
         assert first.of(p.LabelErrors)[-1].errors[1]["position_error_m"] == 0.0
         engine.handle(p.SaveSession(tmp_path, "run"))
@@ -359,7 +359,7 @@ def test_plots_columns_and_acceptance_by_move_kind():
 
 
 def test_expected_distinct_particles_matches_systematic_resampling():
-    from workbench.app.engine import expected_distinct
+    from workbench.app.particle_display import expected_distinct
     from workbench.resampling import systematic_resample
 
     rng = np.random.default_rng(3)

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from workbench.app.engine import DEFAULT_DISPLAY
+from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure, Run
 from workbench.app.headless import (FRAME_PROBE_JS, SentMessages, canvas_png, chromium_path, color_extent,
                                     frame_counts, gui_input, image_stats, open_workbench)

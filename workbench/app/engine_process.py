@@ -52,7 +52,7 @@ def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
                 # Block briefly while idle or waiting for the server to show the last iteration; never while an
                 # iteration may start or label work waits, so iterations follow each other at once and a heatmap
                 # follows its edit.
-                busy = engine.may_step() or engine.label_dirty
+                busy = engine.may_step() or engine.labels.dirty
                 cmd = commands.get(timeout=0.5) if not busy else commands.get_nowait()
             except queue.Empty:
                 cmd = None
@@ -62,8 +62,8 @@ def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
                 if cmd is not None:
                     engine.handle(cmd)
                     continue  # drain every queued command before the next iteration
-                if engine.label_dirty:
-                    engine.label_work()  # for the latest labels only: the edits drained above were overwritten
+                if engine.labels.dirty:
+                    engine.labels.work()  # for the latest labels only: the edits drained above were overwritten
                 if engine.may_step():
                     engine.step()
             except Exception as err:  # noqa: BLE001 - every error becomes a message; the loop must survive
