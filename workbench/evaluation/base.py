@@ -1,0 +1,138 @@
+"""The evaluation interface: a batch of hypotheses in, projected poses and log-likelihoods out. The estimators see
+only ``Evaluator``; where the work runs (this process, a pool of local workers, or Ray actors on a cluster) is the
+evaluator's business. ``submit`` hands a batch over and returns at once where the work runs elsewhere, so that the
+caller can prepare the next batch meanwhile; ``evaluate`` is ``submit(...).result()``. ``map`` runs the search's own
+pure work (candidate fits) on the same workers, so that they do not wait while the main process fits.
+
+Each evaluation is independent of every other (physics rebuilds its world per particle), so splitting a batch
+across workers never changes a result; every evaluator that splits one splits it as ``split_batch`` does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import numpy as np
+
+from workbench.checks import check_rigid
+from workbench.errors import InputError
+from workbench.problem import Problem
+from workbench.scene import Table
+
+STAGES = ("projection", "render", "likelihood")
+
+
+@dataclass
+class Evaluation:
+    """Results for B hypotheses: ``projected`` (B, K, 4, 4) resting poses, ``loglik`` (B,) (-inf where physics
+    failed), ``status`` (B,) physics status codes, ``timings`` seconds spent per stage (summed over workers)."""
+
+    projected: np.ndarray
+    loglik: np.ndarray
+    status: np.ndarray
+    timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+
+    @staticmethod
+    def concatenate(parts: list["Evaluation"]) -> "Evaluation":
+        return Evaluation(
+            projected=np.concatenate([p.projected for p in parts]),
+            loglik=np.concatenate([p.loglik for p in parts]),
+            status=np.concatenate([p.status for p in parts]),
+            timings={s: sum(p.timings[s] for p in parts) for s in STAGES},
+        )
+
+    @staticmethod
+    def interleave(first: np.ndarray, a: "Evaluation", b: "Evaluation") -> "Evaluation":
+        """The evaluation of a batch whose hypotheses where ``first`` (B,) is true were evaluated as ``a`` and the
+        others as ``b``, both in order."""
+        projected = np.empty((len(first), *a.projected.shape[1:]))
+        loglik, status = np.empty(len(first)), np.empty(len(first), dtype=a.status.dtype)
+        for part, where in ((a, first), (b, ~first)):
+            projected[where], loglik[where], status[where] = part.projected, part.loglik, part.status
+        return Evaluation(projected, loglik, status, {s: a.timings[s] + b.timings[s] for s in STAGES})
+
+
+class Pending(Protocol):
+    def result(self) -> Evaluation:
+        """The submitted batch's evaluation, waiting for it if need be."""
+        ...
+
+
+@dataclass
+class Done:
+    """A batch evaluated at submission (evaluators that work in the caller's process)."""
+
+    evaluation: Evaluation
+
+    def result(self) -> Evaluation:
+        return self.evaluation
+
+
+class Evaluator(Protocol):
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
+        """(B, K, 4, 4) hypotheses in the table frame -> their evaluation. ``sink`` (B,) m, default 0: how far
+        below the fitted table plane each hypothesis's objects rest (``PhysicsProjector.project``); the observed
+        table is drawn where it was fitted either way. ``project=False`` scores the hypotheses as given, without
+        physics (``inference.settle``): ``projected`` is then the hypotheses, with status ``STATUS_AS_GIVEN``."""
+        ...
+
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Pending:
+        """``evaluate``, but returning as soon as the batch is handed over; results are the same. Batches are
+        evaluated in the order submitted."""
+        ...
+
+    def map(self, fn: Callable, calls: list[tuple]) -> list:
+        """``[fn(problem, *args) for args in calls]``, run where the evaluations run: the search's own pure work
+        (candidate fits), which would otherwise keep one core busy while the workers wait. ``fn`` must be a
+        module-level function (it is pickled by name); the results are the same as in this process."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def in_region(T_world_obj: np.ndarray, table: Table, margin: float) -> np.ndarray:
+    """Whether every object's origin (B, K, 4, 4 table frame) lies within ``margin`` (m) of the table's object
+    region -> (B,) bool."""
+    xy = T_world_obj[:, :, :2, 3]
+    lo, hi = np.asarray(table.region_min) - margin, np.asarray(table.region_max) + margin
+    return np.all((xy >= lo) & (xy <= hi), axis=(1, 2))
+
+
+def check_sink(sink: np.ndarray | None, n: int) -> np.ndarray:
+    """The per-hypothesis sink (n,) m, zeros if None; a clear error for a wrong shape or a non-finite value."""
+    if sink is None:
+        return np.zeros(n)
+    sink = np.asarray(sink, dtype=np.float64)
+    if sink.shape != (n,) or not np.all(np.isfinite(sink)):
+        raise InputError("sink", f"expected {n} finite values in metres, got shape {sink.shape}")
+    return sink
+
+
+def split_batch(hypotheses: np.ndarray, parts: int, sink: np.ndarray | None = None
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The checked batch (N, K, 4, 4) and its sink (N,) in up to ``parts`` contiguous non-empty chunks, in order:
+    chunk i goes to worker i. Every evaluator that splits a batch splits it this way, so results do not depend on
+    which one ran. Checked here, not only in the workers: a refused batch must not look like a crashed worker."""
+    hypotheses = check_rigid(hypotheses, "hypotheses")
+    sink = check_sink(sink, len(hypotheses))
+    return [(h, s) for h, s in zip(np.array_split(hypotheses, parts), np.array_split(sink, parts)) if len(h)]
+
+
+def run_here(problem: Problem) -> Callable[[Callable, list[tuple]], list]:
+    """``Evaluator.map`` done in this process: ``run(fn, calls)`` -> ``[fn(problem, *args) for args in calls]``."""
+    return lambda fn, calls: [fn(problem, *args) for args in calls]
+
+
+def split_calls(calls: list[tuple], parts: int) -> list[list[tuple]]:
+    """``calls`` in up to ``parts`` contiguous non-empty chunks, in order, as ``split_batch`` splits a batch."""
+    return [[calls[i] for i in idx] for idx in np.array_split(np.arange(len(calls)), parts) if len(idx)]
+
+
+def joined(parts: list[list]) -> list:
+    """The results of ``split_calls``' chunks, back in one list in call order."""
+    return [r for part in parts for r in part]
+
+
+class WorkerCrashed(RuntimeError):
+    """A worker process died mid-evaluation; the pool must be rebuilt."""

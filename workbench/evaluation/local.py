@@ -1,0 +1,86 @@
+"""Evaluation in this process: ``LocalEvaluator`` with its own physics client and renderer, and
+``ChunkedEvaluator``, which evaluates a batch in the parts a pool would split it into, one after another."""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+
+from workbench.checks import check_rigid
+from workbench.evaluation.base import Done, Evaluation, check_sink, in_region, run_here, split_batch
+from workbench.likelihood import pixel_loglik, predicted_depth, scene_loglik
+from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
+from workbench.problem import Problem
+from workbench.render import DepthRenderer
+
+
+class LocalEvaluator:
+    """Evaluates in this process with its own physics client and renderer."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self.projector = PhysicsProjector(problem.models, problem.table, problem.config.physics)
+        self.renderer = DepthRenderer(
+            problem.render_camera, [m.mesh for m in problem.models], problem.config.render
+        )
+
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
+        hypotheses = check_rigid(hypotheses, "hypotheses")  # physics would turn a reflection into another pose
+        t0 = time.perf_counter()
+        sink = check_sink(sink, len(hypotheses))
+        if project:
+            projected, status, _ = self.projector.project_batch(hypotheses, sink)
+        else:
+            projected, status = hypotheses.copy(), np.full(len(hypotheses), STATUS_AS_GIVEN, np.int8)
+        t1 = time.perf_counter()
+        ok = (status == STATUS_REST) | (status == STATUS_STEP_CAP) | (status == STATUS_AS_GIVEN)
+        outside = ok & ~in_region(projected, self.problem.table, self.problem.config.region_margin)
+        status[outside] = STATUS_OUTSIDE
+        ok &= ~outside
+        loglik = np.full(len(hypotheses), -np.inf)
+        rendered = self.renderer.render(projected[ok]) if ok.any() else None
+        t2 = time.perf_counter()
+        if rendered is not None:
+            loglik[ok] = scene_loglik(
+                self.problem.observed, self.problem.background, rendered, self.problem.config.likelihood
+            )
+        t3 = time.perf_counter()
+        return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
+
+    def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Done:
+        return Done(self.evaluate(hypotheses, sink, project))
+
+    def map(self, fn: Callable, calls: list[tuple]) -> list:
+        return run_here(self.problem)(fn, calls)
+
+    def explain(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
+        log-likelihood (h, w)) on the problem's grid."""
+        rendered = self.renderer.render(T_world_obj[None])
+        pixels = pixel_loglik(
+            self.problem.observed, predicted_depth(rendered, self.problem.background), self.problem.config.likelihood
+        )
+        return rendered[0], pixels[0]
+
+    def close(self) -> None:
+        self.projector.close()
+        self.renderer.close()
+
+
+class ChunkedEvaluator(LocalEvaluator):
+    """Evaluates in this process, a batch split into ``chunks`` contiguous parts evaluated one after another: the
+    same parts as a ``PoolEvaluator`` of ``chunks`` workers, each rendered from the framebuffer's first tile as a
+    worker renders it, so results are bit-identical to that pool's on one CPU. Frames run as Ray tasks use it, so
+    that a frame's result does not depend on the engine."""
+
+    def __init__(self, problem: Problem, chunks: int):
+        if chunks < 1:
+            raise ValueError(f"chunks must be >= 1, got {chunks}")
+        super().__init__(problem)
+        self.chunks = chunks
+
+    def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
+        return Evaluation.concatenate([LocalEvaluator.evaluate(self, h, s, project)
+                                       for h, s in split_batch(hypotheses, self.chunks, sink)])
