@@ -23,7 +23,8 @@ from workbench.checks import check_workers
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
-from workbench.evaluation.ray import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
+from workbench.evaluation.ray import RayConfig  # imports Ray only when used
+from workbench.frames import FrameFailure, run_frame_tasks
 from workbench.pipeline import load_bop_problem, result_rows
 from workbench.problem import Problem, ProblemConfig
 

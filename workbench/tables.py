@@ -27,7 +27,8 @@ from workbench.bop import ResultRow
 from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
-from workbench.evaluation.ray import FrameFailure, RayConfig, run_frame_tasks  # imports Ray only when used
+from workbench.evaluation.ray import RayConfig  # imports Ray only when used
+from workbench.frames import FrameFailure, run_frame_tasks
 from workbench.geometry import invert_pose
 from workbench.metrics import (
     add_s, closest_symmetric, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors,

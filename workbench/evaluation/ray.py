@@ -1,14 +1,10 @@
-"""Ray as the engine (`--engine ray`, the optional extra ``workbench[ray]``): whole frames as Ray tasks
-(``run_frame_tasks``, for `estimate` and `bench`), and one frame's particle batches over Ray actors
-(``RayEvaluator``, for `serve`).
+"""Ray (`--engine ray`, the optional extra ``workbench[ray]``): one frame's particle batches over Ray actors
+(``RayEvaluator``, for `serve`), and the connection to Ray that it and the frame tasks (``workbench.frames``) share:
+``RayConfig``, ``connect``, ``disconnect``.
 
-Results do not depend on the engine: a frame task evaluates its batches with a ``ChunkedEvaluator`` (the batch split
-as ``--workers`` local processes would split it, evaluated in turn on the task's one CPU), and ``RayEvaluator``
-splits a batch over its actors as ``PoolEvaluator`` splits it over processes; the estimator's seed is the
-config's, the same for every frame whatever ran it and in whatever order. So a run with `--engine ray` writes the
-same poses and scores as one with `--engine local` and the same ``--workers`` (only the time column differs).
-
-Ray is imported only here and only when asked for, so that everything else works without it.
+``RayEvaluator`` splits a batch over its actors as ``PoolEvaluator`` splits it over processes, so its results equal a
+pool's of the same size. Ray is imported only when something here is called (``require_ray``), so that importing
+this module, and everything else, works without it.
 """
 
 from __future__ import annotations
@@ -16,21 +12,16 @@ from __future__ import annotations
 import logging
 import os
 import socket
-import sys
 from dataclasses import dataclass
-from typing import Callable, TypeVar
 
 import numpy as np
-from tqdm import tqdm
 
 from workbench.errors import InputError
-from workbench.evaluation import Evaluation, LocalEvaluator, WorkerCrashed, joined, split_batch, split_calls
+from workbench.evaluation.base import Evaluation, WorkerCrashed, joined, split_batch, split_calls
+from workbench.evaluation.local import LocalEvaluator
 from workbench.problem import Problem
 
 INSTALL_HINT = "pip install 'workbench[ray]' (in a checkout: .venv/bin/pip install -e '.[ray]')"
-
-Frame = tuple[int, int]  # (scene_id, im_id)
-Result = TypeVar("Result")
 
 
 @dataclass(frozen=True)
@@ -114,67 +105,6 @@ def disconnect() -> None:
 def cluster_cpus() -> int:
     """CPUs of the connected cluster, all nodes together."""
     return int(require_ray().cluster_resources().get("CPU", 0))
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Whole frames as tasks
-
-
-@dataclass(frozen=True)
-class FrameFailure:
-    """A frame that produced no result: ``problem`` says why in words (its input error, or its worker dying more
-    often than ``RayConfig.max_retries`` allows)."""
-
-    frame: Frame
-    problem: str
-
-
-def _frame_problem(ray, err: Exception, retries: int) -> str:
-    if isinstance(err, ray.exceptions.RayTaskError):
-        cause = err.cause if getattr(err, "cause", None) is not None else err
-        return str(cause) if isinstance(cause, InputError) else f"{type(cause).__name__}: {cause}"
-    if isinstance(err, (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError,
-                        ray.exceptions.ObjectLostError, ray.exceptions.OwnerDiedError)):
-        return f"its worker died {retries + 1} time(s) ({type(err).__name__}); gave up"
-    return f"{type(err).__name__}: {err}"
-
-
-def run_frame_tasks(
-    task: Callable[..., Result],
-    frames: list[Frame],
-    args: tuple,
-    config: RayConfig,
-    on_result: Callable[[Frame, Result], None],
-    on_failure: Callable[[FrameFailure], None],
-    desc: str = "frames",
-) -> None:
-    """Run ``task(scene_id, im_id, *args)`` for every frame as a Ray task of one CPU, as many at once as the
-    cluster has CPUs; hand each result to ``on_result`` (in the driver, in the order the tasks
-    finish) and each frame that failed to ``on_failure``, and go on with the others. One progress bar on stderr
-    counts finished frames. ``task`` must be a module-level function (workers import it by name); ``args`` are
-    put into Ray's object store once, not once per frame."""
-    ray = connect(config)
-    # Worker processes are reused across frames (Ray's default), so each imports the heavy libraries once.
-    remote = ray.remote(num_cpus=1, max_retries=config.max_retries, retry_exceptions=False)(task)
-    shared = [ray.put(a) for a in args]
-    pending = {remote.remote(scene_id, im_id, *shared): (scene_id, im_id) for scene_id, im_id in frames}
-    with tqdm(total=len(frames), desc=desc, unit="frame", file=sys.stderr, disable=None) as bar:  # terminals only
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            frame = pending.pop(done[0])
-            try:
-                result = ray.get(done[0])
-            except ray.exceptions.RayError as err:
-                failure = FrameFailure(frame, _frame_problem(ray, err, config.max_retries))
-                bar.write(f"workbench: scene {frame[0]} frame {frame[1]} failed: {failure.problem}", file=sys.stderr)
-                on_failure(failure)
-            else:
-                on_result(frame, result)
-            bar.update(1)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# One frame's particle batches over actors
 
 
 class _EvaluatorActor:
