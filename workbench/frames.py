@@ -1,4 +1,5 @@
-"""Whole dataset frames as Ray tasks, for `estimate` and `bench` with `--engine ray` (``run_frame_tasks``).
+"""The frame loop of `estimate` and `bench`: dataset frames run here one after another (``--engine local``) or as
+Ray tasks over a cluster (``--engine ray``), each frame's result handed to a callback as soon as it is done.
 
 Results do not depend on the engine: a frame task evaluates its batches with a ``ChunkedEvaluator`` (the batch split
 as ``--workers`` local processes would split it, evaluated in turn on the task's one CPU), and the estimator's seed
@@ -40,20 +41,37 @@ def _frame_problem(ray, err: Exception, retries: int) -> str:
     return f"{type(err).__name__}: {err}"
 
 
-def run_frame_tasks(
-    task: Callable[..., Result],
+def run_frames(
     frames: list[Frame],
+    here: Callable[[int, int], Result],
+    task: Callable[..., Result],
     args: tuple,
-    config: RayConfig,
+    ray: RayConfig | None,
     on_result: Callable[[Frame, Result], None],
     on_failure: Callable[[FrameFailure], None],
     desc: str = "frames",
 ) -> None:
-    """Run ``task(scene_id, im_id, *args)`` for every frame as a Ray task of one CPU, as many at once as the
-    cluster has CPUs; hand each result to ``on_result`` (in the driver, in the order the tasks
-    finish) and each frame that failed to ``on_failure``, and go on with the others. One progress bar on stderr
-    counts finished frames. ``task`` must be a module-level function (workers import it by name); ``args`` are
-    put into Ray's object store once, not once per frame."""
+    """Run every frame and hand each result to ``on_result(frame, result)`` as soon as it is done.
+
+    Locally (``ray`` None): ``here(scene_id, im_id)``, one frame after another in the order given, in this process
+    (which shows its own progress); the first frame that raises ends the run with its error.
+
+    With ``ray`` (a RayConfig): ``task(scene_id, im_id, *args)`` for every frame as a Ray task of one CPU, as many at
+    once as the cluster has CPUs, results in the order the tasks finish; each frame that failed goes to
+    ``on_failure`` and the others go on. One progress bar on stderr, named ``desc``, counts finished frames.
+    ``task`` must be a module-level function (workers import it by name); ``args`` are put into Ray's object store
+    once, not once per frame."""
+    if ray is None:
+        for frame in frames:
+            on_result(frame, here(*frame))
+    else:
+        _run_tasks(task, frames, args, ray, on_result, on_failure, desc)
+
+
+def _run_tasks(task: Callable[..., Result], frames: list[Frame], args: tuple, config: RayConfig,
+               on_result: Callable[[Frame, Result], None], on_failure: Callable[[FrameFailure], None],
+               desc: str) -> None:
+    """``run_frames`` on Ray."""
     ray = connect(config)
     # Worker processes are reused across frames (Ray's default), so each imports the heavy libraries once.
     remote = ray.remote(num_cpus=1, max_retries=config.max_retries, retry_exceptions=False)(task)

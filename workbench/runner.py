@@ -1,10 +1,10 @@
 """Running an estimator over dataset frames, with a progress bar on stderr, and where its results may go.
 
-Frames run one after another here (``--engine local``) or as Ray tasks over a cluster (``--engine ray``). Results
-are written frame by frame as frames finish (``ResultsFile``, always sorted by frame whatever order they finished
-in), so a crash or Ctrl-C loses at most the frames in progress, and ``--resume`` skips the frames already
-written. ``check_results_out`` decides, before any work, whether the output path may be written: never inside a
-dataset's scene or models folder, never over a file that is not a results CSV of ours unless forced.
+Frames run one after another here (``--engine local``) or as Ray tasks over a cluster (``--engine ray``), both by
+``frames.run_frames``. Results are written frame by frame as frames finish (``ResultsFile``, always sorted by frame
+whatever order they finished in), so a crash or Ctrl-C loses at most the frames in progress, and ``--resume`` skips
+the frames already written. ``check_results_out`` decides, before any work, whether the output path may be written:
+never inside a dataset's scene or models folder, never over a file that is not a results CSV of ours unless forced.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
-from workbench.frames import FrameFailure, run_frame_tasks
+from workbench.frames import Frame, FrameFailure, run_frames
 from workbench.pipeline import load_bop_problem, result_rows
 from workbench.problem import Problem, ProblemConfig
 
@@ -101,25 +101,24 @@ def estimate_frames(
     config.validate()  # before any file is read or worker started
     check_workers(workers)
     rows: list[ResultRow] = []
+    failures: list[FrameFailure] = []
 
-    def done(frame_rows: list[ResultRow]) -> None:
+    def done(_frame: Frame, frame_rows: list[ResultRow]) -> None:
         if on_frame is not None:
             on_frame(frame_rows)
         rows.extend(frame_rows)
 
-    if ray is not None:
-        failures: list[FrameFailure] = []
-        run_frame_tasks(estimate_frame_task, frames,
-                        (Path(dataset).resolve(), config, problem_config, workers, split, object_ids, early_stop),
-                        ray, lambda _frame, frame_rows: done(frame_rows), on_failure or failures.append)
-        if failures:
-            raise InputError(dataset, "; ".join(f"scene {f.frame[0]} frame {f.frame[1]}: {f.problem}"
-                                                for f in failures))
-        return rows
-    for scene_id, im_id in frames:
-        done(estimate_frame(dataset, scene_id, im_id, config, problem_config,
-                            lambda problem: make_evaluator(problem, workers), split, object_ids, early_stop,
-                            show_progress=True))
+    def here(scene_id: int, im_id: int) -> list[ResultRow]:
+        return estimate_frame(dataset, scene_id, im_id, config, problem_config,
+                              lambda problem: make_evaluator(problem, workers), split, object_ids, early_stop,
+                              show_progress=True)
+
+    run_frames(frames, here, estimate_frame_task,
+               (Path(dataset).resolve(), config, problem_config, workers, split, object_ids, early_stop),
+               ray, done, on_failure or failures.append)
+    if failures:
+        raise InputError(dataset, "; ".join(f"scene {f.frame[0]} frame {f.frame[1]}: {f.problem}"
+                                            for f in failures))
     return rows
 
 

@@ -28,7 +28,7 @@ from workbench.errors import InputError
 from workbench.estimators import Estimator, EstimatorConfig, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
-from workbench.frames import FrameFailure, run_frame_tasks
+from workbench.frames import FrameFailure, run_frames
 from workbench.geometry import invert_pose
 from workbench.metrics import (
     add_s, closest_symmetric, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors,
@@ -583,23 +583,24 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
     t_start = time.perf_counter()
     results: dict[tuple[int, int], FrameBench] = {}
     failures: list[FrameFailure] = []
-    if ray is not None:
-        run_frame_tasks(bench_frame_task, frames, (dataset.resolve(), cats, settings), ray, results.__setitem__,
-                        failures.append, desc="bench")
-    else:
-        bar = tqdm(total=len(frames) * len(methods), file=sys.stderr, desc="bench", unit="run", disable=None)
+    # Here, a bar counts the methods' runs; on Ray, run_frames' bar counts finished frames instead.
+    bar = tqdm(total=len(frames) * len(methods), file=sys.stderr, desc="bench", unit="run",
+               disable=None if ray is None else True)
 
-        def on_run(description):
-            bar.set_description(description)
-            bar.update(1)
+    def on_run(description):
+        bar.set_description(description)
+        bar.update(1)
 
-        def progress(report):
-            bar.set_postfix(it=report.iteration, best=f"{report.best_loglik:.0f}")
+    def progress(report):
+        bar.set_postfix(it=report.iteration, best=f"{report.best_loglik:.0f}")
 
-        for scene_id, im_id in frames:
-            results[scene_id, im_id] = bench_frame(dataset, scene_id, im_id, cats[scene_id], settings,
-                                                   lambda problem: make_evaluator(problem, workers), on_run, progress)
-        bar.close()
+    def here(scene_id: int, im_id: int) -> FrameBench:
+        return bench_frame(dataset, scene_id, im_id, cats[scene_id], settings,
+                           lambda problem: make_evaluator(problem, workers), on_run, progress)
+
+    run_frames(frames, here, bench_frame_task, (dataset.resolve(), cats, settings), ray, results.__setitem__,
+               failures.append, desc="bench")
+    bar.close()
 
     # In frame order whichever engine ran them and in whatever order they finished: the same report either way.
     done = [results[f] for f in frames if f in results]
