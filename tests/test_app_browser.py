@@ -13,7 +13,7 @@ from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure, Run
 from workbench.app.headless import (FRAME_PROBE_JS, SentMessages, canvas_png, chromium_path, color_extent,
                                     frame_counts, gui_input, image_stats, open_workbench)
-from workbench.app.server import SCENE_INTERVAL_S
+from workbench.app.run_display import SCENE_INTERVAL_S
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -111,9 +111,9 @@ def test_page_shows_the_demo_scene(page, workbench):
 def test_step_advances_the_iteration_and_moves_the_particles(page, workbench):
     app = workbench.app
     step(page, app)
-    before = np.array(app.particles.batches[0].batched_positions)
+    before = np.array(app.display.particles.batches[0].batched_positions)
     step(page, app)
-    after = np.array(app.particles.batches[0].batched_positions)
+    after = np.array(app.display.particles.batches[0].batched_positions)
     assert before.shape == after.shape == (min(48, DEFAULT_DISPLAY), 3)
     assert not np.allclose(before, after)
     # The chosen particle's panel and heatmap followed.
@@ -134,7 +134,7 @@ def test_inspecting_a_particle_shows_its_heatmap_and_what_physics_changed(page, 
     app.panel.heatmap_mode.value = "residual"
     app.panel.scene_mode.value = "side by side"
     page.get_by_text(re.compile(r"residual \(cm\), particle rank 3")).wait_for(timeout=TIMEOUT_MS)
-    assert app.chosen.before[0].visible and app.chosen.after[0].visible
+    assert app.display.chosen.before[0].visible and app.display.chosen.after[0].visible
     app.pick(2)  # what clicking the third most likely particle in the 3D view does
     page.get_by_text(re.compile(r"Rank 2 \(particle \d+\)")).wait_for(timeout=TIMEOUT_MS)
     app.panel.heatmap_mode.value = "off"
@@ -227,7 +227,7 @@ def test_error_banners_clear_once_the_input_is_corrected(page, workbench):
     app.panel.sigma_z.value = 1.0
     expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
     # An error from the engine clears once an iteration goes through.
-    app.report(Failure("Input error", "a test problem"))
+    app.reporter.report(Failure("Input error", "a test problem"))
     banner = page.get_by_text("a test problem")
     banner.first.wait_for(timeout=TIMEOUT_MS)
     step(page, app)

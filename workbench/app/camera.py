@@ -3,13 +3,16 @@
 Poses are in the table frame (viser's world; z up). A preset is applied to a browser tab's camera
 (``viser.CameraHandle``) or to the server's initial camera (where new tabs and reloads start). Only position and
 target: setting the up vector or the field of view as well made a newly opened tab hang in software WebGL.
+``TabCameras`` applies them, and remembers where the user left a tab's camera for the tabs opened later.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
+import viser
 
 from workbench.app.protocol import ObservationView
 
@@ -17,6 +20,7 @@ FRAME_OBJECTS = "Frame objects"
 FROM_SENSOR = "From the sensor"
 VIEWER_FOV = np.radians(75.0)  # viser's vertical field of view (three.js's default)
 FILL = 0.35  # share of the view's height the object region's diagonal takes when framed
+CAMERA_REST_S = 0.5  # a tab's camera is remembered (for reloads and new tabs) once it rested this long
 PANEL_SHIFT = 0.19  # the panel covers the right quarter of the page: aim right of the objects by this x distance
 
 
@@ -54,3 +58,51 @@ def apply_camera(camera, pose: CameraPose) -> None:
     """Set a ``viser.CameraHandle`` or the server's ``initial_camera`` to ``pose``."""
     camera.position = pose.position
     camera.look_at = pose.look_at
+
+
+class TabCameras:
+    """Where browser tabs look: a preset applied to one tab or to all, and the camera a tab last rested at,
+    remembered as the server's initial camera, so that a new tab or a reload starts there and not back at the
+    default view."""
+
+    def __init__(self, server: viser.ViserServer, lock: threading.RLock):
+        self.server, self.lock = server, lock
+        self.pose: CameraPose | None = None  # where new and reloaded tabs start
+        self._moved: CameraPose | None = None
+        self._timer: threading.Timer | None = None
+
+    def preset(self, view: ObservationView | None, which: str, client: viser.ClientHandle | None) -> None:
+        """Point the camera at the objects (``FRAME_OBJECTS``) or put it where the depth sensor was; for one
+        browser tab (``client``) or every tab and every later one."""
+        if view is None:
+            return
+        pose = frame_objects(view) if which == FRAME_OBJECTS else from_sensor(view)
+        self.set_initial(pose)
+        clients = [client] if client is not None else list(self.server.get_clients().values())
+        for c in clients:
+            apply_camera(c.camera, pose)
+
+    def set_initial(self, pose: CameraPose) -> None:
+        """Where a new or reloaded tab starts."""
+        with self.lock:
+            self.pose = pose
+        apply_camera(self.server.initial_camera, pose)
+
+    def client_connected(self, client: viser.ClientHandle) -> None:
+        """A new tab (or a reload) starts where the last camera was left, not back at the default view."""
+        def moved(camera: viser.CameraHandle) -> None:
+            with self.lock:
+                self._moved = CameraPose(tuple(camera.position), tuple(camera.look_at))
+                due = self._timer is None
+                if due:  # remembered once the camera has rested a moment: a drag reports ~30 poses a second
+                    self._timer = threading.Timer(CAMERA_REST_S, self._remember)
+                    self._timer.daemon = True
+                    self._timer.start()
+
+        client.camera.on_update(moved)
+
+    def _remember(self) -> None:
+        with self.lock:
+            pose, self._timer = self._moved, None
+        if pose is not None:
+            self.set_initial(pose)

@@ -1,0 +1,129 @@
+"""The run as drawn: the observation, the particle cloud, the chosen particle and its heatmap in the 3D view, and
+the panel's images and legends beside them.
+
+While the estimator runs, the 3D view is redrawn at most once per ``SCENE_INTERVAL_S`` (``SceneThrottle``); the
+panel's text and plots follow every iteration (``server.App``).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Callable
+
+import viser
+
+from workbench.app import protocol as p
+from workbench.app.colors import VIRIDIS, legend_html, view_legend_html
+from workbench.app.labelling import Labelling
+from workbench.app.panel import Panel
+from workbench.app.scene_throttle import SceneThrottle
+from workbench.app.status import physics_markdown
+from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
+
+# While the estimator runs, the 3D view is redrawn at most once per this many seconds. Every batch of scene messages
+# makes viser's client draw frames for 250 ms, and a software-rendered frame costs ~0.2 s of CPU, so each redraw
+# costs ~0.5 s of CPU: a redraw per iteration (and Chosen apart from Snapshot) kept Chromium busy. The panel's text
+# and plots still follow every iteration.
+SCENE_INTERVAL_S = 1.0
+SCENE_GATHER_S = 0.1  # a deferred redraw waits this long at least, for the rest of its iteration (Chosen)
+
+
+class RunDisplay:
+    """Draws what the engine sends; ``on_pick(rank)``: a particle was clicked; ``on_error(what, err)``: a throttled
+    drawing failed."""
+
+    def __init__(self, server: viser.ViserServer, panel: Panel, lock: threading.RLock, labelling: Labelling,
+                 on_pick: Callable[[int], None], on_error: Callable[[str, Exception], None]):
+        self.server, self.panel, self.lock, self.labelling = server, panel, lock, labelling
+        self.throttle = SceneThrottle(server, lock, SCENE_INTERVAL_S, SCENE_GATHER_S, on_error)
+        light_cheaply(server)
+        self.observation = ObservationLayer(server)
+        self.particles = ParticleLayer(server, on_pick=on_pick)
+        self.chosen = ChosenLayer(server)
+        self.heatmap = HeatmapLayer(server)
+        self.view: p.ObservationView | None = None  # the frame drawn
+        self.names: list[str] = []  # the loaded objects' display names, as every part of the panel shows them
+        self.choice: p.Chosen | None = None  # the chosen particle drawn
+
+    def set_frame(self, view: p.ObservationView) -> None:
+        """A new frame: its observation, and nothing of a run yet (the caller batches this with ``server.atomic``)."""
+        P = self.panel
+        self.throttle.cancel()
+        self.view, self.choice = view, None
+        self.observation.draw(view, P.show_observation.value, P.show_gt.value)
+        self.particles.set_frame(view.meshes)
+        self.chosen.set_frame(view)
+        self.heatmap.set_frame(view)
+        P.depth_image.image = view.depth_image
+        P.depth_image.visible = True
+        lo, hi = view.depth_range
+        P.depth_legend.content = legend_html("depth (m)", f"{lo:.2f}", f"{hi:.2f}", VIRIDIS,
+                                             f"3D points: {view.color_legend}")
+        P.heat_image.visible = False
+        P.legend.content = ""
+        P.physics_change.content = ""
+        P.plots.clear()
+        self.names = [m.name for m in view.meshes]
+        self.show_view_legend()
+
+    def show_view_legend(self) -> None:
+        view = self.view
+        if view is None:
+            return
+        heat = self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
+        note = "observed points replaced by a heatmap: its colours are explained beside it" if heat else ""
+        content = view_legend_html(self.names, view.color_legend, note)
+        if self.panel.view_legend.content != content:
+            self.panel.view_legend.content = content
+
+    def show_cloud(self, cloud: p.ParticleCloud, defer: bool) -> None:
+        """Draw ``cloud``: now, or (``defer``: while running) with the next throttled redraw."""
+        self.throttle.submit("particles", lambda: self.draw_particles(cloud), defer=defer)
+
+    def draw_particles(self, cloud: p.ParticleCloud) -> None:
+        """The particle cloud and the most likely scene (which an unlabelled selected object's gizmo follows)."""
+        self.particles.update(cloud)
+        if len(cloud.poses):
+            self.labelling.show_estimate(cloud.poses[0])
+
+    def show_chosen(self, chosen: p.Chosen, defer: bool) -> None:
+        """Draw ``chosen``: now, or (``defer``: while running) with the next throttled redraw."""
+        self.choice = chosen
+        self.throttle.submit("chosen", self.redraw_chosen, defer=defer)
+
+    def redraw_chosen(self) -> None:
+        with self.lock:
+            c, P = self.choice, self.panel
+            self.chosen.update(c, P.scene_mode.value)
+            legend, image = self.heatmap.update(c, P.heatmap_mode.value)
+            P.legend.content = legend
+            if image is not None:
+                P.heat_image.image = image
+            P.heat_image.visible = image is not None
+            P.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
+
+    def heatmap_mode_changed(self) -> None:
+        # The heatmap is drawn on the observed points: showing both would bury one under the other. So would the
+        # label heatmap, on the same points: one heatmap at a time.
+        if self.panel.heatmap_mode.value != "off" and self.panel.label.heatmap.value != "off":
+            self.panel.label.heatmap.value = "off"
+        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
+            self.panel.label.heatmap.value == "off"
+        self.show_view_legend()
+        self.redraw_chosen()
+
+    def label_heatmap_mode_changed(self) -> None:
+        if self.panel.label.heatmap.value != "off" and self.panel.heatmap_mode.value != "off":
+            self.panel.heatmap_mode.value = "off"
+        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
+            self.panel.label.heatmap.value == "off"
+        self.show_view_legend()
+
+    def reset(self) -> None:
+        """A new run on the same frame: no particles, no chosen one."""
+        self.throttle.cancel()
+        self.panel.plots.clear()
+        self.particles.set_frame(self.particles.meshes)
+        self.choice = None
+        self.redraw_chosen()
+        self.labelling.show_estimate(None)

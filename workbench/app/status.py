@@ -1,0 +1,90 @@
+"""What the server knows about the run (``RunView``), and the panel's text about it: the status line, the stage
+timings of an iteration, and what physics did to the chosen particle."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workbench.app import protocol as p
+from workbench.geometry import rotation_angle
+from workbench.physics import STATUS_NAMES
+
+
+@dataclass
+class RunView:
+    """What the server knows about the run, for the status line and the tests."""
+
+    iteration: int = -1
+    running: bool = False
+    reports: list[dict] = field(default_factory=list)
+    cloud: p.ParticleCloud | None = None
+    chosen: p.Chosen | None = None
+    view: p.ObservationView | None = None
+    last_state: p.RunState | None = None
+    failures: list[p.Failure] = field(default_factory=list)
+    worker_pids: list[int] = field(default_factory=list)
+    engine_pid: int | None = None
+    restarts: int = 0
+    pause_requested_at: int | None = None  # the iteration on display when Pause was pressed
+    display_errors: list[str] = field(default_factory=list)  # bugs in drawing a message (logged, kept for tests)
+
+
+def status_markdown(s: RunView, cfg) -> str:
+    """The status line of the run ``s`` under the settings ``cfg`` (an ``EstimatorConfig``)."""
+    if not s.reports:
+        state = "running" if s.running else "paused"
+        return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."
+    r = s.reports[-1]
+    it = r["iteration"]
+    if s.running:
+        state = "running"
+    elif r["converged"]:
+        state = "**finished**: converged"
+    elif it >= cfg.iterations:
+        state = "**finished**: iteration budget reached"
+    else:
+        state = "paused"
+    counter = f"Iteration {it} of {cfg.iterations}" if it <= cfg.iterations else \
+        f"Iteration {it}, {it - cfg.iterations} past the budget of {cfg.iterations}"
+    rule = f"< {cfg.converge_position * 100:g} cm and < {cfg.converge_degrees:g}°"
+    if r["converged"]:
+        conv = f"**converged**: the best scene moved {rule} for {cfg.converge_patience} iterations"
+    else:
+        calm = 0
+        for row in reversed(s.reports):
+            if row["best_move_m"] < cfg.converge_position and row["best_move_deg"] < cfg.converge_degrees:
+                calm += 1
+            else:
+                break
+        last = "" if not np.isfinite(r["best_move_m"]) else \
+            f"; last it moved {r['best_move_m'] * 100:.1f} cm, {r['best_move_deg']:.1f}°"
+        conv = f"calm {min(calm, cfg.converge_patience)} of {cfg.converge_patience} (calm: best moves {rule}{last})"
+    accept = "" if np.isnan(r["accept_rate"]) else f" · accepted {r['accept_rate'] * 100:.0f} %"
+    return (
+        f"**{counter}** · {state}  \n{conv}  \n"
+        f"best log-lik {r['best_loglik']:.1f} (from a {r.get('best_kind') or 'start'} move) · β {r['beta']:.3g}"
+        f" · failed physics or outside the object region {r['n_failed']}{accept} · objects rest {r.get('sink_m', 0.0) * 1000:.0f} mm below"
+        f" the fitted table"
+    )
+
+
+def timings_markdown(report: dict) -> str:
+    t = report["timings"]
+    rows = "\n".join(f"| {stage} | {t.get(stage, 0.0) * 1000:.1f} |"
+                     for stage in ("projection", "render", "likelihood", "resampling", "total"))
+    return ("| stage | ms |\n|---|---:|\n" + rows +
+            "\n\n<small>projection, render and likelihood are summed over the workers; total is wall time</small>")
+
+
+def physics_markdown(c: p.Chosen, names: list[str]) -> str:
+    """How far physics moved each object of the chosen particle (``names``: the objects' display names)."""
+    moved = np.linalg.norm(c.after[:, :3, 3] - c.before[:, :3, 3], axis=-1)
+    turned = np.degrees(rotation_angle(np.swapaxes(c.before[:, :3, :3], -1, -2) @ c.after[:, :3, :3]))
+    rows = "\n".join(f"| {name} | {m * 100:.1f} | {a:.1f} |" for name, m, a in zip(names, moved, turned))
+    return (
+        f"Rank **{c.rank}** (particle {c.index}) · log-lik {c.loglik:.1f} · weight {c.weight:.3g} · "
+        f"proposed by: {c.move} move · physics: {STATUS_NAMES.get(c.status, c.status)}\n\n"
+        f"| object | moved (cm) | turned (°) |\n|---|---:|---:|\n{rows}"
+    )
