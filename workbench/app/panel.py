@@ -10,7 +10,7 @@ import viser
 
 from workbench.app.camera import FRAME_OBJECTS, FROM_SENSOR
 from workbench.app.particle_display import DEFAULT_DISPLAY
-from workbench.app.labelling import LabelTab, build_label_tab
+from workbench.app.label_tab import LabelTab, build_label_tab
 from workbench.app.plots import Plots
 from workbench.app.sessions_panel import SessionsTab, build_sessions_tab
 from workbench.app.views import HEATMAP_MODES, SCENE_MODES
