@@ -236,7 +236,7 @@ def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message
         assert app.wait_for(lambda s: s.view is not None and s.iteration == 1 and s.cloud is not None, 180), \
             app.state.failures
         assert "session start" in app.state.view.title and app.config == config
-        assert np.array_equal(app.labelling.labels[0], label) and app.labelling.labels[1] is None
+        assert np.array_equal(app.labelling.editor.labels[0], label) and app.labelling.editor.labels[1] is None
         assert app.sessions.directory == tmp_path.resolve()  # the session's folder is the list's
         assert "**damaged** — ⚠ cannot be loaded" in app.panel.sessions.listing.content
 
@@ -374,7 +374,8 @@ def test_expected_distinct_particles_matches_systematic_resampling():
 def test_turns_and_laying_on_a_face_keep_the_object_on_the_table():
     import trimesh
 
-    from workbench.app.labelling import FACES, laid_on, turned
+    from workbench.app.label_editor import laid_on, turned
+    from workbench.app.label_tab import FACES
     from workbench.geometry import make_pose
 
     box = np.asarray(trimesh.creation.box(extents=(0.1, 0.06, 0.02)).vertices)

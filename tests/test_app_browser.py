@@ -285,10 +285,11 @@ def test_label_snap_save_session_reload_and_load_it(page, workbench):
     z = gui_input(page, "z (cm)")
     z.fill("9")
     z.press("Enter")
-    assert app.wait_for(lambda s: app.labelling.labels[0] is not None and app.labelling.labels[0][2, 3] == 0.09, 30)
+    editor = app.labelling.editor
+    assert app.wait_for(lambda s: editor.labels[0] is not None and editor.labels[0][2, 3] == 0.09, 30)
     page.get_by_role("button", name="Snap to plausible").click()
     page.get_by_text("Snapped").first.wait_for(timeout=TIMEOUT_MS)
-    snapped = app.labelling.labels[0].copy()
+    snapped = app.labelling.editor.labels[0].copy()
     assert snapped[2, 3] < 0.085  # it fell onto the table (or the other object)
     expect(z).not_to_have_value(re.compile(r"^9(\.0*)?$"), timeout=TIMEOUT_MS)
     shown = {name: gui_input(page, name).input_value() for name in LABEL_FIELDS}
@@ -308,7 +309,7 @@ def test_label_snap_save_session_reload_and_load_it(page, workbench):
     x = gui_input(page, "x (cm)")
     x.fill("3")
     x.press("Enter")
-    assert app.wait_for(lambda s: app.labelling.labels[0][0, 3] == 0.03, 30)
+    assert app.wait_for(lambda s: app.labelling.editor.labels[0][0, 3] == 0.03, 30)
     step(page, app)
     page.reload()
     page.get_by_role("button", name="Step").wait_for(timeout=TIMEOUT_MS)
@@ -317,7 +318,7 @@ def test_label_snap_save_session_reload_and_load_it(page, workbench):
     page.get_by_role("button", name="Load session").click()
     page.get_by_text(re.compile(r"Loaded session labelled at iteration")).wait_for(timeout=TIMEOUT_MS)
     assert app.state.iteration == saved_iteration
-    assert np.array_equal(app.labelling.labels[0], snapped)
+    assert np.array_equal(app.labelling.editor.labels[0], snapped)
     page.get_by_role("tab", name="Label").click()
     for field_name, value in shown.items():
         expect(gui_input(page, field_name)).to_have_value(value, timeout=TIMEOUT_MS)
@@ -331,17 +332,18 @@ def test_dragging_a_gizmo_labels_the_object_and_moves_its_fields(page, workbench
 
     app = workbench.app
     page.get_by_role("tab", name="Label").click()
-    app.labelling.tab.object.value = app.labelling.names[1]  # shared GUI state, as another tab would choose it
-    gizmo = app.labelling.gizmos[1]
+    app.labelling.tab.object.value = app.labelling.editor.names[1]  # shared GUI state, as another tab would choose it
+    gizmo = app.labelling.editor.gizmos[1]
     assert gizmo.visible
     # What viser does when a browser drags the gizmo: the handle takes the pose, then the callbacks run.
     gizmo.position = (0.0123, -0.0456, 0.05)
-    app.labelling.gizmo_moved(1, viser.TransformControlsEvent(client=None, client_id=None, target=gizmo, phase="end"))
-    assert np.allclose(app.labelling.labels[1][:3, 3], (0.0123, -0.0456, 0.05))
+    event = viser.TransformControlsEvent(client=None, client_id=None, target=gizmo, phase="end")
+    app.labelling.editor.gizmo_moved(1, event)
+    assert np.allclose(app.labelling.editor.labels[1][:3, 3], (0.0123, -0.0456, 0.05))
     expect(gui_input(page, "x (cm)")).to_have_value(re.compile(r"^1\.23"), timeout=TIMEOUT_MS)
     expect(gui_input(page, "y (cm)")).to_have_value(re.compile(r"^-4\.56"), timeout=TIMEOUT_MS)
     page.get_by_role("button", name="Clear label").click()
-    assert app.wait_for(lambda s: app.labelling.labels[1] is None, 30)
+    assert app.wait_for(lambda s: app.labelling.editor.labels[1] is None, 30)
 
 
 def test_a_damaged_session_shows_its_problem_and_the_run_goes_on(page, workbench):

@@ -84,7 +84,7 @@ class RunDisplay:
         """The particle cloud and the most likely scene (which an unlabelled selected object's gizmo follows)."""
         self.particles.update(cloud)
         if len(cloud.poses):
-            self.labelling.show_estimate(cloud.poses[0])
+            self.labelling.editor.show_estimate(cloud.poses[0])
 
     def show_chosen(self, chosen: p.Chosen, defer: bool) -> None:
         """Draw ``chosen``: now, or (``defer``: while running) with the next throttled redraw."""
@@ -126,4 +126,4 @@ class RunDisplay:
         self.particles.set_frame(self.particles.meshes)
         self.choice = None
         self.redraw_chosen()
-        self.labelling.show_estimate(None)
+        self.labelling.editor.show_estimate(None)
