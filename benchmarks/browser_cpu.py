@@ -120,11 +120,10 @@ def main() -> int:
     probes = load_probes()
     sys.path.insert(0, str(args.root.resolve()))
 
+    import workbench
     from workbench.app import protocol as p
     from workbench.app.server import serve
-    from workbench.estimators import EstimatorConfig
-
-    import workbench
+    from workbench.inference.config import EstimatorConfig
 
     print(f"workbench from {Path(workbench.__file__).parent}", flush=True)
     handle = serve(demo=True, block=False, port=free_port(), workers=2,

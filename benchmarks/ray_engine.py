@@ -24,8 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from workbench.estimators import EstimatorConfig
 from workbench.evaluation.ray import RayConfig, connect, disconnect
+from workbench.inference.config import EstimatorConfig
 from workbench.problem import ProblemConfig
 from workbench.runner import estimate_frames
 from workbench.synth import make_scenes

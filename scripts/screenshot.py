@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT))
 from workbench.app import protocol as p  # noqa: E402
 from workbench.app.headless import chromium, dismiss_notifications, image_stats, open_workbench  # noqa: E402
 from workbench.app.server import serve  # noqa: E402
-from workbench.estimators import EstimatorConfig  # noqa: E402
+from workbench.inference.config import EstimatorConfig  # noqa: E402
 
 
 def free_port() -> int:

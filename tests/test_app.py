@@ -8,12 +8,15 @@ import signal
 import socket
 
 import numpy as np
+import pytest
 
 from workbench.app import protocol as p
 from workbench.app.colors import MISSING, VIRIDIS, apply_map
 from workbench.app.headless import image_stats
 from workbench.app.views import wxyz_from_matrices
 from workbench.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, random_rotations, rot_x, rot_z
+
+pytestmark = pytest.mark.slow  # needs the engine process: pybullet and OpenGL
 
 
 def test_wxyz_from_matrices_matches_geometry_including_half_turns():
@@ -58,7 +61,7 @@ def test_dead_worker_and_dead_engine_are_restarted_and_the_run_goes_on(capfd, ca
     import logging
 
     from workbench.app.server import serve
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     caplog.set_level(logging.WARNING)
 
@@ -112,7 +115,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
     from dataclasses import replace
 
     from workbench.app.engine import Engine
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
     from workbench.particles import Sigma
 
     config = EstimatorConfig(particles=12, iterations=50, sigma=Sigma(x=0.007, y=0.013, z=0.003, yaw=0.1234), seed=5)
@@ -132,7 +135,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
         engine.handle(p.SaveSession(tmp_path, "run"))
         assert first.of(p.Saved)[-1].kind == "session", first.of(p.Failure)
         engine.step(), engine.step()
-        expected = {name: getattr(engine.estimator, name).copy() for name in ("hypotheses", "projected", "loglik")}
+        expected = engine.estimator.particles.copy().arrays()
 
         (tmp_path / "damaged.json").write_text("{")
         engine.handle(p.LoadSession(tmp_path / "damaged.json"))
@@ -149,7 +152,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
         assert np.array_equal(second.of(p.Labels)[-1].labels[1], label) and second.of(p.Labels)[-1].labels[0] is None
         restored.step(), restored.step()
         for name, value in expected.items():
-            assert np.array_equal(getattr(restored.estimator, name), value), name
+            assert np.array_equal(getattr(restored.estimator.particles, name), value), name
     finally:
         engine.close()
         if restored is not None:
@@ -162,7 +165,7 @@ def test_panel_shows_a_restored_config_without_changing_it():
     import viser
 
     from workbench.app.panel import build_panel
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
     from workbench.particles import Sigma
 
     saved = EstimatorConfig(method="mcpf", particles=77, iterations=9, seed=3,
@@ -183,7 +186,7 @@ def test_a_running_engine_starts_an_iteration_only_once_the_server_shows_the_las
     """Flow control between engine and server: a run never gets ahead of the display by more than the iteration
     in progress, so a Pause pressed while iteration k is shown stops it at k + 1 at the latest."""
     from workbench.app.engine import Engine
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     engine = Engine(Inbox(), workers=1)
     try:
@@ -212,7 +215,7 @@ def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message
     from workbench.app.engine import Engine
     from workbench.app.server import serve
     from workbench.cli import main
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     config = EstimatorConfig(particles=12, iterations=50)
     engine = Engine(Inbox(), workers=1)
@@ -257,7 +260,7 @@ def test_engine_labels_files_and_a_changed_dataset_asks_before_loading(tmp_path)
     import shutil
 
     from workbench.app.engine import DEMO_DIR, Engine
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     dataset = tmp_path / "demo"
     shutil.copytree(DEMO_DIR, dataset)

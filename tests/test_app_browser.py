@@ -9,15 +9,26 @@ import time
 import numpy as np
 import pytest
 
+from workbench.app.headless import (
+    FRAME_PROBE_JS,
+    SentMessages,
+    canvas_png,
+    chromium_path,
+    color_extent,
+    frame_counts,
+    gui_input,
+    image_stats,
+    open_workbench,
+)
 from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure, Run
-from workbench.app.headless import (FRAME_PROBE_JS, SentMessages, canvas_png, chromium_path, color_extent,
-                                    frame_counts, gui_input, image_stats, open_workbench)
 from workbench.app.run_display import SCENE_INTERVAL_S
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
-pytestmark = pytest.mark.skipif(chromium_path() is None, reason="no system Chromium (Debian package `chromium`)")
+
+pytestmark = [pytest.mark.slow,  # needs Chromium, and the engine: pybullet and OpenGL
+              pytest.mark.skipif(chromium_path() is None, reason="no system Chromium (Debian package `chromium`)")]
 
 TIMEOUT_MS = 60_000
 # Software WebGL redraws the whole canvas on every change: a smaller page keeps two tabs responsive on 2 cores.
@@ -40,7 +51,7 @@ def sessions_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def workbench(sessions_dir):
     from workbench.app.server import serve
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     # One worker: the machine running the tests also runs Chromium's software WebGL.
     handle = serve(demo=True, block=False, port=free_port(), workers=1,

@@ -8,6 +8,8 @@ import pytest
 from workbench import baseline, bop, metrics, synth
 from workbench.geometry import invert_pose
 
+pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)
+
 
 @pytest.fixture(scope="module")
 def touching(tmp_path_factory):

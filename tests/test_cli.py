@@ -4,8 +4,11 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from workbench.bop import read_results_csv
+
+pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
 
 
 def _workbench(*args, cwd=None):

@@ -3,11 +3,15 @@
 import numpy as np
 import pytest
 
-from workbench.estimators import Estimator, EstimatorConfig
+from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.default_search import fit_sink
 from workbench.metrics import position_error, rotation_error
 from workbench.pipeline import load_bop_problem
+
+pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
 
 @pytest.fixture(scope="module")
@@ -52,8 +56,8 @@ def test_seeded_runs_are_reproducible(frame_and_problem, method):
         b = _run(problem, pool, 3, method=method)  # the same workers, which have simulated and drawn a's particles
     finally:
         pool.close()
-    assert np.array_equal(a.projected, b.projected)
-    assert np.array_equal(a.loglik, b.loglik)
+    assert np.array_equal(a.particles.projected, b.particles.projected)
+    assert np.array_equal(a.particles.loglik, b.particles.loglik)
 
 
 def test_physics_results_do_not_depend_on_the_worker(frame_and_problem):
@@ -68,8 +72,8 @@ def test_physics_results_do_not_depend_on_the_worker(frame_and_problem):
     finally:
         local.close()
         pool.close()
-    assert np.array_equal(a.projected, b.projected)
-    assert np.allclose(a.loglik, b.loglik, rtol=1e-5)
+    assert np.array_equal(a.particles.projected, b.particles.projected)
+    assert np.allclose(a.particles.loglik, b.particles.loglik, rtol=1e-5)
 
 
 def test_submitted_batches_equal_their_evaluation_whichever_is_collected_first(frame_and_problem):
@@ -157,7 +161,7 @@ def test_particle_count_and_sigma_change_between_steps(frame_and_problem):
         report = estimator.step()
     finally:
         evaluator.close()
-    assert estimator.projected.shape[0] == 40 and estimator.loglik.shape == (40,)
+    assert estimator.particles.projected.shape[0] == 40 and estimator.particles.loglik.shape == (40,)
     assert report.iteration == 2 and 0.0 <= report.accept_rate <= 1.0
 
 
@@ -194,8 +198,8 @@ def test_ground_truth_poses_never_reach_the_estimator(touching_dataset, tmp_path
             runs.append(_run(problem, evaluator, 2))
         finally:
             evaluator.close()
-    assert np.array_equal(runs[0].projected, runs[1].projected)
-    assert np.array_equal(runs[0].loglik, runs[1].loglik)
+    assert np.array_equal(runs[0].particles.projected, runs[1].particles.projected)
+    assert np.array_equal(runs[0].particles.loglik, runs[1].particles.loglik)
 
 
 def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_problem, seeing):
@@ -211,8 +215,8 @@ def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_pro
     try:
         estimator = Estimator(sunk_problem, EstimatorConfig(particles=4, seed=0), evaluator)
         resting = evaluator.evaluate(gt[None])
-        estimator._map, estimator._map_loglik = resting.projected[0], float(resting.loglik[0])
-        estimator._fit_sink()
+        estimator.filter.map, estimator.filter.map_loglik = resting.projected[0], float(resting.loglik[0])
+        fit_sink(estimator.filter)
         assert 0.006 <= estimator.sink <= 0.010
         assert estimator.best_loglik > float(resting.loglik[0])
         for k in range(problem.n_objects):  # the estimate rests at the sink, where the objects were drawn
@@ -240,12 +244,12 @@ def test_polish_puts_back_two_objects_that_took_each_others_places(frame_and_pro
     try:
         estimator = _run(problem, evaluator, 1)
         wrong = evaluator.evaluate(swapped[None])
-        estimator._map, estimator._map_loglik = wrong.projected[0], float(wrong.loglik[0])
-        estimator._polish()
+        estimator.filter.map, estimator.filter.map_loglik = wrong.projected[0], float(wrong.loglik[0])
+        estimator.search.polish(estimator.filter)
     finally:
         evaluator.close()
     assert estimator.best_loglik > float(wrong.loglik[0])
     for k in range(problem.n_objects):
         assert position_error(gt[k], estimator.best[k]) < 0.02
     assert estimator.best_kind.label == "polish"
-    assert np.any(estimator.kinds == 10) and np.all(np.isfinite(estimator.loglik))
+    assert np.any(estimator.particles.kinds == 10) and np.all(np.isfinite(estimator.particles.loglik))

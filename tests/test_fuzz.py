@@ -27,9 +27,12 @@ from PIL import Image
 from workbench import bop, sessions, tables
 from workbench.app.engine import DEMO_DIR
 from workbench.errors import InputError
-from workbench.estimators import Estimator, EstimatorConfig
+from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator
+from workbench.inference.config import EstimatorConfig
 from workbench.pipeline import load_bop_problem
+
+pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
 
 SWAPS = ["abc", None, True, [], {}]
 NUMBERS = [0, -1, 1e308, -1e308, 10**30, math.nan]

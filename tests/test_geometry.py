@@ -1,8 +1,19 @@
 import numpy as np
 
 from workbench.geometry import (
-    euler_to_matrix, invert_pose, matrix_to_euler, matrix_to_quat_wxyz, pose_from_xyz_rpy, pose_to_xyz_rpy,
-    quat_wxyz_to_matrix, random_rotations, rot_x, rot_z, rotation_angle, rotvec_to_matrix, wxyz_to_xyzw,
+    euler_to_matrix,
+    invert_pose,
+    matrix_to_euler,
+    matrix_to_quat_wxyz,
+    pose_from_xyz_rpy,
+    pose_to_xyz_rpy,
+    quat_wxyz_to_matrix,
+    random_rotations,
+    rot_x,
+    rot_z,
+    rotation_angle,
+    rotvec_to_matrix,
+    wxyz_to_xyzw,
     xyzw_to_wxyz,
 )
 

@@ -4,14 +4,19 @@ renderer where they are used."""
 import numpy as np
 import pytest
 
-from workbench.estimators import Estimator, EstimatorConfig
+from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, rot_z
-from workbench.inference import datadriven, gaussian, refine, resting, stacking
-from workbench.inference.moves import MoveKind, MoveMix
+from workbench.inference import datadriven, refine, resting, stacking
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.context import MoveContext
+from workbench.inference.moves import MOVES, REGISTRY, MoveKind, MoveMix
+from workbench.inference.relocate import random_relocations
 from workbench.inference.scenepoints import clusters, object_badness
-from workbench.particles import Sigma, initial_particles, random_relocations
+from workbench.particles import Sigma, initial_particles
 from workbench.pipeline import load_bop_problem
+
+pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
 
 @pytest.fixture(scope="module")
@@ -23,9 +28,9 @@ def frame_and_problem(touching_dataset):
 def context(frame_and_problem):
     _, problem = frame_and_problem
     est = Estimator(problem, EstimatorConfig(), None)
-    ctx = est._context()
-    est._refit_library()
-    return problem, ctx, est._library
+    ctx = est.search.geometry(est.filter)
+    est.search.refit_library(est.filter)
+    return problem, ctx, est.search.library
 
 
 def _truth(frame, problem):
@@ -33,26 +38,13 @@ def _truth(frame, problem):
 
 
 def _proposals(kind, rng, parents, problem, ctx, library):
+    """The registered move ``kind`` (moves.MOVES), every object as likely to be the one moved."""
     K = problem.n_objects
-    w = np.ones(K)
-    if kind == "joint":
-        return gaussian.propose_joint(rng, parents, Sigma(), np.ones(K), "6dof")
-    if kind == "single":
-        return gaussian.propose_single(rng, parents, Sigma(), np.ones(K), "6dof", w)
-    if kind == "face":
-        return resting.propose_face(rng, parents, ctx.rest, ctx.hulls, w)
-    if kind == "turn":
-        return resting.propose_turn(rng, parents, w)
-    if kind == "stack":
-        return stacking.propose_stack(rng, parents, ctx.hulls, w)
-    if kind == "data":
-        return datadriven.propose_data(rng, parents, library, w, ctx.radius)
-    if kind == "icp":
-        return refine.propose_icp(rng, parents, ctx.points.points, ctx.samples, ctx.reach, w, ctx.points.viewpoint)
-    raise AssertionError(kind)
+    context = MoveContext(problem, ctx, library, Sigma(), "6dof", "mcpf", choose=np.ones(K), scales=np.ones(K))
+    return REGISTRY[int(MoveKind[kind.upper()])].propose(rng, parents, context)
 
 
-KINDS = ["joint", "single", "face", "turn", "stack", "data", "icp"]
+KINDS = [m.name for m in MOVES]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -240,12 +232,12 @@ def test_a_base_is_put_under_the_top_it_carries(stacked_frame):
     truth = _truth(frame, problem)
     top, base = np.argsort(truth[:, 2, 3])[::-1]
     est = Estimator(problem, EstimatorConfig(), None)
-    ctx = est._context()
-    est._refit_library()
+    ctx = est.search.geometry(est.filter)
+    est.search.refit_library(est.filter)
     estimate = truth.copy()
     estimate[base, 0, 3] += 0.3
     memo: dict = {}
-    args = (est._library, None, ctx.rest, ctx.hulls, ctx.samples, ctx.radius)
+    args = (est.search.library, None, ctx.rest, ctx.hulls, ctx.samples, ctx.radius)
     scenes = polish.stacked(problem, estimate, *args, memo)
     symmetries = problem.models[base].symmetries
     under = [s for s in scenes if position_error(truth[base], s[base]) < 0.015
@@ -352,7 +344,7 @@ def test_estimate_never_gets_worse(frame_and_problem, method):
         evaluator.close()
     best = [r.best_loglik for r in est.history]
     assert all(b1 >= b0 for b0, b1 in zip(best, best[1:]))
-    assert est.best_loglik == best[-1] and est.best_loglik >= est.loglik.max()
+    assert est.best_loglik == best[-1] and est.best_loglik >= est.particles.loglik.max()
     # Every iteration reports what each move kind proposed and how much of it was kept.
     assert sum(c["proposed"] for c in est.history[-1].moves.values()) == 24
     assert est.history[-1].best_kind in {k.label for k in MoveKind}
@@ -364,9 +356,9 @@ def test_paper_proposals_use_random_starts_and_diffusion_only(frame_and_problem)
     try:
         est = Estimator(problem, EstimatorConfig(particles=16, seed=2, proposals="paper"), evaluator)
         est.step()
-        assert set(est.kinds.tolist()) == {int(MoveKind.START)}
+        assert set(est.particles.kinds.tolist()) == {int(MoveKind.START)}
         est.step()
-        assert set(est.kinds.tolist()) == {int(MoveKind.JOINT)}
+        assert set(est.particles.kinds.tolist()) == {int(MoveKind.JOINT)}
     finally:
         evaluator.close()
 

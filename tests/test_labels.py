@@ -9,11 +9,20 @@ from workbench import bop
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, rot_z
-from workbench.labels import (fit_label, label_errors, labels_path, load_labels, residual_map, save_labels,
-                              snap_to_plausible)
+from workbench.labels import (
+    fit_label,
+    label_errors,
+    labels_path,
+    load_labels,
+    residual_map,
+    save_labels,
+    snap_to_plausible,
+)
 from workbench.metrics import position_error
 from workbench.physics import STATUS_REST
 from workbench.pipeline import load_bop_problem
+
+pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
 # Labels go through JSON in mm with R re-orthonormalised on reading: float64 rounding, far below any use.
 ROUNDTRIP_ATOL = 1e-12

@@ -12,9 +12,17 @@ import trimesh
 from workbench.errors import InputError
 from workbench.geometry import pose_from_xyz_rpy
 from workbench.physics import (
-    STATUS_OFF_TABLE, STATUS_REST, STATUS_STEP_CAP, STATUS_UNSTABLE, PhysicsConfig, PhysicsProjector)
+    STATUS_OFF_TABLE,
+    STATUS_REST,
+    STATUS_STEP_CAP,
+    STATUS_UNSTABLE,
+    PhysicsConfig,
+    PhysicsProjector,
+)
 from workbench.physics.collision import collision_shape_for
 from workbench.scene import ObjectModel, Table
+
+pytestmark = pytest.mark.slow  # needs pybullet
 
 TABLE = Table(-0.3, 0.3, -0.3, 0.3)
 MM = 1e-3

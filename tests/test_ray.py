@@ -23,6 +23,8 @@ from workbench.evaluation.ray import RayConfig, RayEvaluator
 from workbench.pipeline import load_bop_problem
 from workbench.synth import make_scenes
 
+pytestmark = pytest.mark.slow  # needs Ray, pybullet and OpenGL
+
 FAST = ("--particles", "16", "--iterations", "3", "--workers", "2")
 FRAMES = [(0, 0), (1, 0), (2, 0)]
 
@@ -219,7 +221,7 @@ def test_serve_evaluates_on_ray_actors_and_survives_a_dead_one(cluster):
 
     from workbench.app import protocol as p
     from workbench.app.server import serve
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

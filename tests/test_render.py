@@ -13,6 +13,8 @@ from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
 from workbench.render import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
 from workbench.scene import Camera
 
+pytestmark = pytest.mark.slow  # needs OpenGL
+
 BOX = np.array([0.10, 0.06, 0.04])
 W, H = 160, 120
 

@@ -20,6 +20,8 @@ from workbench import bop, checks, labels, sessions
 from workbench.app.engine import DEMO_DIR
 from workbench.errors import InputError
 
+pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
+
 
 def _workbench(*args, timeout=600):
     return subprocess.run([sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True,
@@ -104,7 +106,7 @@ def test_out_is_checked_before_any_work(demo, tmp_path):
 
 
 def test_results_are_written_frame_by_frame_and_resume_skips_written_frames(two_frames, tmp_path):
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
     from workbench.problem import ProblemConfig
     from workbench.runner import ResultsFile, estimate_frames
 
@@ -188,8 +190,9 @@ def test_bad_seed_and_other_parameters_are_refused_before_work(demo, tmp_path):
 
 
 def _saved_session(demo: Path, folder: Path) -> Path:
-    from workbench.estimators import Estimator, EstimatorConfig
+    from workbench.estimators import Estimator
     from workbench.evaluation import LocalEvaluator
+    from workbench.inference.config import EstimatorConfig
     from workbench.pipeline import load_bop_problem
 
     frame, problem = load_bop_problem(demo, 0, 0)
@@ -293,7 +296,7 @@ def test_serve_fails_on_a_missing_dataset_or_frame(demo, tmp_path):
 
 def test_serve_prints_load_errors_to_the_terminal(demo, caplog):
     from workbench.app.server import serve
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     (demo / "test" / "000000" / "depth" / "000000.png").write_bytes(b"broken")
     caplog.set_level(logging.WARNING)
@@ -311,7 +314,7 @@ def test_serve_prints_load_errors_to_the_terminal(demo, caplog):
 def test_demo_labels_are_saved_into_a_copy_never_into_the_package(workbench_home):
     from workbench.app import protocol as p
     from workbench.app.engine import Engine
-    from workbench.estimators import EstimatorConfig
+    from workbench.inference.config import EstimatorConfig
 
     class Inbox(list):
         def put(self, msg):

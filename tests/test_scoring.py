@@ -1,11 +1,14 @@
 """`workbench score`: a results CSV against the dataset's ground truth."""
 
 import numpy as np
+import pytest
 from test_cli import _workbench
 
 from workbench import bop
 from workbench.geometry import make_pose, rot_z
 from workbench.scoring import match, score_results
+
+pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)
 
 
 def _truth_rows(dataset):

@@ -11,16 +11,29 @@ import pytest
 from PIL import Image
 
 from workbench.errors import InputError
-from workbench.estimators import Estimator, EstimatorConfig
+from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
+from workbench.inference.config import EstimatorConfig
 from workbench.likelihood import LikelihoodConfig
 from workbench.particles import Sigma
 from workbench.physics import PhysicsConfig
 from workbench.pipeline import load_bop_problem
 from workbench.problem import ProblemConfig
 from workbench.render import RenderConfig
-from workbench.sessions import (check_dataset, check_name, frame_ref_for, list_sessions, load_session,
-                                restore_estimator, save_session, session_problem, session_state_from, suggest_name)
+from workbench.sessions import (
+    check_dataset,
+    check_name,
+    frame_ref_for,
+    list_sessions,
+    load_session,
+    restore_estimator,
+    save_session,
+    session_problem,
+    session_state_from,
+    suggest_name,
+)
+
+pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
 CONFIG = EstimatorConfig(particles=24, seed=11)
 
@@ -73,10 +86,10 @@ def test_resumed_session_steps_bit_identically(loaded, tmp_path, kind, method):
             resumed.step()
     finally:
         evaluator.close()
-    for name in ("hypotheses", "projected", "loglik", "status"):
-        assert np.array_equal(getattr(resumed, name), getattr(run, name)), name
+    for name, array in run.particles.arrays().items():
+        assert np.array_equal(getattr(resumed.particles, name), array), name
     assert resumed.rng.bit_generator.state == run.rng.bit_generator.state
-    assert (resumed._beta, resumed._calm) == (run._beta, run._calm)
+    assert (resumed.filter.beta, resumed.filter.calm) == (run.filter.beta, run.filter.calm)
     assert np.array_equal(np.stack(resumed.best_history), np.stack(run.best_history))
     assert _comparable(resumed.history) == _comparable(run.history)
     assert len(state.labels) == 2 and np.array_equal(state.labels[0], np.eye(4)) and state.labels[1] is None
@@ -108,7 +121,8 @@ def test_session_before_the_first_step_and_every_setting_roundtrip(loaded, tmp_p
             resumed.step(), direct.step()
     finally:
         evaluator.close()
-    assert np.array_equal(resumed.projected, direct.projected) and np.array_equal(resumed.loglik, direct.loglik)
+    assert np.array_equal(resumed.particles.projected, direct.particles.projected)
+    assert np.array_equal(resumed.particles.loglik, direct.particles.loglik)
 
 
 # ------------------------------------------------------------------------------------------- damaged sessions
@@ -230,12 +244,37 @@ def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     shutil.copytree(folder, work)
     json_path = work / original.name
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 2 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == 3 and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
-    json_path.write_text(json.dumps(doc))  # a format-2 file must carry the setting
+    json_path.write_text(json.dumps(doc))  # a format-2 or later file must carry the setting
     with pytest.raises(InputError, match="sleep_calm"):
+        load_session(json_path)
+
+
+def test_format_2_session_loads_its_move_kinds_from_the_json(saved, tmp_path):
+    # Format 2 kept each particle's move kind in the JSON (estimator.search.kinds), not in the arrays file.
+    folder, original = saved
+    work = tmp_path / "sessions"
+    shutil.copytree(folder, work)
+    json_path = work / original.name
+    npz_path = work / json.loads(json_path.read_text())["arrays"]["file"]
+    with np.load(npz_path) as z:
+        arrays = {k: z[k] for k in z.files}
+    kinds = arrays.pop("kinds")
+    assert len(set(kinds.tolist())) > 1  # a run of the default search: several kinds to carry over
+
+    def as_format_2(doc):
+        doc["format_version"] = 2
+        doc["estimator"]["search"]["kinds"] = kinds.tolist()
+        del doc["arrays"]["shapes"]["kinds"]
+    _edit_json(as_format_2)(json_path, npz_path)
+    _write_npz_recorded(json_path, npz_path, **arrays)
+    assert np.array_equal(load_session(json_path).estimator["particles"].kinds, kinds)
+
+    _edit_json(lambda doc: doc["estimator"]["search"].update(kinds=[99] * len(kinds)))(json_path, npz_path)
+    with pytest.raises(InputError, match="unknown move kinds"):
         load_session(json_path)
 
 

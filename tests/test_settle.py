@@ -3,15 +3,26 @@
 import numpy as np
 import pytest
 
-from workbench.estimators import TURN_MARGIN, Estimator, EstimatorConfig
+from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose, rot_z
+from workbench.inference.config import EstimatorConfig
 from workbench.inference.settle import (
-    half_turn_names, half_turns, pattern_search, ridge_moves, run, search, single_moves, within,
+    TURN_MARGIN,
+    half_turn_names,
+    half_turns,
+    pattern_search,
+    ridge_moves,
+    run,
+    search,
+    single_moves,
+    within,
 )
 from workbench.metrics import position_error, rotation_error
 from workbench.physics import STATUS_AS_GIVEN
 from workbench.pipeline import load_bop_problem
+
+pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
 
 @pytest.fixture(scope="module")
@@ -108,11 +119,11 @@ def test_settling_fits_the_estimate_to_a_scene_physics_cannot_rest(frame_and_pro
     try:
         estimator = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0), evaluator)
         resting = evaluator.evaluate(gt[None])
-        estimator._map, estimator._map_loglik = resting.projected[0].copy(), float(resting.loglik[0])
+        estimator.filter.map, estimator.filter.map_loglik = resting.projected[0].copy(), float(resting.loglik[0])
         settled = estimator.settle()
         as_given = evaluator.evaluate(resting.projected, project=False).loglik[0]
         paper = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0, proposals="paper"), evaluator)
-        paper._map, paper._map_loglik = estimator._map, estimator._map_loglik
+        paper.filter.map, paper.filter.map_loglik = estimator.filter.map, estimator.filter.map_loglik
         unsettled = paper.settle()
     finally:
         evaluator.close()
@@ -180,7 +191,7 @@ def test_a_box_turned_about_the_vertical_is_a_tie_unless_the_model_declares_the_
         evaluator = LocalEvaluator(prob)
         try:
             estimator = Estimator(prob, EstimatorConfig(particles=4, seed=0), evaluator)
-            estimator._map, estimator._map_loglik = scene.copy(), float(rested.loglik[0])
+            estimator.filter.map, estimator.filter.map_loglik = scene.copy(), float(rested.loglik[0])
             settled = estimator.settle()
         finally:
             evaluator.close()
@@ -202,8 +213,8 @@ def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem
     where physics put it. Turned about the vertical and settled, the mug gains far more than the margin."""
     from dataclasses import replace
 
-    from workbench.synth.meshes import mug_mesh
     from workbench.scene import ObjectModel
+    from workbench.synth.meshes import mug_mesh
 
     frame, problem = frame_and_problem
     gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
@@ -225,7 +236,7 @@ def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem
     evaluator = LocalEvaluator(seen)
     try:
         estimator = Estimator(seen, EstimatorConfig(particles=4, seed=0), evaluator)
-        estimator._map, estimator._map_loglik = rested.projected[1].copy(), float(rested.loglik[1])
+        estimator.filter.map, estimator.filter.map_loglik = rested.projected[1].copy(), float(rested.loglik[1])
         settled = estimator.settle()
     finally:
         evaluator.close()

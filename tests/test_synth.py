@@ -22,6 +22,8 @@ from workbench.synth.sensor import SensorModel, apply_sensor, axial_sigma
 from workbench.synth.sim import Sim, contact_distances, item_distances
 from workbench.synth.views import pixel_rays, raycast
 
+pytestmark = pytest.mark.slow  # needs the generator's pybullet world
+
 W, H = 320, 240
 TOUCH = 1e-3  # m: boxes closer than this touch
 

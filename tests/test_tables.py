@@ -11,8 +11,17 @@ import trimesh
 from workbench.bop import read_results_csv
 from workbench.scene import ObjectModel
 from workbench.tables import (
-    PAPER_EVALUATIONS, budget_for, goal_checks, group_stats, select_frames, size_labels, table_one, table_two,
+    PAPER_EVALUATIONS,
+    budget_for,
+    goal_checks,
+    group_stats,
+    select_frames,
+    size_labels,
+    table_one,
+    table_two,
 )
+
+pytestmark = pytest.mark.slow  # needs whole benchmarks: pybullet and OpenGL
 
 
 def test_quick_run_writes_both_tables_for_the_three_methods(touching_dataset, tmp_path):

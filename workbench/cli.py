@@ -12,7 +12,7 @@ import numpy as np
 
 from workbench.checks import check_count, check_estimator_config, check_problem_config, check_seed, check_workers
 from workbench.errors import InputError
-from workbench.estimators import METHODS, EstimatorConfig
+from workbench.inference.config import METHODS, EstimatorConfig
 from workbench.inference.moves import PROPOSALS
 from workbench.likelihood import LikelihoodConfig
 from workbench.particles import STATES, Sigma

@@ -1,5 +1,5 @@
-"""Where the paper's particles come from: random initial scenes over the support region, and random relocations
-(the default search's uniform move). Gaussian diffusion and the other moves are in ``inference/``.
+"""Where the paper's particles come from: random initial scenes over the support region, and the diffusion's
+Sigma. Gaussian diffusion and the other moves are in ``inference/``.
 
 A particle is a scene hypothesis: (K, 4, 4) object poses in the table frame; a particle set is (N, K, 4, 4).
 The state is either full 6-DoF or the paper's reduced (x, y, z, yaw) used for 3- and 4-object clutter, where
@@ -57,28 +57,4 @@ def initial_particles(
         out[:, k, 0, 3] = rng.uniform(table.region_min[0], table.region_max[0], n)
         out[:, k, 1, 3] = rng.uniform(table.region_min[1], table.region_max[1], n)
         out[:, k, 2, 3] = rng.uniform(0.0, lift, n) - lowest
-    return out
-
-
-def random_relocations(
-    rng: np.random.Generator, particles: np.ndarray, prob: float, models: list[ObjectModel], table: Table
-) -> np.ndarray:
-    """With probability ``prob`` per object, move it to a uniformly random place over the object region and drop
-    it from just above the other objects, so that it lands on whatever is below: the table or another object
-    (orientation kept). (N, K, 4, 4) -> (N, K, 4, 4).
-
-    A small object that the filter settled in the wrong place (beside its neighbour instead of on top of it, or
-    in another object's footprint) is otherwise only ever nudged by the diffusion; this gives it a way out."""
-    out = particles.copy()
-    move = rng.random(particles.shape[:2]) < prob
-    if not move.any():
-        return out
-    reach = np.array([0.5 * float(np.linalg.norm(m.mesh.extents)) for m in models])  # (K,) centre to farthest corner
-    for n, k in zip(*np.nonzero(move)):
-        others = np.arange(len(models)) != k
-        top = float(np.max(particles[n, others, 2, 3] + reach[others], initial=0.0))
-        lowest = float(np.min(models[k].mesh.vertices @ particles[n, k, :3, :3].T, axis=0)[2])
-        out[n, k, 0, 3] = rng.uniform(table.region_min[0], table.region_max[0])
-        out[n, k, 1, 3] = rng.uniform(table.region_min[1], table.region_max[1])
-        out[n, k, 2, 3] = top + rng.uniform(0.0, 0.02) - lowest
     return out

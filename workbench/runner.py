@@ -21,10 +21,11 @@ from workbench import bop
 from workbench.bop import ResultRow
 from workbench.checks import check_workers
 from workbench.errors import InputError
-from workbench.estimators import Estimator, EstimatorConfig, object_confidence
+from workbench.estimators import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.frames import Frame, FrameFailure, run_frames
+from workbench.inference.config import EstimatorConfig
 from workbench.pipeline import load_bop_problem, result_rows
 from workbench.problem import Problem, ProblemConfig
 
@@ -63,7 +64,7 @@ def estimate_frame(
     if estimator.ties:
         print(f"scene {scene_id} frame {im_id}: the depth hardly decides between the estimate and "
               + "; ".join(t.describe(problem) for t in estimator.ties), file=sys.stderr)
-    scores = object_confidence(problem, estimator.projected, estimator.weights(), best)
+    scores = object_confidence(problem, estimator.particles.projected, estimator.weights(), best)
     return result_rows(frame, problem, best, scores, time.perf_counter() - t0)
 
 

@@ -7,9 +7,10 @@ A session named NAME is two files in one folder (the app's ``sessions/``):
   used (``T_cam_world`` and the table, so that loading never re-estimates them), every setting (estimator,
   problem, physics, likelihood, render), the RNG state, the tempering and convergence state, the iteration
   history, the labels (T_world_obj per object, or null), and the name, size and SHA-256 of the arrays file.
-- ``NAME.<first 16 hex digits of its SHA-256>.npz``: the particle arrays (``hypotheses``, ``projected``,
-  ``loglik``, ``status``; absent before the first step) and ``best_history``, written with ``np.savez`` and
-  read with ``allow_pickle=False``.
+- ``NAME.<first 16 hex digits of its SHA-256>.npz``: the particle set (``ParticleSet.arrays()``: ``hypotheses``,
+  ``projected``, ``loglik``, ``status``, ``kinds``; absent before the first step) and ``best_history``, written
+  with ``np.savez`` and read with ``allow_pickle=False``. (Format 2 kept ``kinds`` in the JSON, as
+  ``estimator.search.kinds``; such sessions load as they ran.)
 
 float64 round-trips exactly through both files (Python's JSON writes the shortest repr that reads back to the
 same double; NaN and infinities as ``NaN``/``Infinity``, which Python's JSON reads), so an estimator restored from a
@@ -48,21 +49,23 @@ from workbench import bop
 from workbench.bop import _atomic_write
 from workbench.checks import check_estimator_config, check_problem_config, check_rigid
 from workbench.errors import InputError
-from workbench.estimators import Estimator, EstimatorConfig, IterationReport, parse_search
+from workbench.estimators import Estimator, parse_search
 from workbench.evaluation import Evaluator
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.filter import IterationReport
+from workbench.inference.moves import MoveKind, MoveMix
+from workbench.particleset import ParticleSet
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 # Settings added since format 1, with the values format-1 sessions ran with (not today's defaults): a restored
 # session steps as it did when saved.
 FORMAT_1_PHYSICS = {"sleep_calm": False}
 KIND = "workbench-session"
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 ARRAYS_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}\.[0-9a-f]{16}\.npz")
-PARTICLE_ARRAYS = ("hypotheses", "projected", "loglik", "status")
-ARRAY_DTYPES = {"hypotheses": "float64", "projected": "float64", "loglik": "float64", "status": "int8",
-                "best_history": "float64"}
+ARRAY_DTYPES = {**ParticleSet.DTYPES, "best_history": "float64"}
 
 
 @dataclass(frozen=True)
@@ -312,8 +315,7 @@ def _own_arrays_file(json_path: Path, name: str) -> str | None:
 def _arrays(state: SessionState) -> dict[str, np.ndarray]:
     est = state.estimator
     K = len(state.frame.object_ids)
-    arrays = {name: np.asarray(est[name], dtype=ARRAY_DTYPES[name]) for name in PARTICLE_ARRAYS
-              if est[name] is not None}
+    arrays = {} if est["particles"] is None else dict(est["particles"].arrays())
     history = [np.asarray(b, dtype=np.float64) for b in est["best_history"]]
     arrays["best_history"] = np.stack(history) if history else np.zeros((0, K, 4, 4))
     return arrays
@@ -330,6 +332,8 @@ def _json_default(value):
         return value.item()
     if isinstance(value, np.ndarray):
         return value.tolist()
+    if isinstance(value, MoveMix):
+        return value.as_dict()
     raise TypeError(f"cannot store {type(value).__name__} in a session")
 
 
@@ -369,14 +373,14 @@ def load_session(path: Path) -> SessionState:
     path = Path(path)
     state, arrays_entry = _parse(path)
     arrays = _read_arrays(path, arrays_entry)
+    if "kinds_in_json" in arrays_entry:
+        _kinds_from_json(path, arrays, arrays_entry)
     _check_arrays(path, state, arrays, arrays_entry["shapes"])
-    N = len(arrays["loglik"]) if "loglik" in arrays else 0
     try:
-        parse_search(state.estimator["search"], len(state.frame.object_ids), N)
+        parse_search(state.estimator["search"], len(state.frame.object_ids))
     except ValueError as e:
         raise InputError(path, f"estimator.{e}") from e
-    for name in PARTICLE_ARRAYS:
-        state.estimator[name] = arrays.get(name)
+    state.estimator["particles"] = ParticleSet.from_arrays(arrays) if "loglik" in arrays else None
     state.estimator["best_history"] = list(arrays["best_history"])
     return state
 
@@ -411,6 +415,8 @@ def _read_document(path: Path) -> dict:
                                f"{FORMAT_VERSION}): update the workbench to open it")
     if version == 1:
         _upgrade_format_1(document)
+    if version <= 2:
+        _upgrade_format_2(document)
     return document
 
 
@@ -421,6 +427,33 @@ def _upgrade_format_1(document: dict) -> None:
     if isinstance(physics, dict):
         for name, value in FORMAT_1_PHYSICS.items():
             physics.setdefault(name, value)
+
+
+def _upgrade_format_2(document: dict) -> None:
+    """Format 2 kept each particle's move kind in the JSON (``estimator.search.kinds``, absent before the search
+    existed); format 3 keeps it in the arrays file with the rest of the particle set. Noted in the "arrays" entry
+    (in place) for ``_kinds_from_json`` once the arrays are read."""
+    search = document.get("estimator", {}).get("search")
+    kinds = search.pop("kinds", None) if isinstance(search, dict) else None
+    if isinstance(document.get("arrays"), dict):
+        document["arrays"]["kinds_in_json"] = kinds
+
+
+def _kinds_from_json(path: Path, arrays: dict[str, np.ndarray], entry: dict) -> None:
+    """A format-2 session's move kinds (``entry["kinds_in_json"]``, or START for every particle where it had none)
+    added to its ``arrays`` (in place), recorded as format 3 records them."""
+    loglik = arrays.get("loglik")
+    if loglik is None or loglik.ndim != 1:
+        return  # no particles (or malformed ones, which _check_arrays reports)
+    kinds = entry["kinds_in_json"]
+    if kinds is None:
+        kinds = np.full(len(loglik), int(MoveKind.START), np.int8)
+    elif not (isinstance(kinds, list) and all(isinstance(k, int) and not isinstance(k, bool) for k in kinds)):
+        raise InputError(path, "estimator.search.kinds must be a list of integers")
+    arrays["kinds"] = np.asarray(kinds, dtype=np.int64).astype(np.int8) if len(kinds) else np.zeros(0, np.int8)
+    if len(kinds) and not np.array_equal(arrays["kinds"], np.asarray(kinds)):
+        raise InputError(path, "estimator.search.kinds holds unknown move kinds")
+    entry["shapes"]["kinds"] = {"shape": list(arrays["kinds"].shape), "dtype": "int8"}
 
 
 def _parse_document(d: dict) -> tuple[SessionState, dict]:
@@ -515,7 +548,7 @@ def _check_arrays(path: Path, state: SessionState, arrays: dict[str, np.ndarray]
         N = loglik.shape[0] if loglik is not None and loglik.ndim == 1 else 0
         if N < 1:
             raise InputError(path, "the arrays file holds no particles, but the session has taken steps")
-        expected.update(hypotheses=(N, K, 4, 4), projected=(N, K, 4, 4), loglik=(N,), status=(N,))
+        expected.update(hypotheses=(N, K, 4, 4), projected=(N, K, 4, 4), loglik=(N,), status=(N,), kinds=(N,))
     if sorted(arrays) != sorted(expected):
         raise InputError(path, f"the arrays file holds {sorted(arrays)}, the session needs {sorted(expected)}")
     for name, shape in expected.items():
@@ -528,6 +561,8 @@ def _check_arrays(path: Path, state: SessionState, arrays: dict[str, np.ndarray]
     for name in ("hypotheses", "best_history"):  # what the run continues from must be rigid poses
         if name in arrays:
             check_rigid(arrays[name], f"array {name!r}", path)
+    if "kinds" in arrays and not np.isin(arrays["kinds"], [int(k) for k in MoveKind]).all():
+        raise InputError(path, "array 'kinds' holds unknown move kinds")
 
 
 # Typed readers: a hand-edited value of the wrong type is reported, not passed on to fail somewhere later.
@@ -645,6 +680,10 @@ def config_from_dict(cls, data, where: str):
             if not isinstance(v, bool):
                 raise ValueError(f"{at} must be true or false, got {v!r}")
             kwargs[name] = v
+        elif tp is MoveMix:  # kind -> share; a kind added since the save gets 0, as the session ran without it
+            if not isinstance(v, dict):
+                raise ValueError(f"{at} must map move kinds to shares, got {v!r}")
+            kwargs[name] = MoveMix.from_dict({str(k): _float(x, f"{at}.{k}") for k, x in v.items()})
         elif tp == tuple[tuple[int, str], ...]:  # e.g. PhysicsConfig.shape_overrides: (obj_id, kind) pairs
             if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 for p in v):
                 raise ValueError(f"{at} must be a list of [integer, string] pairs, got {v!r}")

@@ -25,13 +25,21 @@ from workbench import bop
 from workbench.baseline import estimate_icp_fits
 from workbench.bop import ResultRow
 from workbench.errors import InputError
-from workbench.estimators import Estimator, EstimatorConfig, object_confidence
+from workbench.estimators import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.frames import FrameFailure, run_frames
 from workbench.geometry import invert_pose
+from workbench.inference.config import EstimatorConfig
 from workbench.metrics import (
-    add_s, closest_symmetric, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors,
+    add_s,
+    closest_symmetric,
+    iterations_to_converge,
+    model_points,
+    mssd,
+    position_error,
+    rotation_error,
+    rpy_errors,
 )
 from workbench.pipeline import load_bop_problem
 from workbench.problem import Problem
@@ -441,7 +449,7 @@ def run_filter(problem: Problem, config: EstimatorConfig, evaluator: Evaluator, 
     t0 = time.perf_counter()
     best = estimator.run(stop_on_convergence=early_stop, callback=callback)
     seconds = time.perf_counter() - t0
-    scores = object_confidence(problem, estimator.projected, estimator.weights(), best)
+    scores = object_confidence(problem, estimator.particles.projected, estimator.weights(), best)
     n_iter = len(estimator.history)
     measured = {
         "seconds": seconds,
@@ -450,7 +458,7 @@ def run_filter(problem: Problem, config: EstimatorConfig, evaluator: Evaluator, 
                                                          symmetries=[m.symmetries for m in problem.models]),
         "converged": estimator.converged,
         "evaluations": estimator.evaluations,
-        "best_loglik": float(estimator.loglik[estimator.best_index]),
+        "best_loglik": float(estimator.particles.loglik[estimator.best_index]),
     }
     return problem.camera.T_cam_world[None] @ best, scores, measured
 

@@ -152,7 +152,7 @@ class Engine:
             self.publish_chosen()
         elif isinstance(cmd, p.SetDisplay):
             self.display.max_display = max(1, int(cmd.max_particles))
-            if self.estimator is not None and self.estimator.loglik is not None:
+            if self.estimator is not None and self.estimator.particles is not None:
                 self.publish()
         elif isinstance(cmd, p.Step):
             if not self.running:

@@ -108,7 +108,7 @@ class FrameLabels:
         if not missing:
             return np.stack(self.labels), ""
         est = self.engine.estimator
-        if est is not None and est.projected is not None:
+        if est is not None and est.particles is not None:
             fill, how = est.best, "best estimate"
         elif leave_out:
             behind = invert_pose(self.engine.problem.camera.T_cam_world)
@@ -159,7 +159,7 @@ class FrameLabels:
 
     def use_best(self) -> None:
         est = self.engine.estimator
-        if est is None or est.projected is None:
+        if est is None or est.particles is None:
             raise InputError("labels", "there is no estimate yet: take a step first")
         # Settled (Estimator.settle), as `workbench estimate` writes it: the search's scene fitted to the depth.
         best = est.settle().copy()
@@ -196,7 +196,7 @@ class FrameLabels:
         from workbench import labels as labelling
 
         est, problem = self.engine.estimator, self.engine.problem
-        if est is None or est.projected is None or not (always or any(T is not None for T in self.labels)):
+        if est is None or est.particles is None or not (always or any(T is not None for T in self.labels)):
             return
         if len(self.labels) != problem.n_objects:
             return

@@ -25,7 +25,12 @@ from workbench.app.label_tab import AXES, FACES, NO_OBJECT, TURNS, LabelTab
 from workbench.app.quiet import Quiet
 from workbench.app.views import NO_SHADOW, Nodes, split_pose
 from workbench.geometry import (
-    euler_to_matrix, make_pose, matrix_to_euler, quat_wxyz_to_matrix, rot_x, rotvec_to_matrix,
+    euler_to_matrix,
+    make_pose,
+    matrix_to_euler,
+    quat_wxyz_to_matrix,
+    rot_x,
+    rotvec_to_matrix,
 )
 
 SEND_INTERVAL_S = 0.05  # gizmo drags report ~60 poses/s; the engine only ever renders the latest anyway

@@ -9,13 +9,13 @@ import numpy as np
 import viser
 
 from workbench.app.camera import FRAME_OBJECTS, FROM_SENSOR
-from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.label_tab import LabelTab, build_label_tab
+from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.plots import Plots
 from workbench.app.sessions_panel import SessionsTab, build_sessions_tab
 from workbench.app.views import HEATMAP_MODES, SCENE_MODES
 from workbench.errors import InputError
-from workbench.estimators import EstimatorConfig
+from workbench.inference.config import EstimatorConfig
 from workbench.particles import Sigma
 
 METHOD_LABELS = {"PI-PF": "pipf", "PI-MCPF": "mcpf"}

@@ -37,17 +37,18 @@ class ParticleDisplay:
     def snapshot(self, est, report, running: bool, particles: int, reference: tuple[str | None, float]) -> p.Snapshot:
         """The Snapshot of ``est``'s iteration, ``report`` its row; ``particles``: the configured count (the
         resampling target), ``reference``: the known scene's log-likelihood for the Plots tab."""
-        order = np.argsort(-est.loglik, kind="stable")  # -inf (failed physics, or outside the object region) last
+        # -inf (failed physics, or outside the object region) last
+        order = np.argsort(-est.particles.loglik, kind="stable")
         self.order = order
         top = order[: self.max_display]
         weights = est.weights()
         cloud = p.ParticleCloud(
             iteration=est.iteration,
             n_total=len(order),
-            poses=est.projected[top].astype(np.float32),
+            poses=est.particles.projected[top].astype(np.float32),
             weights=weights[top],
-            loglik=est.loglik[top],
-            status=est.status[top],
+            loglik=est.particles.loglik[top],
+            status=est.particles.status[top],
         )
         row = report.as_dict()
         row["distinct_after_resampling"] = expected_distinct(weights, particles)
@@ -61,17 +62,17 @@ class ParticleDisplay:
             return None
         rank = min(self.rank, len(self.order) - 1)
         i = int(self.order[rank])
-        after = est.projected[i]
+        after = est.particles.projected[i]
         pixels, residual = explain(after)
         return p.Chosen(
             iteration=est.iteration,
             rank=rank,
             index=i,
-            loglik=float(est.loglik[i]),
+            loglik=float(est.particles.loglik[i]),
             weight=float(est.weights()[i]),
-            status=int(est.status[i]),
-            move=MoveKind(int(est.kinds[i])).label,
-            before=est.hypotheses[i].copy(),
+            status=int(est.particles.status[i]),
+            move=MoveKind(int(est.particles.kinds[i])).label,
+            before=est.particles.hypotheses[i].copy(),
             after=after.copy(),
             pixel_loglik=pixels.astype(np.float32),
             residual=residual,

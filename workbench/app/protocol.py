@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.estimators import EstimatorConfig
+from workbench.inference.config import EstimatorConfig
 
 
 @dataclass(frozen=True)

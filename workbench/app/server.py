@@ -33,7 +33,7 @@ from workbench.app.run_display import RunDisplay
 from workbench.app.sessions_panel import Sessions
 from workbench.app.status import RunView, status_markdown, timings_markdown
 from workbench.errors import InputError
-from workbench.estimators import EstimatorConfig
+from workbench.inference.config import EstimatorConfig
 
 log = logging.getLogger(__name__)
 

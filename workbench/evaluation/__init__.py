@@ -12,7 +12,17 @@ without Ray; the local ones need nothing beyond the core dependencies and are re
 from __future__ import annotations
 
 from workbench.evaluation.base import (
-    STAGES, Done, Evaluation, Evaluator, Pending, WorkerCrashed, check_sink, in_region, joined, run_here, split_batch,
+    STAGES,
+    Done,
+    Evaluation,
+    Evaluator,
+    Pending,
+    WorkerCrashed,
+    check_sink,
+    in_region,
+    joined,
+    run_here,
+    split_batch,
     split_calls,
 )
 from workbench.evaluation.local import ChunkedEvaluator, LocalEvaluator

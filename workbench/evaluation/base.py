@@ -11,12 +11,13 @@ across workers never changes a result; every evaluator that splits one splits it
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Callable, ClassVar, Protocol
 
 import numpy as np
 
 from workbench.checks import check_rigid
 from workbench.errors import InputError
+from workbench.particleset import Rows
 from workbench.problem import Problem
 from workbench.scene import Table
 
@@ -24,33 +25,22 @@ STAGES = ("projection", "render", "likelihood")
 
 
 @dataclass
-class Evaluation:
+class Evaluation(Rows):
     """Results for B hypotheses: ``projected`` (B, K, 4, 4) resting poses, ``loglik`` (B,) (-inf where physics
-    failed), ``status`` (B,) physics status codes, ``timings`` seconds spent per stage (summed over workers)."""
+    failed), ``status`` (B,) physics status codes, ``timings`` seconds spent per stage (summed over workers).
+    Indexing, concatenation and interleaving as for every ``particleset.Rows``."""
 
     projected: np.ndarray
     loglik: np.ndarray
     status: np.ndarray
     timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
 
-    @staticmethod
-    def concatenate(parts: list["Evaluation"]) -> "Evaluation":
-        return Evaluation(
-            projected=np.concatenate([p.projected for p in parts]),
-            loglik=np.concatenate([p.loglik for p in parts]),
-            status=np.concatenate([p.status for p in parts]),
-            timings={s: sum(p.timings[s] for p in parts) for s in STAGES},
-        )
+    ROWS: ClassVar[tuple[str, ...]] = ("projected", "loglik", "status")
 
-    @staticmethod
-    def interleave(first: np.ndarray, a: "Evaluation", b: "Evaluation") -> "Evaluation":
-        """The evaluation of a batch whose hypotheses where ``first`` (B,) is true were evaluated as ``a`` and the
-        others as ``b``, both in order."""
-        projected = np.empty((len(first), *a.projected.shape[1:]))
-        loglik, status = np.empty(len(first)), np.empty(len(first), dtype=a.status.dtype)
-        for part, where in ((a, first), (b, ~first)):
-            projected[where], loglik[where], status[where] = part.projected, part.loglik, part.status
-        return Evaluation(projected, loglik, status, {s: a.timings[s] + b.timings[s] for s in STAGES})
+    @classmethod
+    def merge_other(cls, parts: list["Evaluation"]) -> dict:
+        """A batch made of parts took the time of all of them."""
+        return {"timings": {s: sum(p.timings[s] for p in parts) for s in STAGES}}
 
 
 class Pending(Protocol):

@@ -8,8 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 import trimesh
+from scipy import ndimage
 
 from workbench.geometry import invert_pose, transform_points
 from workbench.problem import Problem

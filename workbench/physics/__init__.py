@@ -13,8 +13,15 @@ Callers import the projector's names from here: ``from workbench.physics import 
 
 from workbench.physics.config import PhysicsConfig
 from workbench.physics.projector import (
-    STATUS_AS_GIVEN, STATUS_NAMES, STATUS_OFF_TABLE, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, STATUS_UNSTABLE,
-    PhysicsProjector, collision_shapes,
+    STATUS_AS_GIVEN,
+    STATUS_NAMES,
+    STATUS_OFF_TABLE,
+    STATUS_OUTSIDE,
+    STATUS_REST,
+    STATUS_STEP_CAP,
+    STATUS_UNSTABLE,
+    PhysicsProjector,
+    collision_shapes,
 )
 
 __all__ = [

@@ -12,8 +12,20 @@ import numpy as np
 
 from workbench.geometry import make_pose, rot_z
 from workbench.synth.objects import (
-    BOX_BY_ID, BOXES, EZ, OBJECT_BY_ID, OBJECTS, SMALL, TALL, Box, Item, horizontal_faces, reach, resting_rotation,
-    support_half_extent, tilt_deg,
+    BOX_BY_ID,
+    BOXES,
+    EZ,
+    OBJECT_BY_ID,
+    OBJECTS,
+    SMALL,
+    TALL,
+    Box,
+    Item,
+    horizontal_faces,
+    reach,
+    resting_rotation,
+    support_half_extent,
+    tilt_deg,
 )
 from workbench.synth.sim import Sim, bisect_contact
 

@@ -1,0 +1,86 @@
+"""What a move kind of the default search is (``Move``) and what it works with: per-object geometry computed once
+per problem (``SearchGeometry``), and one iteration's view of the search (``MoveContext``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from workbench.inference import assemble, resting
+from workbench.inference.datadriven import Library
+from workbench.inference.proposal import Proposal
+from workbench.inference.scenepoints import ModelSamples, ScenePoints, model_samples, observed_points
+from workbench.particles import Sigma
+from workbench.problem import Problem
+
+
+@dataclass
+class SearchGeometry:
+    """Per object (K of them): ``rest`` its resting poses, ``samples`` surface samples, ``hulls`` convex-hull
+    vertices (V, 3) object frame, ``reach`` (K,) m horizontal distance from the origin to the farthest hull vertex,
+    ``radius`` (K,) m the same in 3D, ``solids`` for the assemblies' overlap test; ``points`` the observed points
+    above the table."""
+
+    rest: list[resting.RestingPoses]
+    samples: list[ModelSamples]
+    hulls: list[np.ndarray]
+    reach: np.ndarray
+    radius: np.ndarray
+    points: ScenePoints
+    solids: list[assemble.Solid]
+
+    @classmethod
+    def of(cls, problem: Problem, upright: bool) -> "SearchGeometry":
+        """Computed from the problem's meshes and observation; ``upright``: the reduced state's resting poses
+        only (no object laid on its side)."""
+        models = problem.models
+        hulls = [np.asarray(m.mesh.convex_hull.vertices, dtype=np.float64) for m in models]
+        samples = [model_samples(m.mesh) for m in models]
+        return cls(
+            rest=[resting.resting_poses(m.mesh, upright_only=upright) for m in models],
+            samples=samples,
+            hulls=hulls,
+            reach=np.array([float(np.max(np.linalg.norm(h[:, :2], axis=1))) for h in hulls]),
+            radius=np.array([float(np.max(np.linalg.norm(h, axis=1))) for h in hulls]),
+            points=observed_points(problem),
+            solids=[assemble.solid(h, s) for h, s in zip(hulls, samples)],
+        )
+
+
+@dataclass(frozen=True)
+class MoveContext:
+    """What a ``Move`` may use in one iteration. ``choose`` (K,): how often each object is the one moved
+    (the objects that explain their part of the observation worst most often); ``scales`` (K,): the Gaussian
+    steps' scale per object (coarse to fine)."""
+
+    problem: Problem
+    geometry: SearchGeometry
+    library: Library | None
+    sigma: Sigma
+    state: str  # "6dof" or "xyzyaw"
+    method: str  # "pipf" or "mcpf"
+    choose: np.ndarray
+    scales: np.ndarray
+
+
+class Move:
+    """One move kind of the default search: drawn per particle and iteration from ``moves.MoveMix``, it proposes
+    a scene from each parent with its log-q correction. A new kind is a module with a subclass and one line in
+    ``moves.MOVES``; its share of the mix and its per-kind counts follow from there. The built-in kinds are in
+    ``kinds``."""
+
+    name: ClassVar[str]  # the mix's key and the kind's label, e.g. "joint"
+    # The MoveKind value stored with each particle it produces (sessions keep it): unique, never renumbered.
+    code: ClassVar[int]
+    share: ClassVar[float]  # its default share of the mix (the shares are normalised when drawn)
+    # Changes roll or pitch: not drawn in the paper's reduced state (x, y, z, yaw).
+    tilts: ClassVar[bool] = False
+    # Uses the candidates refitted this iteration: proposed after the refit, while the workers already project
+    # the other kinds' hypotheses.
+    after_refit: ClassVar[bool] = False
+
+    def propose(self, rng: np.random.Generator, parents: np.ndarray, ctx: MoveContext) -> Proposal:
+        """Parents (B, K, 4, 4), table frame -> their proposals."""
+        raise NotImplementedError

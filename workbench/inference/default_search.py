@@ -1,0 +1,203 @@
+"""The default search (``--proposals default``): where its hypotheses come from, around the filter core.
+
+- ``start``: random scenes, most objects taken from the data-driven candidate library, plus whole scenes
+  assembled from the candidates.
+- ``propose``: one move per particle drawn from the registered kinds (``moves.MoveMix``); the kinds that are cheap
+  to make go to the workers first, the library is refitted when due, then the data-driven and ICP moves are made
+  while the workers project the others.
+- ``after_step``: every ``library_every`` iterations the sink is fitted and the estimate polished (one- and
+  two-object variants, stacks, assemblies).
+- ``finish``: the estimate settled on the depth without physics, with its half turns tried and its near ties
+  named (``settle``).
+Every hypothesis still goes through physics and the likelihood; only where hypotheses come from differs from
+the paper.
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import numpy as np
+
+from workbench.evaluation import Evaluation, run_here
+from workbench.inference import assemble, datadriven, gaussian, polish, settle
+from workbench.inference.context import MoveContext, SearchGeometry
+from workbench.inference.filter import ParticleFilter, Proposed, Settled
+from workbench.inference.moves import REGISTRY, MoveKind
+from workbench.inference.scenepoints import clusters, object_badness, unexplained
+from workbench.particles import initial_particles
+from workbench.particleset import ParticleSet
+from workbench.problem import Problem
+from workbench.render import DepthRenderer
+
+# The sink (see ParticleFilter) is chosen from 0 to 2 cm in steps of 2 mm. On the real YCB-Video dev frames the
+# annotated objects rest 6-12 mm below the plane fitted to the table's depth.
+SINK_GRID = np.arange(0.0, 0.0201, 0.002)  # m
+
+
+def fit_sink(filt: ParticleFilter) -> None:
+    """The sink that maximises the estimate's likelihood: the estimate, lowered to each value of SINK_GRID,
+    projected and weighed there. Kept only if it beats the estimate as it stands, so the estimate never gets
+    worse. The particles keep the log-likelihoods they had under the old sink until their next move."""
+    if filt.map is None:  # every particle failed physics so far
+        return
+    scenes = np.repeat(filt.map[None], len(SINK_GRID), axis=0)
+    scenes[:, :, 2, 3] -= (SINK_GRID - filt.sink)[:, None]
+    ev = filt.evaluate(scenes, SINK_GRID)
+    i = int(np.argmax(ev.loglik))
+    if ev.loglik[i] > filt.map_loglik:
+        filt.sink = float(SINK_GRID[i])
+        filt.map, filt.map_loglik = ev.projected[i].copy(), float(ev.loglik[i])
+
+
+class DefaultSearch:
+    """The data-driven search's state: the candidate ``library`` (saved with sessions), the latest refit's
+    candidates alone (``unexplained``: fitted where the estimate leaves points unexplained; polish tries them
+    first; made and used within one step, so not saved), and caches: the per-object geometry, the candidates of
+    each cluster already fitted, the bases found under each top."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self.library: datadriven.Library | None = None
+        self.unexplained: datadriven.Library | None = None
+        self._geometry: SearchGeometry | None = None
+        self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
+        self._base_memo: dict = {}  # polish.stacked's bases found under each top so far
+        self._map_wait = 0.0  # seconds this iteration's proposals waited for fits on the workers
+
+    def geometry(self, filt: ParticleFilter) -> SearchGeometry:
+        """Per-object geometry and the observed points, computed at the first use."""
+        if self._geometry is None:
+            self._geometry = SearchGeometry.of(self.problem, upright=filt.config.state == "xyzyaw")
+        return self._geometry
+
+    # ------------------------------------------------------------------------------------------------ hooks
+    def start(self, filt: ParticleFilter) -> tuple[np.ndarray, np.ndarray]:
+        """Random scenes over the object region, most objects taken from the data-driven candidates instead (some
+        stay uniform, so that nothing is ruled out), and the assemblies first."""
+        cfg = filt.config
+        start = initial_particles(filt.rng, cfg.particles, self.problem.models, self.problem.table, cfg.state)
+        kinds = np.full(cfg.particles, int(MoveKind.START), np.int8)
+        self.refit_library(filt)
+        take = filt.rng.random((cfg.particles, self.problem.n_objects)) < cfg.data_start
+        start = datadriven.sequential_start(filt.rng, self.library, cfg.particles, self.geometry(filt).radius, take,
+                                            start)
+        kinds[take.any(axis=1)] = int(MoveKind.DATA_START)
+        joint = self._assemblies(filt, start[0])[: cfg.particles]
+        start[: len(joint)] = joint
+        kinds[: len(joint)] = int(MoveKind.ASSEMBLE)
+        return start, kinds
+
+    def propose(self, filt: ParticleFilter, parents: np.ndarray) -> Proposed:
+        """The moves that are cheap to make go to the evaluator first; this process then refits the library (when
+        due) and makes the moves that need it (``Move.after_refit``) while the workers project the first ones."""
+        cfg, n, geometry = filt.config, len(parents), self.geometry(filt)
+        self._map_wait = 0.0
+        # Objects that explain their part of the observation worst are moved most often; every object sometimes.
+        choose = object_badness(self.problem, filt.best, geometry.samples) + 0.1
+        scales = gaussian.object_scales(filt.particles.projected, filt.weights(), cfg.sigma, cfg.sigma_floor)
+        kinds = cfg.moves.for_state(cfg.state).draw(filt.rng, n)
+        out, log_q = parents.copy(), np.zeros(n)
+        first = ~np.isin(kinds, [code for code, move in REGISTRY.items() if move.after_refit])
+        context = partial(MoveContext, self.problem, geometry, sigma=cfg.sigma, state=cfg.state, method=cfg.method,
+                          choose=choose, scales=scales)
+        self._propose(filt.rng, parents, kinds, first, out, log_q, context(self.library))
+        pending = filt.submit(out[first])
+        # A session saved without the search state (or by an older version) has no library yet: fit one now.
+        if self.library is None or filt.iteration % cfg.library_every == 0:
+            self.refit_library(filt)
+        self._propose(filt.rng, parents, kinds, ~first, out, log_q, context(self.library))
+        t0 = time.perf_counter()
+        ev = Evaluation.interleave(first, pending.result(), filt.evaluate(out[~first]))
+        return Proposed(out, log_q, kinds, ev, time.perf_counter() - t0 + self._map_wait)
+
+    def after_step(self, filt: ParticleFilter) -> None:
+        if filt.iteration % filt.config.library_every == 0:
+            fit_sink(filt)
+            self.polish(filt)
+
+    def finish(self, filt: ParticleFilter) -> Settled:
+        """The estimate fitted to the observed depth without physics (``settle.pattern_search``), each object
+        within ``settle_shift`` and ``settle_turn`` of its pose in the estimate, then each object's half turns
+        (``settle.turn_over``). The estimate itself when settling is off."""
+        cfg = filt.config
+        if filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
+            return Settled(filt.best.copy(), filt.map_loglik)
+        score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
+        scene, loglik, scored = settle.pattern_search(
+            filt.map, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
+            max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
+        scene, loglik, turned, ties = settle.turn_over(self.problem, scene, loglik, score,
+                                                       lambda scenes: filt.evaluate(scenes).projected,
+                                                       cfg.settle_shift, cfg.settle_turn)
+        return Settled(scene, loglik, ties, scored + turned)
+
+    # -------------------------------------------------------------------------------------------------- parts
+    @staticmethod
+    def _propose(rng: np.random.Generator, parents: np.ndarray, kinds: np.ndarray, which: np.ndarray,
+                 out: np.ndarray, log_q: np.ndarray, ctx: MoveContext) -> None:
+        """Fill ``out`` (N, K, 4, 4) and ``log_q`` (N,) where ``which`` (N,) is true: the move of kind ``kinds``
+        (N,) from ``parents`` (N, K, 4, 4), kind by kind in code order (the order of the random draws)."""
+        for kind in np.unique(kinds[which]):
+            sel = np.nonzero(which & (kinds == kind))[0]
+            p = REGISTRY[int(kind)].propose(rng, parents[sel], ctx)
+            out[sel], log_q[sel] = p.hypotheses, p.log_q_ratio
+
+    def _run(self, filt: ParticleFilter, fn, calls: list[tuple]) -> list:
+        """``Evaluator.map``: the candidate fits run on the evaluator's workers, which would otherwise wait for this
+        process (here when there is no evaluator). The wait is counted in ``_map_wait``, not as this process's
+        own work."""
+        if filt.evaluator is None:
+            return run_here(self.problem)(fn, calls)
+        t0 = time.perf_counter()
+        try:
+            return filt.evaluator.map(fn, calls)
+        finally:
+            self._map_wait += time.perf_counter() - t0
+
+    def refit_library(self, filt: ParticleFilter) -> None:
+        """Candidates from the clusters of observed points the estimate does not explain (all of them before
+        the first estimate), merged with the earlier candidates."""
+        g = self.geometry(filt)
+        loose = unexplained(self.problem, g.points, filt.map, g.samples)
+        groups = clusters(g.points.points[loose])
+        fresh = datadriven.build_library(self.problem, groups, g.points.points, g.rest, g.samples, g.hulls,
+                                         self._cluster_memo, partial(self._run, filt))
+        self.library = fresh if self.library is None else self.library.merged(fresh)
+        self.unexplained = fresh
+
+    def _assemblies(self, filt: ParticleFilter, base: np.ndarray) -> np.ndarray:
+        """``assemble.assemblies`` of the library on ``base`` (K, 4, 4) -> (A, K, 4, 4). The candidates are
+        rendered here, in the main process, by a renderer made for the call."""
+        g = self.geometry(filt)
+        renderer = DepthRenderer(self.problem.render_camera, [m.mesh for m in self.problem.models],
+                                 self.problem.config.render)
+        try:
+            return assemble.assemblies(self.problem, self.library, renderer, g.solids, base,
+                                       np.argsort(-g.radius, kind="stable"))
+        finally:
+            renderer.close()
+
+    def polish(self, filt: ParticleFilter) -> None:
+        """Evaluate the estimate's one- and two-object variants (``polish.variants``), the stacks it could be
+        (``polish.stacked``) and the assemblies; those that beat the estimate replace the worst particles (at most
+        a tenth of them), the best becomes the estimate."""
+        if filt.map is None or self.library is None:
+            return
+        g, estimate = self.geometry(filt), filt.map
+        parts = [polish.variants(estimate, self.library, g.points.points, g.samples, g.reach, g.radius,
+                                 g.points.viewpoint, self.unexplained),
+                 polish.stacked(self.problem, estimate, self.library, self.unexplained, g.rest, g.hulls, g.samples,
+                                g.radius, self._base_memo, partial(self._run, filt)),
+                 self._assemblies(filt, estimate)]
+        kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.BASE, MoveKind.ASSEMBLE], np.int8),
+                          [len(p) for p in parts])
+        scenes = np.concatenate([p.reshape(-1, *estimate.shape) for p in parts])
+        if not len(scenes):
+            return
+        ev = filt.evaluate(scenes)
+        better = np.nonzero(ev.loglik > filt.map_loglik)[0]
+        filt.offer(ev, kinds)
+        better = better[np.argsort(-ev.loglik[better], kind="stable")][: max(1, len(filt.particles) // 10)]
+        filt.replace_worst(ParticleSet.evaluated(scenes, ev, kinds)[better])
