@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, make_pose
+from workbench.io import bop
 from workbench.pipeline import load_bop_problem
 
 

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
+from workbench.io import bop
 from workbench.likelihood import scene_loglik
 from workbench.metrics import is_right, position_error, rotation_error
 from workbench.pipeline import load_bop_problem

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.inference.config import EstimatorConfig
+from workbench.io import bop
 from workbench.metrics import model_points
 from workbench.physics import STATUS_NAMES, STATUS_REST, STATUS_STEP_CAP, PhysicsConfig, PhysicsProjector
 from workbench.physics.collision import collision_shape_for

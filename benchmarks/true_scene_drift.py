@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
 from workbench.geometry import invert_pose, rotation_angle
+from workbench.io import bop
 from workbench.metrics import model_points
 from workbench.physics import STATUS_NAMES, PhysicsConfig, PhysicsProjector
 from workbench.physics.collision import collision_shape_for

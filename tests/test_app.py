@@ -305,10 +305,10 @@ def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
     import json
     import shutil
 
-    from workbench import bop
     from workbench.app.engine import demo_dataset
     from workbench.app.observation import display_names
     from workbench.errors import InputError
+    from workbench.io import bop
 
     src = demo_dataset()
     data = tmp_path / "named"

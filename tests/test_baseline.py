@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workbench import baseline, bop, metrics, synth
+from workbench import baseline, metrics, synth
 from workbench.geometry import invert_pose
+from workbench.io import bop
 
 pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)
 

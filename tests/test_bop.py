@@ -12,10 +12,10 @@ import pytest
 import trimesh
 from PIL import Image
 
-from workbench import bop
 from workbench.errors import InputError
 from workbench.geometry import make_pose, rot_x, rot_z
-from workbench.plainframe import load_plain_frame
+from workbench.io import bop
+from workbench.io.plainframe import load_plain_frame
 
 W, H = 64, 48
 K = np.array([[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])

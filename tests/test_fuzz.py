@@ -24,12 +24,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench import bop, sessions, tables
+from workbench import sessions, tables
 from workbench.app.engine import DEMO_DIR
 from workbench.errors import InputError
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.inference.config import EstimatorConfig
+from workbench.io import bop
 from workbench.pipeline import load_bop_problem
 
 pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL

@@ -5,10 +5,10 @@ import shutil
 import numpy as np
 import pytest
 
-from workbench import bop
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, rot_z
+from workbench.io import bop
 from workbench.labels import (
     fit_label,
     label_errors,

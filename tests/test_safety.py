@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench import bop, checks, labels, sessions
+from workbench import checks, labels, sessions
 from workbench.app.engine import DEMO_DIR
 from workbench.errors import InputError
+from workbench.io import bop
 
 pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
 
@@ -257,7 +258,7 @@ def test_scene_camera_as_a_list_is_refused(demo, tmp_path):
 
 
 def test_plain_frame_types_and_complex_depth(tmp_path):
-    from workbench.plainframe import load_plain_frame
+    from workbench.io.plainframe import load_plain_frame
 
     depth = np.full((48, 64), 0.8)
     np.save(tmp_path / "d.npy", depth)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from test_cli import _workbench
 
-from workbench import bop
 from workbench.geometry import make_pose, rot_z
+from workbench.io import bop
 from workbench.scoring import match, score_results
 
 pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)

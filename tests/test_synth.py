@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench import bop, metrics
+from workbench import metrics
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_z
+from workbench.io import bop
 from workbench.support import estimate_support
 from workbench.synth import CATEGORIES, load_distractors, make_demo, make_scenes, true_table_pose, visible_masks
 from workbench.synth.config import PAPER_CATEGORIES, SynthConfig

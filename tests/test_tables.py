@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from workbench.bop import read_results_csv
+from workbench.io.bop import read_results_csv
 from workbench.scene import ObjectModel
 from workbench.tables import (
     PAPER_EVALUATIONS,

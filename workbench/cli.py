@@ -85,7 +85,7 @@ def problem_config(args: argparse.Namespace) -> ProblemConfig:
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
-    from workbench import bop
+    from workbench.io import bop
     from workbench.runner import ResultsFile, check_results_out, estimate_frames
 
     if args.dataset is None:
@@ -126,7 +126,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
-    from workbench import bop
+    from workbench.io import bop
     from workbench.scoring import report, score_results
 
     if not args.dataset.is_dir():
@@ -175,7 +175,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _check_frame_exists(dataset: Path, scene_id: int | None, im_id: int | None) -> None:
     """The dataset has the frame ``serve`` is asked for (None: its first), so that a wrong path ends here."""
-    from workbench import bop
+    from workbench.io import bop
 
     frames = bop.list_frames(dataset)
     scenes = sorted({s for s, _ in frames})

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
 from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose
 from workbench.inference.settle import pattern_search
+from workbench.io import bop
 from workbench.likelihood import scene_loglik
 from workbench.metrics import add_s, model_points, position_error, rotation_error
 from workbench.problem import Problem

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
-from workbench.bop import ResultRow
+from workbench.io import bop
+from workbench.io.bop import ResultRow
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, ObjectModel
 from workbench.support import estimate_support

@@ -17,8 +17,6 @@ from typing import Callable
 
 from tqdm import tqdm
 
-from workbench import bop
-from workbench.bop import ResultRow
 from workbench.checks import check_workers
 from workbench.errors import InputError
 from workbench.estimators import Estimator, object_confidence
@@ -26,6 +24,8 @@ from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.frames import Frame, FrameFailure, run_frames
 from workbench.inference.config import EstimatorConfig
+from workbench.io import bop
+from workbench.io.bop import ResultRow
 from workbench.pipeline import load_bop_problem, result_rows
 from workbench.problem import Problem, ProblemConfig
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
 from workbench.errors import InputError
+from workbench.io import bop
 from workbench.metrics import RIGHT_CM, RIGHT_DEG, add_s, is_right, model_points, position_error, rotation_error
 
 

@@ -45,8 +45,6 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
-from workbench.bop import _atomic_write
 from workbench.checks import check_estimator_config, check_problem_config, check_rigid
 from workbench.errors import InputError
 from workbench.estimators import Estimator, parse_search
@@ -54,6 +52,8 @@ from workbench.evaluation import Evaluator
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.filter import IterationReport
 from workbench.inference.moves import MoveKind, MoveMix
+from workbench.io import bop
+from workbench.io.bop import _atomic_write
 from workbench.particleset import ParticleSet
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench import bop
 from workbench.estimators import Estimator
 from workbench.evaluation import STAGES, make_evaluator
 from workbench.inference.config import EstimatorConfig
+from workbench.io import bop
 from workbench.physics import collision_shapes
 from workbench.pipeline import load_bop_problem
 from workbench.render import render_mesh

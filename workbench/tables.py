@@ -21,9 +21,7 @@ from typing import Callable
 import numpy as np
 from tqdm import tqdm
 
-from workbench import bop
 from workbench.baseline import estimate_icp_fits
-from workbench.bop import ResultRow
 from workbench.errors import InputError
 from workbench.estimators import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
@@ -31,6 +29,8 @@ from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.frames import FrameFailure, run_frames
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
+from workbench.io import bop
+from workbench.io.bop import ResultRow
 from workbench.metrics import (
     add_s,
     closest_symmetric,

@@ -80,7 +80,7 @@ def demo_dataset() -> Path:
 
 def load(source: p.Source, likelihood: str):
     """-> (dataset folder, frame, problem) for ``source``; raises ``InputError`` naming the file at fault."""
-    from workbench import bop
+    from workbench.io import bop
     from workbench.likelihood import LikelihoodConfig
     from workbench.pipeline import load_bop_problem
     from workbench.problem import ProblemConfig

@@ -12,9 +12,9 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from workbench import bop
 from workbench.errors import InputError
 from workbench.geometry import make_pose
+from workbench.io import bop
 from workbench.metrics import box_symmetries
 from workbench.synth.config import CATEGORIES, DESKS, DeskSpec, SynthConfig
 from workbench.synth.distractors import Distractor, distractor_mesh

@@ -33,9 +33,9 @@ import numpy as np
 import trimesh
 from PIL import Image, UnidentifiedImageError
 
-from .errors import InputError
-from .geometry import make_pose
-from .scene import Camera, Frame, ObjectModel
+from workbench.errors import InputError
+from workbench.geometry import make_pose
+from workbench.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
 _WARNED_OPEN: set[tuple[str, int, int]] = set()  # open meshes already warned about (read_mesh)

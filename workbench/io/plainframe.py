@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .bop import (
+from workbench.errors import InputError
+from workbench.io.bop import (
     MAX_DEPTH_SCALE,
     MM,
     check_depth,
@@ -37,8 +38,7 @@ from .bop import (
     read_json,
     read_mesh,
 )
-from .errors import InputError
-from .scene import Camera, Frame, ObjectModel
+from workbench.scene import Camera, Frame, ObjectModel
 
 UNITS = {"mm": MM, "m": 1.0}
 # Objects on a table are between these sizes (metres); outside them the unit is wrong.
