@@ -65,7 +65,7 @@ def main() -> None:
                     scenes.append(s)
                     labels.append((model.obj_id, deg))
             raw = evaluator.renderer.render(np.stack(scenes))
-            from workbench.likelihood import scene_loglik
+            from workbench.render.likelihood import scene_loglik
 
             annotated = scene_loglik(problem.observed, problem.background, raw, problem.config.likelihood)
             projected = evaluator.evaluate(np.stack(scenes)).loglik

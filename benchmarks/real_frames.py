@@ -25,9 +25,9 @@ from workbench.evaluation import LocalEvaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
-from workbench.likelihood import scene_loglik
 from workbench.metrics import is_right, position_error, rotation_error
 from workbench.pipeline import load_bop_problem
+from workbench.render.likelihood import scene_loglik
 
 
 def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig, workers: int) -> dict:

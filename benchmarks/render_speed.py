@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
-from workbench.render import BACKENDS, DepthRenderer, RenderConfig
+from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig
 from workbench.scene import Camera
 
 

@@ -47,7 +47,7 @@ def seeing():
     import numpy as np
 
     from workbench.evaluation import LocalEvaluator
-    from workbench.likelihood import predicted_depth
+    from workbench.render.likelihood import predicted_depth
 
     def draw(problem, scene):
         local = LocalEvaluator(problem)

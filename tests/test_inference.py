@@ -260,7 +260,7 @@ def test_assembly_puts_each_object_on_its_own_place(frame_and_problem, context):
     """Each object's heavier candidate sits on the other's place; the joint assignment (by the likelihood of the
     candidates' joint depth) still puts each on its own: two objects on one place leave the other unexplained."""
     from workbench.inference import assemble
-    from workbench.render import DepthRenderer
+    from workbench.render.depth import DepthRenderer
 
     frame, _ = frame_and_problem
     problem, ctx, _ = context

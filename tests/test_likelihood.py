@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from workbench.errors import InputError
-from workbench.likelihood import LikelihoodConfig, pixel_loglik, predicted_depth, scene_loglik
+from workbench.render.likelihood import LikelihoodConfig, pixel_loglik, predicted_depth, scene_loglik
 
 
 def _scene():

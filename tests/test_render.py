@@ -10,7 +10,7 @@ import trimesh
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
-from workbench.render import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
+from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
 from workbench.scene import Camera
 
 pytestmark = pytest.mark.slow  # needs OpenGL

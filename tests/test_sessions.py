@@ -14,12 +14,12 @@ from workbench.errors import InputError
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.inference.config import EstimatorConfig
-from workbench.likelihood import LikelihoodConfig
 from workbench.particles import Sigma
 from workbench.physics import PhysicsConfig
 from workbench.pipeline import load_bop_problem
 from workbench.problem import ProblemConfig
-from workbench.render import RenderConfig
+from workbench.render.depth import RenderConfig
+from workbench.render.likelihood import LikelihoodConfig
 from workbench.sessions import (
     check_dataset,
     check_name,

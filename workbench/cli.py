@@ -14,9 +14,9 @@ from workbench.checks import check_count, check_estimator_config, check_problem_
 from workbench.errors import InputError
 from workbench.inference.config import METHODS, EstimatorConfig
 from workbench.inference.moves import PROPOSALS
-from workbench.likelihood import LikelihoodConfig
 from workbench.particles import STATES, Sigma
 from workbench.problem import ProblemConfig
+from workbench.render.likelihood import LikelihoodConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
 

@@ -24,9 +24,9 @@ from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose
 from workbench.inference.settle import pattern_search
 from workbench.io import bop
-from workbench.likelihood import scene_loglik
 from workbench.metrics import add_s, model_points, position_error, rotation_error
 from workbench.problem import Problem
+from workbench.render.likelihood import scene_loglik
 
 LABELS_FILE = "scene_gt_labels.json"
 ORIGINAL_FILE = "scene_gt.json"

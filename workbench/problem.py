@@ -13,9 +13,9 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, transform_points
-from workbench.likelihood import LikelihoodConfig
 from workbench.physics import PhysicsConfig
-from workbench.render import RenderConfig
+from workbench.render.depth import RenderConfig
+from workbench.render.likelihood import LikelihoodConfig
 from workbench.scene import Camera, Frame, ObjectModel, Table
 
 

@@ -20,7 +20,7 @@ from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.physics import collision_shapes
 from workbench.pipeline import load_bop_problem
-from workbench.render import render_mesh
+from workbench.render.depth import render_mesh
 from workbench.synth import make_scenes
 
 

@@ -81,9 +81,9 @@ def demo_dataset() -> Path:
 def load(source: p.Source, likelihood: str):
     """-> (dataset folder, frame, problem) for ``source``; raises ``InputError`` naming the file at fault."""
     from workbench.io import bop
-    from workbench.likelihood import LikelihoodConfig
     from workbench.pipeline import load_bop_problem
     from workbench.problem import ProblemConfig
+    from workbench.render.likelihood import LikelihoodConfig
 
     dataset = demo_dataset() if source.demo else source.dataset
     if dataset is None:

@@ -81,7 +81,7 @@ class Evaluators:
     def explain(self, scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One scene (K, 4, 4) as given -> (per-pixel log-likelihood, observed - predicted depth (NaN: either
         missing)) on the problem grid, from one render."""
-        from workbench.likelihood import predicted_depth
+        from workbench.render.likelihood import predicted_depth
 
         rendered, pixels = self.local().explain(scene)
         predicted = predicted_depth(rendered[None], self.problem.background)[0]

@@ -10,10 +10,10 @@ import numpy as np
 
 from workbench.checks import check_rigid
 from workbench.evaluation.base import Done, Evaluation, check_sink, in_region, run_here, split_batch
-from workbench.likelihood import pixel_loglik, predicted_depth, scene_loglik
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
-from workbench.render import DepthRenderer
+from workbench.render.depth import DepthRenderer
+from workbench.render.likelihood import pixel_loglik, predicted_depth, scene_loglik
 
 
 class LocalEvaluator:

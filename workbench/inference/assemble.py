@@ -23,9 +23,9 @@ from scipy.spatial import ConvexHull
 from workbench.geometry import invert_pose, make_pose
 from workbench.inference.datadriven import Library
 from workbench.inference.scenepoints import ModelSamples
-from workbench.likelihood import pixel_loglik
 from workbench.problem import Problem
-from workbench.render import DepthRenderer
+from workbench.render.depth import DepthRenderer
+from workbench.render.likelihood import pixel_loglik
 
 BEAM = 32  # partial assignments kept after each object
 ASSEMBLIES = 4  # complete assignments returned

@@ -29,7 +29,7 @@ from workbench.inference.scenepoints import clusters, object_badness, unexplaine
 from workbench.particles import initial_particles
 from workbench.particleset import ParticleSet
 from workbench.problem import Problem
-from workbench.render import DepthRenderer
+from workbench.render.depth import DepthRenderer
 
 # The sink (see ParticleFilter) is chosen from 0 to 2 cm in steps of 2 mm. On the real YCB-Video dev frames the
 # annotated objects rest 6-12 mm below the plane fitted to the table's depth.
