@@ -116,7 +116,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
 
     from workbench.app.engine import Engine
     from workbench.inference.config import EstimatorConfig
-    from workbench.particles import Sigma
+    from workbench.inference.particles import Sigma
 
     config = EstimatorConfig(particles=12, iterations=50, sigma=Sigma(x=0.007, y=0.013, z=0.003, yaw=0.1234), seed=5)
     first, second = Inbox(), Inbox()
@@ -166,7 +166,7 @@ def test_panel_shows_a_restored_config_without_changing_it():
 
     from workbench.app.panel import build_panel
     from workbench.inference.config import EstimatorConfig
-    from workbench.particles import Sigma
+    from workbench.inference.particles import Sigma
 
     saved = EstimatorConfig(method="mcpf", particles=77, iterations=9, seed=3,
                             sigma=Sigma(x=0.0474, y=0.0156, z=0.0205, roll=0.0099, pitch=0.1524, yaw=0.0792))
@@ -363,7 +363,7 @@ def test_plots_columns_and_acceptance_by_move_kind():
 
 def test_expected_distinct_particles_matches_systematic_resampling():
     from workbench.app.particle_display import expected_distinct
-    from workbench.resampling import systematic_resample
+    from workbench.inference.resampling import systematic_resample
 
     rng = np.random.default_rng(3)
     logw = rng.normal(0.0, 2.0, 200)

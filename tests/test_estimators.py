@@ -168,7 +168,7 @@ def test_particle_count_and_sigma_change_between_steps(frame_and_problem):
 def test_reduced_state_keeps_roll_and_pitch(frame_and_problem):
     """In the paper's (x, y, z, yaw) state, diffusion never tilts an object: only physics may."""
     from workbench.inference.gaussian import propose_joint
-    from workbench.particles import Sigma
+    from workbench.inference.particles import Sigma
 
     rng = np.random.default_rng(0)
     upright = np.tile(np.eye(4), (50, 2, 1, 1))

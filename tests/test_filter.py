@@ -15,8 +15,8 @@ from workbench.inference.config import EstimatorConfig
 from workbench.inference.context import MoveContext
 from workbench.inference.filter import ParticleFilter, Proposed, Settled
 from workbench.inference.moves import MOVES, REGISTRY, MoveKind, MoveMix
-from workbench.particles import Sigma
-from workbench.particleset import ParticleSet
+from workbench.inference.particles import Sigma
+from workbench.inference.particleset import ParticleSet
 
 PAPER = EstimatorConfig(proposals="paper", particles=120, iterations=25, state="xyzyaw", seed=4)
 

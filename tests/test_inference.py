@@ -11,9 +11,9 @@ from workbench.inference import datadriven, refine, resting, stacking
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.context import MoveContext
 from workbench.inference.moves import MOVES, REGISTRY, MoveKind, MoveMix
+from workbench.inference.particles import Sigma, initial_particles
 from workbench.inference.relocate import random_relocations
 from workbench.inference.scenepoints import clusters, object_badness
-from workbench.particles import Sigma, initial_particles
 from workbench.pipeline import load_bop_problem
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL

@@ -14,7 +14,7 @@ from workbench.errors import InputError
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.inference.config import EstimatorConfig
-from workbench.particles import Sigma
+from workbench.inference.particles import Sigma
 from workbench.physics import PhysicsConfig
 from workbench.pipeline import load_bop_problem
 from workbench.problem import ProblemConfig

@@ -14,7 +14,7 @@ from workbench.checks import check_count, check_estimator_config, check_problem_
 from workbench.errors import InputError
 from workbench.inference.config import METHODS, EstimatorConfig
 from workbench.inference.moves import PROPOSALS
-from workbench.particles import STATES, Sigma
+from workbench.inference.particles import STATES, Sigma
 from workbench.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
 

@@ -52,9 +52,9 @@ from workbench.evaluation import Evaluator
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.filter import IterationReport
 from workbench.inference.moves import MoveKind, MoveMix
+from workbench.inference.particleset import ParticleSet
 from workbench.io import bop
 from workbench.io.bop import _atomic_write
-from workbench.particleset import ParticleSet
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 

@@ -16,7 +16,7 @@ from workbench.app.sessions_panel import SessionsTab, build_sessions_tab
 from workbench.app.views import HEATMAP_MODES, SCENE_MODES
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
-from workbench.particles import Sigma
+from workbench.inference.particles import Sigma
 
 METHOD_LABELS = {"PI-PF": "pipf", "PI-MCPF": "mcpf"}
 LIKELIHOODS = ("robust", "ssd")

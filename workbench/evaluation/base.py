@@ -17,7 +17,7 @@ import numpy as np
 
 from workbench.checks import check_rigid
 from workbench.errors import InputError
-from workbench.particleset import Rows
+from workbench.inference.particleset import Rows
 from workbench.problem import Problem
 from workbench.scene import Table
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.inference.moves import PROPOSALS, MoveMix
-from workbench.particles import STATES, Sigma
+from workbench.inference.particles import STATES, Sigma
 
 METHODS = ("pipf", "mcpf")
 

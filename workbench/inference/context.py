@@ -10,9 +10,9 @@ import numpy as np
 
 from workbench.inference import assemble, resting
 from workbench.inference.datadriven import Library
+from workbench.inference.particles import Sigma
 from workbench.inference.proposal import Proposal
 from workbench.inference.scenepoints import ModelSamples, ScenePoints, model_samples, observed_points
-from workbench.particles import Sigma
 from workbench.problem import Problem
 
 

@@ -25,9 +25,9 @@ from workbench.inference import assemble, datadriven, gaussian, polish, settle
 from workbench.inference.context import MoveContext, SearchGeometry
 from workbench.inference.filter import ParticleFilter, Proposed, Settled
 from workbench.inference.moves import REGISTRY, MoveKind
+from workbench.inference.particles import initial_particles
+from workbench.inference.particleset import ParticleSet
 from workbench.inference.scenepoints import clusters, object_badness, unexplained
-from workbench.particles import initial_particles
-from workbench.particleset import ParticleSet
 from workbench.problem import Problem
 from workbench.render.depth import DepthRenderer
 

@@ -10,7 +10,7 @@ import numpy as np
 from workbench.inference import gaussian
 from workbench.inference.filter import ParticleFilter, Proposed, Settled
 from workbench.inference.moves import MoveKind
-from workbench.particles import initial_particles
+from workbench.inference.particles import initial_particles
 
 
 class PaperSearch:
