@@ -24,12 +24,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from workbench.bench.tables import machine
 from workbench.evaluation.ray import RayConfig, connect, disconnect
 from workbench.inference.config import EstimatorConfig
 from workbench.problem import ProblemConfig
 from workbench.runner import estimate_frames
 from workbench.synth import make_scenes
-from workbench.tables import machine
 
 
 def load() -> str:

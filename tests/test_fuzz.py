@@ -24,8 +24,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench import sessions, tables
+from workbench import sessions
 from workbench.app.engine import DEMO_DIR
+from workbench.bench import tables
 from workbench.errors import InputError
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from test_cli import _workbench
 
+from workbench.bench.scoring import match, score_results
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
-from workbench.scoring import match, score_results
 
 pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)
 

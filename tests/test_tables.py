@@ -8,9 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from workbench.io.bop import read_results_csv
-from workbench.scene import ObjectModel
-from workbench.tables import (
+from workbench.bench.tables import (
     PAPER_EVALUATIONS,
     budget_for,
     goal_checks,
@@ -20,6 +18,8 @@ from workbench.tables import (
     table_one,
     table_two,
 )
+from workbench.io.bop import read_results_csv
+from workbench.scene import ObjectModel
 
 pytestmark = pytest.mark.slow  # needs whole benchmarks: pybullet and OpenGL
 

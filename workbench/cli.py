@@ -126,8 +126,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
+    from workbench.bench.scoring import report, score_results
     from workbench.io import bop
-    from workbench.scoring import report, score_results
 
     if not args.dataset.is_dir():
         raise InputError(args.dataset, "no such dataset folder")
@@ -209,7 +209,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if getattr(args, name) is not None:
             check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1)
     if args.speed:
-        from workbench.speed import run_speed_benchmark
+        from workbench.bench.speed import run_speed_benchmark
 
         if args.engine != "local":
             raise InputError("--engine", "--speed measures this machine's evaluation speed: it runs locally only")
@@ -218,7 +218,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats,
                             dataset=args.dataset)
         return 0
-    from workbench.tables import run_benchmark
+    from workbench.bench.tables import run_benchmark
 
     ray = ray_config(args)
     if args.dataset is None:

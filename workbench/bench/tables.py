@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 from tqdm import tqdm
 
-from workbench.baseline import estimate_icp_fits
+from workbench.bench.baseline import estimate_icp_fits
 from workbench.errors import InputError
 from workbench.estimators import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator

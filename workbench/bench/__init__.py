@@ -1,0 +1,3 @@
+"""Measuring the estimator: the paper's Tables I and II over a generated suite (``tables``, `workbench bench`), the speed
+of each stage (``speed``, `bench --speed`), a results CSV scored against the ground truth (``scoring``, `workbench
+score`), and the paper's ICP baseline (``baseline``)."""
