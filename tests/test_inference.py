@@ -466,7 +466,7 @@ def test_an_object_lying_on_another_gets_a_start_at_its_place():
     small = trimesh.creation.box((0.10, 0.09, 0.035))
     rest = resting.resting_poses(small)
     hull = np.asarray(small.convex_hull.vertices)
-    starts, place = datadriven._starts(cluster, rest, hull, float(np.max(np.linalg.norm(hull[:, :2], axis=1))))
+    starts, place = datadriven.icp_starts(cluster, rest, hull, float(np.max(np.linalg.norm(hull[:, :2], axis=1))))
     truth = make_pose(np.eye(3), np.array([0.0, 0.0, 0.075 + 0.0175]))
     S = np.stack(starts)
     near = np.linalg.norm(S[:, :3, 3] - truth[:3, 3], axis=1) < 0.01

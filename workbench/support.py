@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from .errors import InputError
-from .geometry import invert_pose, make_pose, transform_points
-from .scene import Camera, Frame, Table
+from workbench.errors import InputError
+from workbench.geometry import invert_pose, make_pose, transform_points
+from workbench.scene import Camera, Frame, Table
 
 log = logging.getLogger(__name__)
 

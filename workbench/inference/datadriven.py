@@ -222,9 +222,9 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
 def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.ndarray, rest: RestingPoses,
                        samples: ModelSamples, hull: np.ndarray) -> list[tuple[float, np.ndarray]]:
     """One object's scored candidates (score, pose (4, 4)) fitted at one ``cluster`` (P, 3): the best
-    PER_CENTRE distinct ones of each start place (``_starts``), place by place."""
+    PER_CENTRE distinct ones of each start place (``icp_starts``), place by place."""
     reach = float(np.max(np.linalg.norm(hull[:, :2], axis=1)))
-    starts, place = _starts(cluster, rest, hull, reach)
+    starts, place = icp_starts(cluster, rest, hull, reach)
     if not starts:
         return []
     starts = np.stack(starts)
@@ -250,7 +250,7 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.nda
     return out
 
 
-def _starts(cluster: np.ndarray, rest: RestingPoses, hull: np.ndarray, reach: float
+def icp_starts(cluster: np.ndarray, rest: RestingPoses, hull: np.ndarray, reach: float
             ) -> tuple[list[np.ndarray], list[int]]:
     """One object's ICP starts (4, 4) at one ``cluster`` (P, 3), and the start place of each:
     - at the cluster's centroid and spread points, on every face on which the object is no taller than the
