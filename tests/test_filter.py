@@ -1,7 +1,13 @@
 """The filter core, the particle set and the move registry, on a toy problem with a made-up likelihood (tests/toy.py):
 no physics, no rendering, exact and seeded. The fast tier: `pytest -m "not slow"`."""
 
+import os
+import re
+import shutil
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -183,3 +189,37 @@ def test_moves_that_need_no_observation_are_valid_seeded_and_move_something(toy,
     assert np.allclose(np.swapaxes(R, -1, -2) @ R, np.eye(3), atol=1e-9)
     assert not np.array_equal(a.hypotheses, parents)
     assert np.array_equal(make_pose(np.eye(3), [0, 0, 0])[3], a.hypotheses[0, 0, 3])
+
+
+def test_the_readme_example_kind_is_one_module_and_one_registry_line(tmp_path):
+    """README's "Adding a move kind", done to a copy of the package: the module as printed there, its name added to
+    moves.py's import and its line to MOVES. The kind then has its code, its default share and proposes."""
+    root = Path(__file__).resolve().parents[1]
+    example = re.search(r"```python\n# workbench/inference/spin.py\n(.*?)```", (root / "README.md").read_text(), re.S)
+    package = tmp_path / "workbench"
+    shutil.copytree(root / "workbench", package, ignore=shutil.ignore_patterns("__pycache__"))
+    (package / "inference" / "spin.py").write_text(example.group(1))
+    moves = package / "inference" / "moves.py"
+    text = moves.read_text()
+    for old, new in (("from workbench.inference import kinds\n", "from workbench.inference import kinds, spin\n"),
+                     ("    kinds.Relocate(),\n)", "    kinds.Relocate(),\n    spin.Spin(),\n)")):
+        assert old in text
+        text = text.replace(old, new)
+    moves.write_text(text)
+    check = """
+import numpy as np
+from toy import toy_problem, toy_target
+from workbench.inference.context import MoveContext
+from workbench.inference.moves import REGISTRY, MoveKind, MoveMix
+from workbench.inference.particles import Sigma
+assert MoveKind.SPIN == 13 and MoveKind(13).label == "spin" and MoveMix().as_dict()["spin"] == 0.05
+problem = toy_problem()
+parents = np.repeat(toy_target(problem)[None], 8, axis=0)
+ctx = MoveContext(problem, None, None, Sigma(), "6dof", "pipf", choose=np.ones(2), scales=np.ones(2))
+p = REGISTRY[13].propose(np.random.default_rng(0), parents, ctx)
+assert p.hypotheses.shape == parents.shape and not np.array_equal(p.hypotheses, parents)
+print("spin ok")
+"""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(root / "tests")])}
+    done = subprocess.run([sys.executable, "-c", check], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.stdout.strip() == "spin ok", done.stderr

@@ -5,7 +5,7 @@ Conventions (see README, "Conventions"):
 - Lengths are metres, angles radians.
 - Euler angles are (roll, pitch, yaw), extrinsic about the table's x, y, z axes:
   ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
-- Quaternions are (w, x, y, z), as viser uses. pybullet's (x, y, z, w) appears only in ``physics.py``.
+- Quaternions are (w, x, y, z), as viser uses. pybullet's (x, y, z, w) appears only in ``physics/world.py``.
 All functions accept leading batch dimensions ``(...)``.
 """
 

@@ -38,7 +38,7 @@ class Outbox:
 
 def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
     """Entry point of the spawned process. ``results``: the writing end of a one-way pipe; ``ray``: a
-    distributed.RayConfig to evaluate on Ray actors."""
+    evaluation.ray.RayConfig to evaluate on Ray actors."""
     # Ctrl-C in a terminal reaches the whole process group; the server shuts this process down in order instead.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="engine: %(message)s")

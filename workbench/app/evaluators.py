@@ -23,7 +23,7 @@ class Evaluators:
     def __init__(self, results, workers: int, ray=None):
         self.results = results
         self.workers = workers
-        self.ray = ray  # a distributed.RayConfig: evaluate on Ray actors; None: here or on local processes
+        self.ray = ray  # a evaluation.ray.RayConfig: evaluate on Ray actors; None: here or on local processes
         self.problem = None
         self.pool = None
         self.explainer = None  # a LocalEvaluator in this process, for one particle's per-pixel likelihood

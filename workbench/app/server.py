@@ -328,7 +328,7 @@ def serve(
     """Start the workbench on ``host:port`` (localhost unless told otherwise) with ``dataset``'s frame, or the demo
     (``demo``, or no dataset), or continuing the saved ``session`` (a session JSON file). Sessions are saved to and
     listed from ``sessions_dir`` (default: the session's folder, else ./sessions). ``block``: serve until Ctrl-C
-    and then stop; else return the handle at once. ``ray`` (a distributed.RayConfig): evaluate each batch on
+    and then stop; else return the handle at once. ``ray`` (a evaluation.ray.RayConfig): evaluate each batch on
     ``workers`` Ray actors instead of local processes, with the same results.
 
     A session continues bit for bit only with the worker count it was saved with (``workers``; the command line
