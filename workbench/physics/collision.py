@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from workbench import cache
 from workbench.errors import InputError
 from workbench.geometry import make_pose
 from workbench.physics.bullet import pybullet
@@ -44,7 +45,7 @@ VHACD_PARAMS = {"resolution": 100000, "maxNumVerticesPerCH": 24, "concavity": 0.
 # The unsimplified yardstick: V-HACD as fine as it reasonably goes.
 VHACD_REFERENCE_PARAMS = {"resolution": 400000, "maxNumVerticesPerCH": 256, "concavity": 0.001}
 # Bump when the choice or the fit measurement changes: old cache files are then ignored.
-_CACHE_VERSION = 3
+_CACHE_VERSION = 4  # 4: files carry a checksum (workbench.cache)
 _FIT_SAMPLES = 4000
 
 
@@ -293,29 +294,29 @@ def _cached(key: str, cache_dir, compute) -> CollisionShape:
     if key in _MEMORY_CACHE:
         return _MEMORY_CACHE[key]
     path = Path(cache_dir or default_cache_dir()) / f"{key}.npz"
-    shape = None
-    if path.exists():
-        try:
-            with np.load(path) as data:
-                shape = CollisionShape(
-                    str(data["kind"]), data["T_obj_shape"],
-                    data["half_extents"] if data["half_extents"].size else None,
-                    tuple(data[f"part{i}"] for i in range(int(data["n_parts"]))),
-                    float(data["fit_volume"]), float(data["fit_deviation"]))
-        except (OSError, KeyError, ValueError):
-            shape = None  # a damaged or old cache file: recompute and overwrite it
+    shape = cache.load(path, _shape_from_arrays)
     if shape is None:
         shape = compute()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # Write then rename: worker processes may build the same shape at the same time.
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, kind=shape.kind, T_obj_shape=shape.T_obj_shape,
-                     half_extents=np.zeros(0) if shape.half_extents is None else shape.half_extents,
-                     n_parts=len(shape.parts), fit_volume=shape.fit_volume, fit_deviation=shape.fit_deviation,
-                     **{f"part{i}": p for i, p in enumerate(shape.parts)})
-        os.replace(tmp, path)
+        cache.save(path, dict(kind=np.array(shape.kind), T_obj_shape=shape.T_obj_shape,
+                              half_extents=np.zeros(0) if shape.half_extents is None else shape.half_extents,
+                              n_parts=np.array(len(shape.parts)), fit_volume=np.array(shape.fit_volume),
+                              fit_deviation=np.array(shape.fit_deviation),
+                              **{f"part{i}": p for i, p in enumerate(shape.parts)}))
     _MEMORY_CACHE[key] = shape
+    return shape
+
+
+def _shape_from_arrays(data: dict[str, np.ndarray]) -> CollisionShape:
+    """A cached shape's arrays -> the shape; ValueError when they do not make one."""
+    shape = CollisionShape(
+        str(data["kind"]), np.asarray(data["T_obj_shape"], dtype=np.float64).reshape(4, 4),
+        data["half_extents"] if data["half_extents"].size else None,
+        tuple(data[f"part{i}"] for i in range(int(data["n_parts"]))),
+        float(data["fit_volume"]), float(data["fit_deviation"]))
+    if shape.kind not in KINDS or not np.isfinite(shape.T_obj_shape).all():
+        raise ValueError(f"it holds no collision shape (kind {shape.kind!r})")
+    if any(np.asarray(p).ndim != 2 or np.asarray(p).shape[1] != 3 for p in shape.parts):
+        raise ValueError("its convex pieces are not (N, 3) vertex arrays")
     return shape
 
 

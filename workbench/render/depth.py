@@ -24,13 +24,13 @@ import hashlib
 import math
 import os
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from workbench import cache
 from workbench.errors import InputError
 from workbench.scene import Camera
 
@@ -127,27 +127,27 @@ def render_mesh(mesh: trimesh.Trimesh, max_error: float = 1e-3, cache_dir: str |
     h = hashlib.sha1()
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
-    h.update(repr((max_error, _MIN_FACES, _DEVIATION_PERCENTILE, _SAMPLES, "rays")).encode())
+    h.update(repr((max_error, _MIN_FACES, _DEVIATION_PERCENTILE, _SAMPLES, "rays", "checked")).encode())
     key = h.hexdigest()
     if key in _MESH_CACHE:
         return _MESH_CACHE[key]
     path = Path(cache_dir or default_cache_dir()) / f"{key}.npz"
-    simple = None
-    if path.exists():
-        try:
-            with np.load(path) as data:
-                simple = trimesh.Trimesh(data["vertices"], data["faces"], process=False)
-        except (OSError, KeyError, ValueError):
-            simple = None  # damaged: recompute and overwrite
+    simple = cache.load(path, _mesh_from_arrays)
     if simple is None:
         simple = _decimate_within(mesh, max_error)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")  # write then rename: workers race here
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, vertices=simple.vertices, faces=simple.faces)
-        os.replace(tmp, path)
+        cache.save(path, {"vertices": simple.vertices, "faces": simple.faces})
     _MESH_CACHE[key] = simple
     return simple
+
+
+def _mesh_from_arrays(data: dict[str, np.ndarray]) -> trimesh.Trimesh:
+    """A cached render mesh's arrays -> the mesh; ValueError when they do not make one."""
+    vertices, faces = np.asarray(data["vertices"], dtype=np.float64), np.asarray(data["faces"])
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3 or not len(faces):
+        raise ValueError("it holds no triangle mesh")
+    if not np.isfinite(vertices).all() or faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError("its mesh has non-finite vertices or faces indexing no vertex")
+    return trimesh.Trimesh(vertices, faces, process=False)
 
 
 def _decimate_within(mesh: trimesh.Trimesh, max_error: float) -> trimesh.Trimesh:
