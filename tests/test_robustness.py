@@ -93,3 +93,144 @@ def test_a_cache_that_cannot_be_written_is_a_warning_not_an_error(tmp_path, capl
     with caplog.at_level(logging.WARNING):
         cache.save(blocker / "below" / "a.npz", {"a": np.zeros(3)})
     assert "could not write the cache file" in caplog.text
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Results files: one run at a time, never a dataset's file, never another dataset's results, written whole
+
+import errno  # noqa: E402
+import hashlib  # noqa: E402
+import os  # noqa: E402
+import shutil  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from workbench.cli import DEMO_DATASET, main  # noqa: E402
+
+ROW = "0,0,5,1,1 0 0 0 1 0 0 0 1,0 0 500,1.0"
+
+
+@pytest.fixture
+def demo(tmp_path) -> Path:
+    out = tmp_path / "demo"
+    shutil.copytree(DEMO_DATASET, out)
+    return out
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _refused(capsys, argv, *words) -> str:
+    assert main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("workbench: error: ") and "Traceback" not in err, err
+    for w in words:
+        assert w in err, err
+    return err
+
+
+def _results(path: Path, *rows: str) -> Path:
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n" + "".join(r + "\n" for r in rows))
+    return path
+
+
+def test_a_second_run_on_the_same_out_is_refused_naming_the_first_runs_pid(demo, tmp_path, capsys):
+    out = _results(tmp_path / "same.csv", ROW)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from workbench.outputs import OutputLock; "
+                               f"OutputLock({str(out)!r}).acquire(); print('locked', flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        before = out.read_bytes()
+        _refused(capsys, ["estimate", demo, "--out", out, "--resume"], str(out), f"pid {holder.pid}",
+                 "another run")
+        _refused(capsys, ["estimate", demo, "--out", out, "--force"], f"pid {holder.pid}")
+        assert out.read_bytes() == before
+    finally:
+        holder.kill()
+        holder.wait()
+    # The lock dies with its process: the file can be written again.
+    from workbench.runner import ResultsFile
+
+    results = ResultsFile.open(out, resume=True)
+    results.close()
+
+
+def test_a_lock_is_released_and_taken_again_in_one_process(tmp_path):
+    from workbench.outputs import OutputLock
+    from workbench.errors import InputError
+
+    out = tmp_path / "r.csv"
+    with OutputLock(out):
+        with pytest.raises(InputError, match=f"pid {os.getpid()}"):
+            OutputLock(out).acquire()
+    with OutputLock(out):
+        pass
+    assert not (tmp_path / ".r.csv.lock").exists()
+
+
+def test_out_never_replaces_a_file_of_the_datasets_root_even_with_force(demo, capsys):
+    before = _digests(demo)
+    for name in ("camera.json", "scenes.json"):
+        _refused(capsys, ["estimate", demo, "--out", demo / name, "--force"], str(demo / name), "never replaced")
+    assert _digests(demo) == before
+
+
+def test_resume_refuses_the_results_of_another_dataset(demo, tmp_path, capsys):
+    out = _results(tmp_path / "other.csv", ROW, "7,3,5,1,1 0 0 0 1 0 0 0 1,0 0 500,1.0")
+    before = out.read_bytes()
+    _refused(capsys, ["estimate", demo, "--out", out, "--resume"], "line 3", "scene 7 image 3", "another dataset")
+    out = _results(tmp_path / "objects.csv", "0,0,42,1,1 0 0 0 1 0 0 0 1,0 0 500,1.0")
+    _refused(capsys, ["estimate", demo, "--out", out, "--resume"], "line 2", "object 42")
+    assert (tmp_path / "other.csv").read_bytes() == before
+
+
+def test_resume_names_a_cut_line_and_a_bom(demo, tmp_path, capsys):
+    out = _results(tmp_path / "cut.csv", ROW)
+    out.write_text(out.read_text() + "0,1,5,1,1 0 0")
+    _refused(capsys, ["estimate", demo, "--out", out, "--resume"], "line 3", "cannot be resumed")
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + _results(tmp_path / "plain.csv", ROW).read_bytes())
+    _refused(capsys, ["estimate", demo, "--out", bom, "--resume"], "byte order mark")
+
+
+def test_no_frames_in_a_split_is_said_without_none(demo, capsys):
+    err = _refused(capsys, ["estimate", demo, "--split", "models", "--out", demo.parent / "r.csv"])
+    assert "None" not in err
+
+
+def test_a_full_disk_keeps_the_old_results_and_says_so(tmp_path, monkeypatch):
+    from workbench.errors import InputError
+    from workbench.io.bop import ResultRow
+    from workbench.runner import ResultsFile
+
+    out = _results(tmp_path / "r.csv", ROW)
+    before = out.read_bytes()
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    results = ResultsFile(out, [ROW])
+    with pytest.raises(InputError, match="No space left on device.*kept"):
+        results.add([ResultRow(0, 1, 5, 1.0, np.eye(4), 1.0)])
+    assert out.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]
+
+
+def test_results_through_a_symlink_keep_the_link(tmp_path):
+    from workbench.io.bop import ResultRow
+    from workbench.runner import ResultsFile
+
+    target = _results(tmp_path / "real.csv", ROW)
+    link = tmp_path / "link.csv"
+    link.symlink_to(target)
+    results = ResultsFile.open(link, resume=True)
+    try:
+        results.add([ResultRow(0, 1, 5, 1.0, np.eye(4), 1.0)])
+    finally:
+        results.close()
+    assert link.is_symlink() and len(target.read_text().splitlines()) == 3

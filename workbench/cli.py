@@ -85,8 +85,7 @@ def problem_config(args: argparse.Namespace) -> ProblemConfig:
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
-    from workbench.io import bop
-    from workbench.runner import ResultsFile, check_results_out, estimate_frames
+    from workbench.runner import ResultsFile
 
     if args.dataset is None:
         raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
@@ -96,14 +95,28 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     check_problem_config(problem)
     check_workers(args.workers)
     ray = ray_config(args)
-    results = ResultsFile(args.out, check_results_out(args.out, force=args.force, resume=args.resume))
+    results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
+    try:
+        return _estimate_into(results, args, config, problem, ray)
+    finally:
+        results.close()
+
+
+def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, problem: ProblemConfig, ray) -> int:
+    """``estimate``'s frames, once its settings are checked and its results file is open."""
+    from workbench.io import bop
+    from workbench.runner import check_resumed, estimate_frames
+
     frames = bop.list_frames(args.dataset, split=args.split)
     if args.scene is not None:
         frames = [f for f in frames if f[0] == args.scene]
     if args.frame is not None:
         frames = [f for f in frames if f[1] == args.frame]
     if not frames:
-        raise InputError(args.dataset, f"no frame matches --scene {args.scene} --frame {args.frame}")
+        named = " ".join(f"--{k} {v}" for k, v in (("scene", args.scene), ("frame", args.frame)) if v is not None)
+        raise InputError(args.dataset, f"no frame matches {named}" if named else
+                         f"has no frames{f' in the split {args.split!r}' if args.split else ''} to estimate")
+    check_resumed(results, args.dataset, args.split)
     todo = [f for f in frames if f not in results.done()]
     if len(todo) < len(frames):
         print(f"resuming: {len(frames) - len(todo)} of {len(frames)} frame(s) already in {args.out}", file=sys.stderr)

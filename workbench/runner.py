@@ -26,6 +26,7 @@ from workbench.frames import Frame, FrameFailure, run_frames
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.io.bop import ResultRow
+from workbench.outputs import OutputLock, check_output_file, dataset_folder_of, write_file  # noqa: F401 (dataset_folder_of: for callers)
 from workbench.pipeline import load_bop_problem, result_rows
 from workbench.problem import Problem, ProblemConfig
 
@@ -123,15 +124,6 @@ def estimate_frames(
     return rows
 
 
-def dataset_folder_of(path: Path) -> Path | None:
-    """The scene or models folder of a BOP dataset that ``path`` (resolved) lies in, if any: a folder holding
-    scene_camera.json or models_info.json, or a depth/rgb/mask folder below one."""
-    for folder in Path(path).resolve().parents:
-        if (folder / "scene_camera.json").is_file() or (folder / "models_info.json").is_file():
-            return folder
-    return None
-
-
 def check_results_out(out: Path, force: bool = False, resume: bool = False) -> list[str]:
     """Check, before any work, that ``estimate`` may write its results CSV at ``out`` -> the data lines already
     there to keep as they are (``resume``; else none). Refused with InputError: a folder, a path below a file, an unwritable place,
@@ -140,39 +132,50 @@ def check_results_out(out: Path, force: bool = False, resume: bool = False) -> l
     out = Path(out)
     if force and resume:
         raise InputError("--resume", "--resume keeps the results in --out and --force replaces the file: pass one")
-    target = out.resolve()
-    inside = dataset_folder_of(target)
-    if inside is not None:
-        raise InputError(out, f"lies in the dataset folder {inside}: results are never written among a dataset's "
-                              "scenes or models; choose an --out outside them")
-    if target.is_dir():
-        raise InputError(out, "is a folder: name a file for the results, e.g. results.csv")
-    folder = target.parent
-    while not folder.exists():
-        folder = folder.parent
-    if not folder.is_dir():
-        raise InputError(out, f"{folder} is a file, not a folder: the results cannot be written below it")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(out, f"no permission to write in {folder}")
-    if not target.exists():
+    exists = check_output_file(out, ours=_is_results_csv, force=force or resume, what="a results CSV",
+                               flag="--out")
+    if not exists:
         return []
-    if not target.is_file():
-        raise InputError(out, "is not a regular file: choose another --out")
-    if not os.access(target, os.W_OK):
-        raise InputError(out, "no permission to replace this file")
+    target = out.resolve()
+    if not resume:
+        return []
+    text = target.read_text(encoding="utf-8", errors="replace")
+    if text.startswith("\ufeff"):
+        raise InputError(out, "starts with a UTF-8 byte order mark (BOM): it was saved by another program; remove "
+                              "the BOM or start a new --out")
+    if not text.startswith(",".join(bop.RESULTS_HEADER)):
+        raise InputError(out, "is not a results CSV written by `workbench estimate`: there is nothing to resume")
     try:
         bop.read_results_csv(target)
-        ours = [line for line in target.read_text().splitlines()[1:] if line.strip()]
-    except (InputError, OSError, UnicodeDecodeError):
-        ours = None
-    if resume:
-        if ours is None:
-            raise InputError(out, "is not a results CSV written by `workbench estimate`: there is nothing to resume")
-        return ours
-    if ours is None and not force:
-        raise InputError(out, "exists and is not a results CSV written by `workbench estimate`; it was left as it "
-                              "is. Choose another --out, or pass --force to replace it")
-    return []
+    except InputError as err:
+        raise InputError(out, f"cannot be resumed: {err.problem}. Its good lines are kept as they are; fix or "
+                              "remove the bad line (e.g. one cut short when a run was killed), then --resume "
+                              "again") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(out, f"is not a results CSV written by `workbench estimate` ({err}): there is nothing to "
+                              "resume") from None
+    return [line for line in text.splitlines()[1:] if line.strip()]
+
+
+def check_resumed(results: "ResultsFile", dataset: Path, split: str | None = None) -> None:
+    """The frames and objects already in a resumed results file are the dataset's: InputError naming the file when
+    a row's frame is not in ``dataset`` or its object is not among its models (a CSV of another dataset)."""
+    if not results.lines:
+        return
+    frames = set(bop.list_frames(dataset, split=split))
+    models = bop.model_ids(dataset)
+    for n, line in enumerate(results.lines, start=2):
+        scene_id, im_id, obj_id = (int(v) for v in line.split(",", 3)[:3])
+        if (scene_id, im_id) not in frames or obj_id not in models:
+            what = (f"scene {scene_id} image {im_id}" if (scene_id, im_id) not in frames else f"object {obj_id}")
+            raise InputError(results.path, f"line {n} holds {what}, which {dataset} does not have: these results "
+                                           "were made on another dataset; choose another --out (the file was "
+                                           "left as it is)")
+
+
+def _is_results_csv(path: Path) -> bool:
+    bop.read_results_csv(path)
+    return True
 
 
 class ResultsFile:
@@ -180,9 +183,27 @@ class ResultsFile:
     finished frame, in frame order, and nothing half-written. Lines kept from an earlier run (``lines``, checked
     by ``check_results_out``) stay exactly as they were."""
 
-    def __init__(self, path: Path, lines: list[str] | None = None):
+    def __init__(self, path: Path, lines: list[str] | None = None, lock: OutputLock | None = None):
         self.path = Path(path)
         self.lines = list(lines or [])
+        self.lock = lock
+
+    @classmethod
+    def open(cls, path: Path, force: bool = False, resume: bool = False) -> "ResultsFile":
+        """The results file of a run at ``path``, checked (``check_results_out``) and locked for this run
+        (``outputs.OutputLock``: another run writing the same file is refused, naming its pid) until ``close``."""
+        check_results_out(path, force=force, resume=resume)  # first: the folder exists and may be written
+        lock = OutputLock(path).acquire()
+        try:
+            return cls(path, check_results_out(path, force=force, resume=resume), lock)  # as it is now, locked
+        except BaseException:
+            lock.release()
+            raise
+
+    def close(self) -> None:
+        """Let other runs write the file."""
+        if self.lock is not None:
+            self.lock.release()
 
     @staticmethod
     def _frame(line: str) -> tuple[int, int]:
@@ -194,5 +215,6 @@ class ResultsFile:
         return {self._frame(line) for line in self.lines}
 
     def add(self, rows: list[ResultRow]) -> None:
-        self.lines = sorted(self.lines + bop.results_csv_lines(rows), key=self._frame)
-        bop.write_results_lines(self.path, self.lines)
+        lines = sorted(self.lines + bop.results_csv_lines(rows), key=self._frame)
+        write_file(self.path, "".join(f"{line}\n" for line in [",".join(bop.RESULTS_HEADER), *lines]))
+        self.lines = lines

@@ -68,7 +68,10 @@ def read_json(path: Path) -> dict | list:
 
 def _atomic_write(path: Path, data: bytes) -> None:
     """Write through a temporary file in the same folder so readers never see a half-written file. A replaced
-    file keeps its permissions; a new one gets those a plain open() would give it."""
+    file keeps its permissions; a new one gets those a plain open() would give it. A symbolic link stays one: its
+    target is written."""
+    if path.is_symlink():
+        path = path.resolve()
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -438,9 +441,10 @@ def load_models(
         path = models_dir / f"obj_{obj_id:06d}.ply"
         mesh = read_mesh(path, MM)
         if not 0.003 <= mesh.extents.max() <= 3.0:
+            hint = ("is this file in metres?" if mesh.extents.max() < 0.003 else
+                    "far larger than an object on a table: is it in micrometres, or scaled up?")
             raise InputError(
-                path, f"object is {mesh.extents.max() * 1000:g} mm across; BOP models are in millimetres "
-                "(is this file in metres?)"
+                path, f"object is {mesh.extents.max() * 1000:g} mm across; BOP models are in millimetres ({hint})"
             )
         models[obj_id] = ObjectModel(
             obj_id=obj_id,
@@ -452,6 +456,12 @@ def load_models(
             source=path,
         )
     return models
+
+
+def model_ids(dataset: Path) -> set[int]:
+    """The obj_ids of a dataset's models (its models_info.json)."""
+    info_path = _models_dir(Path(dataset)) / "models_info.json"
+    return set(_object_ids(read_json(info_path), info_path))
 
 
 def _object_ids(info, path: Path) -> list[int]:
