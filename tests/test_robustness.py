@@ -234,3 +234,87 @@ def test_results_through_a_symlink_keep_the_link(tmp_path):
     finally:
         results.close()
     assert link.is_symlink() and len(target.read_text().splitlines()) == 3
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Every other file a command writes: score --json, bench --out, sessions
+
+
+def test_score_json_gets_the_guards_of_every_output(demo, tmp_path, capsys):
+    results = _results(tmp_path / "results.csv", ROW)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    before, dataset = results.read_bytes(), _digests(demo)
+    _refused(capsys, ["score", demo, results, "--json", results], "results CSV being scored")
+    _refused(capsys, ["score", demo, results, "--json", notes], "notes.txt", "--force")
+    gt = demo / "test" / "000000" / "scene_gt.json"
+    _refused(capsys, ["score", demo, results, "--json", gt, "--force"], "dataset folder")
+    _refused(capsys, ["score", demo, results, "--json", demo / "camera.json", "--force"], "never replaced")
+    _refused(capsys, ["score", demo, results, "--json", tmp_path], "is a folder")
+    _refused(capsys, ["score", demo, results, "--json", "/dev/full"], "not a regular file")
+    assert results.read_bytes() == before and notes.read_text() == "my notes\n" and _digests(demo) == dataset
+    scores = tmp_path / "scores.json"
+    assert main(["score", str(demo), str(results), "--json", str(scores)]) == 0
+    assert main(["score", str(demo), str(results), "--json", str(scores)]) == 0  # ours: replaced
+    assert main(["score", str(demo), str(results), "--json", str(notes), "--force"]) == 0
+    capsys.readouterr()
+
+
+def test_score_json_on_a_full_disk_is_an_error_naming_it(demo, tmp_path, capsys, monkeypatch):
+    results = _results(tmp_path / "results.csv", ROW)
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    _refused(capsys, ["score", demo, results, "--json", tmp_path / "s.json"], "s.json", "No space left")
+    assert not (tmp_path / "s.json").exists()
+
+
+def test_bench_out_replaces_only_what_bench_wrote(demo, tmp_path, capsys):
+    out = tmp_path / "bench-out"
+    out.mkdir()
+    (out / "report.md").write_text("my report\n")
+    _refused(capsys, ["bench", demo, "--out", out], "report.md", "move the file away")
+    (out / "report.md").unlink()
+    (out / "results_pipf.csv").write_text("mine\n")
+    _refused(capsys, ["bench", demo, "--out", out, "--methods", "pipf"], "results_pipf.csv")
+    assert (out / "results_pipf.csv").read_text() == "mine\n"
+    _refused(capsys, ["bench", demo, "--out", demo / "scenes.json"], "is a file")
+
+
+def test_sessions_are_saved_only_where_a_session_may_be(demo, tmp_path):
+    from workbench.errors import InputError
+    from workbench.sessions import check_sessions_dir, save_session
+
+    (tmp_path / "a_file").write_text("x")
+    for bad, words in [(tmp_path / "a_file", "is a file"), (tmp_path / "a_file" / "below", "is a file"),
+                       (demo / "test" / "000000" / "sessions", "dataset folder"),
+                       (demo / "models" / "s", "dataset folder")]:
+        with pytest.raises(InputError, match=words):
+            check_sessions_dir(bad)
+        with pytest.raises(InputError, match=words):
+            save_session(bad, "run", None)
+    (tmp_path / "mine.json").write_text('{"my": "notes"}')
+    with pytest.raises(InputError, match="not a session file"):
+        save_session(tmp_path, "mine", None, overwrite=True)
+    assert (tmp_path / "mine.json").read_text() == '{"my": "notes"}'
+
+
+def test_serve_refuses_a_session_whose_dataset_is_gone(demo, tmp_path, capsys, monkeypatch):
+    from types import SimpleNamespace
+
+    from workbench import sessions
+    from workbench.app import server
+
+    state = SimpleNamespace(frame=SimpleNamespace(dataset=str(tmp_path / "gone"), files={"x.json": "0"}))
+    monkeypatch.setattr(sessions, "load_session", lambda path: state)
+    served = []
+    monkeypatch.setattr(server, "serve", lambda **kw: served.append(kw))
+    session = tmp_path / "s.json"
+    session.write_text("{}")
+    _refused(capsys, ["serve", "--session", session], str(session), "dataset folder not found")
+    state.frame.dataset = str(demo)
+    _refused(capsys, ["serve", "--session", session], "x.json: missing")
+    _refused(capsys, ["serve", "--demo", "--sessions-dir", demo / "models"], "dataset folder")
+    assert not served

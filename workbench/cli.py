@@ -144,6 +144,12 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
     if not args.dataset.is_dir():
         raise InputError(args.dataset, "no such dataset folder")
+    if args.json is not None:  # before any scoring: --json gets the guards of every file a command writes
+        from workbench.outputs import check_output_file
+
+        if args.json.resolve() == args.results.resolve():
+            raise InputError(args.json, "is the results CSV being scored: --json names another file")
+        check_output_file(args.json, ours=_is_score_json, force=args.force, what="a score JSON", flag="--json")
     frames = score_results(args.dataset, bop.read_results_csv(args.results), split=args.split,
                            results_path=args.results)
     print("\n".join(report(frames)))
@@ -152,9 +158,19 @@ def _cmd_score(args: argparse.Namespace) -> int:
         # NaN is not JSON: an object without an estimate has null errors
         objects = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in o.items()}
                    for o in objects]
-        args.json.write_text(json.dumps({"dataset": str(args.dataset), "results": str(args.results),
-                                         "objects": objects}, indent=1))
+        from workbench.outputs import write_file
+
+        write_file(args.json, json.dumps({"dataset": str(args.dataset), "results": str(args.results),
+                                          "objects": objects}, indent=1))
     return 0
+
+
+def _is_score_json(path: Path) -> bool:
+    """A file `workbench score --json` wrote."""
+    import json
+
+    document = json.loads(path.read_text())
+    return isinstance(document, dict) and set(document) == {"dataset", "results", "objects"}
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -170,7 +186,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     if args.session is not None:
         from workbench.sessions import load_session
 
-        load_session(args.session)  # a bad session file is an input error here, before any server starts
+        state = load_session(args.session)  # a bad session file is an input error here, before any server starts
+        _check_session_frame(args.session, state)
         if args.dataset is not None or args.demo:
             raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
         if run:
@@ -178,12 +195,27 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                              + ", ".join(f"--{k}" for k in run) + " with it")
     elif dataset != DEMO_DATASET:
         _check_frame_exists(dataset, args.scene, args.frame)
+    if args.sessions_dir is not None:
+        from workbench.sessions import check_sessions_dir
+
+        check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
     config.validate()  # before any server starts
     check_estimator_config(config)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
           session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
     return 0
+
+
+def _check_session_frame(session: Path, state) -> None:
+    """The dataset files a session was made from are all there (changed ones are the app's question: load anyway?);
+    InputError naming the session and the first missing file otherwise, before any server starts."""
+    from workbench.sessions import check_dataset
+
+    missing = [p for p in check_dataset(state) if p.endswith(("missing", "dataset folder not found"))]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise InputError(session, f"the frame it was saved on can no longer be loaded: {missing[0]}{more}")
 
 
 def _check_frame_exists(dataset: Path, scene_id: int | None, im_id: int | None) -> None:
@@ -236,7 +268,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     ray = ray_config(args)
     if args.dataset is None:
         raise InputError(None, "name a dataset made by `workbench make-scenes`, or pass --speed")
-    _check_bench_out(args.out)
+    _check_bench_out(args.out, [m.strip() for m in args.methods.split(",")])
     categories = None if args.categories is None else [c.strip() for c in args.categories.split(",")]
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
@@ -245,15 +277,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_bench_out(out: Path) -> None:
-    """``bench --out`` is a folder of our tables and CSVs: never a file, never inside a dataset's folders."""
-    from workbench.runner import dataset_folder_of
+def _check_bench_out(out: Path, methods: list[str]) -> None:
+    """``bench --out`` is a folder of our tables and CSVs: never a file, never inside a dataset's folders, and the
+    files it writes there replace only those an earlier bench wrote (the guards of every output file)."""
+    from workbench.bench.tables import is_report_json, is_report_md
+    from workbench.outputs import check_output_file
+    from workbench.runner import _is_results_csv, dataset_folder_of
 
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file: --out names the folder the tables are written to")
     inside = dataset_folder_of(out / "x")
     if inside is not None:
         raise InputError(out, f"lies in the dataset folder {inside}: choose an --out outside the dataset")
+    for name, ours in [("report.md", is_report_md), ("report.json", is_report_json),
+                       *((f"results_{m}.csv", _is_results_csv) for m in methods)]:
+        check_output_file(out / name, ours=ours, what="a file `workbench bench` wrote", flag="--out", can_force=False)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -282,6 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("results", type=Path, help="BOP results CSV (e.g. from `workbench estimate`)")
     p.add_argument("--split", default=None, help="split folder (default: test, or the only one)")
     p.add_argument("--json", type=Path, default=None, help="also write every object's errors to this JSON file")
+    p.add_argument("--force", action="store_true", help="replace --json even if it is not a score JSON of ours")
     p.set_defaults(func=_cmd_score)
 
     p = sub.add_parser("serve", help="the browser workbench")

@@ -58,7 +58,7 @@ def is_datasets_own_file(path: Path) -> bool:
 
 
 def check_output_file(path: Path, ours: Callable[[Path], bool] | None = None, force: bool = False,
-                      what: str = "the output", flag: str = "--out") -> bool:
+                      what: str = "the output", flag: str = "--out", can_force: bool = True) -> bool:
     """Check, before any work, that a command may write the file ``path`` -> whether it exists (and is ours, or
     ``force``). InputError naming ``path``, and nothing written, when it may not: see the module doc. ``ours(p)``
     says whether an existing file is one this command wrote (default: none is)."""
@@ -88,8 +88,8 @@ def check_output_file(path: Path, ours: Callable[[Path], bool] | None = None, fo
         raise InputError(path, f"is a file of the dataset {dataset_root_of(target) or target.parent}: it is never "
                                f"replaced, not even with --force; choose another {flag}")
     if not mine and not force:
-        raise InputError(path, f"exists and is not {what} of this command; it was left as it is. Choose another "
-                               f"{flag}, or pass --force to replace it")
+        raise InputError(path, f"exists and is not {what}; it was left as it is. Choose another {flag}"
+                               + (", or pass --force to replace it" if can_force else ", or move the file away"))
     return True
 
 

@@ -132,7 +132,7 @@ def check_results_out(out: Path, force: bool = False, resume: bool = False) -> l
     out = Path(out)
     if force and resume:
         raise InputError("--resume", "--resume keeps the results in --out and --force replaces the file: pass one")
-    exists = check_output_file(out, ours=_is_results_csv, force=force or resume, what="a results CSV",
+    exists = check_output_file(out, ours=_is_results_csv, force=force or resume, what="a results CSV written by `workbench estimate`",
                                flag="--out")
     if not exists:
         return []

@@ -36,6 +36,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import re
 import typing
 import zipfile
@@ -54,7 +55,7 @@ from workbench.inference.filter import IterationReport
 from workbench.inference.moves import MoveKind, MoveMix
 from workbench.inference.particleset import ParticleSet
 from workbench.io import bop
-from workbench.io.bop import _atomic_write
+from workbench.outputs import check_output_file, dataset_folder_of, write_file
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
@@ -282,11 +283,15 @@ def save_session(directory: Path, name: str, state: SessionState, overwrite: boo
     that name is replaced only with ``overwrite``; until the new JSON is in place the old session stays whole.
     Assumes one writer per folder (the app): the existence check and the write are not one atomic step."""
     json_path = session_path(directory, name)
+    check_sessions_dir(directory)
     old_arrays = None
     if json_path.exists():
         if not overwrite:
             raise InputError(json_path, f"a session named {name!r} exists; choose another name or overwrite it")
         old_arrays = _own_arrays_file(json_path, name)
+    # The guards of every file a command writes: only a session file of ours is replaced, even when overwriting.
+    check_output_file(json_path, ours=lambda p: _own_arrays_file(p, name) is not None, force=False,
+                      what="a session file", flag="session name", can_force=False)
     arrays = _arrays(state)
     npz = _npz_bytes(arrays)
     digest = hashlib.sha256(npz).hexdigest()
@@ -294,11 +299,30 @@ def save_session(directory: Path, name: str, state: SessionState, overwrite: boo
     document = _document(state, arrays, {"file": npz_name, "bytes": len(npz), "sha256": digest})
     # Encode before writing anything, so that an unserialisable value leaves the folder as it was.
     text = json.dumps(document, indent=1, default=_json_default) + "\n"
-    _atomic_write(json_path.parent / npz_name, npz)
-    _atomic_write(json_path, text.encode())
+    write_file(json_path.parent / npz_name, npz)  # a full disk: InputError naming the file, the old session kept
+    write_file(json_path, text.encode())
     if old_arrays is not None and old_arrays != npz_name:
         (json_path.parent / old_arrays).unlink(missing_ok=True)
     return json_path
+
+
+def check_sessions_dir(directory: Path) -> None:
+    """Sessions may be saved in ``directory``: not a file, not below one, writable, not inside a dataset's scene or
+    models folder. InputError naming it otherwise (``serve`` checks its --sessions-dir so, before serving)."""
+    directory = Path(directory)
+    if directory.exists() and not directory.is_dir():
+        raise InputError(directory, "is a file: sessions are saved into a folder")
+    inside = dataset_folder_of(directory / "x")
+    if inside is not None:
+        raise InputError(directory, f"lies in the dataset folder {inside}: sessions are never saved among a "
+                                    "dataset's scenes or models")
+    folder = directory
+    while not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(directory, f"{folder} is a file, not a folder: sessions cannot be saved below it")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(directory, f"no permission to write in {folder}")
 
 
 def _own_arrays_file(json_path: Path, name: str) -> str | None:

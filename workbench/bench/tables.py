@@ -31,6 +31,7 @@ from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.io.bop import ResultRow
+from workbench.outputs import write_file
 from workbench.metrics import (
     add_s,
     closest_symmetric,
@@ -469,6 +470,17 @@ def truth_loglik(frame: Frame, problem: Problem, evaluator: Evaluator) -> float:
     return float(evaluator.evaluate(T_world_obj[None]).loglik[0])
 
 
+def is_report_json(path: Path) -> bool:
+    """A report.json that ``run_benchmark`` wrote."""
+    report = json.loads(Path(path).read_text())
+    return isinstance(report, dict) and {"table1", "table2", "runs", "objects"} <= set(report)
+
+
+def is_report_md(path: Path) -> bool:
+    """A report.md that ``run_benchmark`` wrote."""
+    return Path(path).read_text().startswith("# workbench bench: ")
+
+
 def build_report(settings: dict, objects: list[ObjectResult], runs: list[RunResult]) -> dict:
     """The tables from the per-object and per-run results -> report.json's content (``settings`` first)."""
     object_dicts = [asdict(o) for o in objects]
@@ -624,11 +636,12 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
         "failed_frames": [[*f.frame, f.problem] for f in failures],
     }
     report = build_report(settings_out, objects, runs)
-    out.mkdir(parents=True, exist_ok=True)
-    for method in methods:
-        bop.write_results_csv(out / f"results_{method}.csv", [row for r in done for row in r.rows[method]])
-    (out / "report.json").write_text(json.dumps(report, indent=1) + "\n")
+    for method in methods:  # each whole or not at all; a full disk is an InputError naming the file
+        lines = bop.results_csv_lines([row for r in done for row in r.rows[method]])
+        write_file(out / f"results_{method}.csv",
+                   "".join(f"{line}\n" for line in [",".join(bop.RESULTS_HEADER), *lines]))
+    write_file(out / "report.json", json.dumps(report, indent=1) + "\n")
     markdown = render_report(report)
-    (out / "report.md").write_text(markdown)
+    write_file(out / "report.md", markdown)
     print(markdown)
     return report
