@@ -318,3 +318,117 @@ def test_serve_refuses_a_session_whose_dataset_is_gone(demo, tmp_path, capsys, m
     _refused(capsys, ["serve", "--session", session], "x.json: missing")
     _refused(capsys, ["serve", "--demo", "--sessions-dir", demo / "models"], "dataset folder")
     assert not served
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A dead evaluation worker: started again, its part retried, one WARNING, the same results
+
+
+def toy_worker(problem):
+    """A worker's evaluator for the pool tests (module level: spawned workers import it by name): the toy
+    evaluator, which dies (exit code 9) in the middle of its first batch while $DIE_ONCE names a file that is not
+    there yet, once per such file."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from toy import ToyEvaluator, toy_target
+
+    evaluator = ToyEvaluator(problem, toy_target(problem))
+    marker = os.environ.get("DIE_ONCE")
+    evaluate = evaluator.evaluate
+
+    def dying(*args, **kwargs):
+        if marker and not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(9)
+        return evaluate(*args, **kwargs)
+
+    evaluator.evaluate = dying
+    return evaluator
+
+
+@pytest.fixture
+def toy_batch():
+    """The toy problem (tests/toy.py) and 12 hypotheses of it."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from toy import toy_problem
+
+    problem = toy_problem()
+    rng = np.random.default_rng(0)
+    hypotheses = np.tile(np.eye(4), (12, len(problem.models), 1, 1))
+    hypotheses[..., :2, 3] = rng.uniform(-0.1, 0.1, (12, len(problem.models), 2))
+    hypotheses[..., 2, 3] = 0.1
+    return problem, hypotheses
+
+
+def test_a_dead_pool_worker_is_restarted_and_its_batch_retried_with_the_same_results(toy_batch, tmp_path,
+                                                                                      monkeypatch, caplog):
+    from workbench.evaluation import PoolEvaluator
+
+    problem, hypotheses = toy_batch
+    expected = toy_worker(problem).evaluate(hypotheses)
+    monkeypatch.setenv("DIE_ONCE", str(tmp_path / "died"))
+    pool = PoolEvaluator(problem, 2, max_retries=1, factory=toy_worker)
+    try:
+        with caplog.at_level(logging.WARNING):
+            got = pool.evaluate(hypotheses)
+            again = pool.evaluate(hypotheses)  # the restarted worker stays
+    finally:
+        pool.close()
+    for result in (got, again):
+        np.testing.assert_array_equal(result.projected, expected.projected)
+        np.testing.assert_array_equal(result.loglik, expected.loglik)
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "died (exit code 9)" in warnings[0].getMessage()
+    assert "retry 1 of 1" in warnings[0].getMessage()
+
+
+def test_a_worker_that_keeps_dying_ends_after_max_retries(toy_batch):
+    from workbench.evaluation import PoolEvaluator, WorkerCrashed
+
+    problem, hypotheses = toy_batch
+    pool = PoolEvaluator(problem, 1, max_retries=0, factory=toy_worker)
+    try:
+        pool._procs[0].kill()
+        pool._procs[0].join()
+        with pytest.raises(WorkerCrashed, match="died"):
+            pool.evaluate(hypotheses)
+    finally:
+        pool.close()
+
+
+def test_workers_leave_quietly_when_the_main_process_is_gone(capfd):
+    from workbench.evaluation import pool
+
+    class Gone:
+        def recv(self):
+            return ("evaluate", np.zeros((0, 1, 4, 4)))
+
+        def send(self, value):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def close(self):
+            pass
+
+    class Quiet:
+        def __init__(self, problem):
+            pass
+
+        def evaluate(self, *args):
+            return None
+
+        def close(self):
+            pass
+
+    pool._worker(None, Gone(), Quiet)  # returns, no traceback
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_sigterm_ends_a_command_with_a_message_and_no_traceback(tmp_path):
+    script = ("import time, workbench.cli as c\n"
+              "def slow(args):\n    print('started', flush=True)\n    time.sleep(60)\n"
+              "c._cmd_score = slow\nraise SystemExit(c.main(['score', '.', 'r.csv']))\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path)
+    assert proc.stdout.readline().strip() == "started"
+    proc.terminate()
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143 and "stopped by SIGTERM" in err and "Traceback" not in err, err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -94,6 +95,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     check_estimator_config(config)
     check_problem_config(problem)
     check_workers(args.workers)
+    check_count(args.max_retries, "--max-retries", low=0)
     ray = ray_config(args)
     results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
     try:
@@ -126,7 +128,7 @@ def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, p
     rows = estimate_frames(
         args.dataset, todo, config, problem, args.workers,
         split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop, on_frame=results.add,
-        ray=ray, on_failure=failures.append,
+        ray=ray, on_failure=failures.append, max_retries=args.max_retries,
     )
     print(f"wrote {len(rows)} result rows for {len(todo) - len(failures)} frame(s) to {args.out}", file=sys.stderr)
     if failures:
@@ -312,7 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_estimator_args(p)
     _add_engine_args(p, "frames one after another")
     p.add_argument("--max-retries", type=int, default=3,
-                   help="--engine ray: times a frame is started again after its worker died (default 3)")
+                   help="times a dead worker is started again: --engine local, per batch (its part retried); "
+                        "--engine ray, per frame (default 3)")
     p.set_defaults(func=_cmd_estimate)
 
     p = sub.add_parser("score", help="score a BOP results CSV against the dataset's scene_gt.json")
@@ -374,7 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2)
     _add_engine_args(p, "frames one after another (not with --speed)")
     p.add_argument("--max-retries", type=int, default=3,
-                   help="--engine ray: times a frame is started again after its worker died (default 3)")
+                   help="times a dead worker is started again: --engine local, per batch (its part retried); "
+                        "--engine ray, per frame (default 3)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("bench-out"))
     p.set_defaults(func=_cmd_bench)
@@ -384,13 +388,37 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+    previous = _stop_on_sigterm()
     try:
         return args.func(args)
     except InputError as err:
         print(f"workbench: error: {err}", file=sys.stderr)
         return 2
+    except _Terminated:
+        print("workbench: stopped by SIGTERM; finished work is kept (estimate: in --out, continue with --resume)",
+              file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the main process is, so that it stops as on Ctrl-C: workers told to stop, files whole."""
+
+
+def _stop_on_sigterm():
+    """SIGTERM -> ``_Terminated`` in the main thread -> the previous handler (None when this is not the main
+    thread, where no handler can be set)."""
+    def stop(signum, frame):
+        raise _Terminated()
+
+    try:
+        return signal.signal(signal.SIGTERM, stop)
+    except ValueError:  # not the main thread
+        return None
 
 
 if __name__ == "__main__":

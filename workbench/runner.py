@@ -20,7 +20,7 @@ from tqdm import tqdm
 from workbench.checks import check_workers
 from workbench.errors import InputError
 from workbench.estimators import Estimator, object_confidence
-from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
+from workbench.evaluation import ChunkedEvaluator, Evaluator, WorkerCrashed, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.frames import Frame, FrameFailure, run_frames
 from workbench.inference.config import EstimatorConfig
@@ -92,6 +92,7 @@ def estimate_frames(
     on_frame: Callable[[list[ResultRow]], None] | None = None,
     ray: RayConfig | None = None,
     on_failure: Callable[[FrameFailure], None] | None = None,
+    max_retries: int = 3,
 ) -> list[ResultRow]:
     """Estimate every (scene_id, im_id) frame -> BOP result rows, in the order the frames finished.
     ``on_frame(rows)`` gets each frame's rows as soon as it is done (to write them).
@@ -99,7 +100,8 @@ def estimate_frames(
     Locally (``ray`` None) frames run one after another, each on a worker pool of its own (the problem, hence the
     renderer's camera and the physics table, differs per frame), and the first bad frame raises. With ``ray`` (a
     RayConfig) every frame is a Ray task (``estimate_frame_task``); a frame that fails goes to ``on_failure`` (if
-    None: raised as InputError once the others are done) and the others go on."""
+    None: raised as InputError once the others are done) and the others go on. Locally, a dead evaluation worker
+    is started again and its part of the batch retried, up to ``max_retries`` times per batch (then InputError)."""
     config.validate()  # before any file is read or worker started
     check_workers(workers)
     rows: list[ResultRow] = []
@@ -111,9 +113,13 @@ def estimate_frames(
         rows.extend(frame_rows)
 
     def here(scene_id: int, im_id: int) -> list[ResultRow]:
-        return estimate_frame(dataset, scene_id, im_id, config, problem_config,
-                              lambda problem: make_evaluator(problem, workers), split, object_ids, early_stop,
-                              show_progress=True)
+        try:
+            return estimate_frame(dataset, scene_id, im_id, config, problem_config,
+                                  lambda problem: make_evaluator(problem, workers, max_retries=max_retries), split,
+                                  object_ids, early_stop, show_progress=True)
+        except WorkerCrashed as err:
+            raise InputError(f"scene {scene_id} frame {im_id}",
+                             f"{err}; the frames before it are kept (run again with --resume)") from None
 
     run_frames(frames, here, estimate_frame_task,
                (Path(dataset).resolve(), config, problem_config, workers, split, object_ids, early_stop),

@@ -35,11 +35,13 @@ __all__ = [
 ]
 
 
-def make_evaluator(problem: Problem, workers: int, ray=None) -> Evaluator:
-    """A local evaluator for ``workers`` <= 1, else a process pool; with ``ray`` (an ``evaluation.ray.RayConfig``),
-    ``workers`` Ray actors. Results are the same for the same ``workers`` whichever it is."""
+def make_evaluator(problem: Problem, workers: int, ray=None, max_retries: int = 0) -> Evaluator:
+    """A local evaluator for ``workers`` <= 1, else a process pool (whose dead workers are started again, their
+    part of the batch retried, up to ``max_retries`` times per batch); with ``ray`` (an
+    ``evaluation.ray.RayConfig``), ``workers`` Ray actors. Results are the same for the same ``workers`` whichever
+    it is."""
     if ray is not None:
         from workbench.evaluation.ray import RayEvaluator  # Ray is an optional extra
 
         return RayEvaluator(problem, workers, ray)
-    return LocalEvaluator(problem) if workers <= 1 else PoolEvaluator(problem, workers)
+    return LocalEvaluator(problem) if workers <= 1 else PoolEvaluator(problem, workers, max_retries)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
 from collections import deque
@@ -15,10 +16,13 @@ from workbench.evaluation.local import LocalEvaluator
 from workbench.problem import Problem
 
 
-def _worker(problem: Problem, conn) -> None:
+log = logging.getLogger(__name__)
+
+
+def _worker(problem: Problem, conn, factory: Callable[[Problem], object] | None = None) -> None:
     # One llvmpipe thread per worker: the pool already keeps every core busy, extra render threads only contend.
     os.environ.setdefault("LP_NUM_THREADS", "1")
-    evaluator = LocalEvaluator(problem)
+    evaluator = (factory or LocalEvaluator)(problem)
     try:
         while True:
             message = conn.recv()
@@ -26,8 +30,8 @@ def _worker(problem: Problem, conn) -> None:
                 break
             kind, *args = message
             conn.send(evaluator.evaluate(*args) if kind == "evaluate" else evaluator.map(*args))
-    except (EOFError, KeyboardInterrupt):
-        pass
+    except (EOFError, KeyboardInterrupt, OSError):
+        pass  # the main process is gone (killed, Ctrl-C, SIGTERM): nothing to send the answer to, and no traceback
     finally:
         evaluator.close()
         conn.close()
@@ -40,6 +44,7 @@ class _PoolPending:
     def __init__(self, pool: "PoolEvaluator", messages: list[tuple], combine: Callable):
         self.pool, self.messages, self.combine = pool, messages, combine
         self.done, self.value = False, None
+        self.retries = 0  # workers restarted for this job
 
     def result(self):
         while not self.done:
@@ -53,23 +58,50 @@ class PoolEvaluator:
 
     One job (a batch, or calls to ``map``) is with the workers at a time; later ones wait here and go out as soon as
     the one before is received. (Sending a second job while a worker is still sending back the first can fill both
-    directions of its pipe and hang both sides.)"""
+    directions of its pipe and hang both sides.)
 
-    def __init__(self, problem: Problem, workers: int = 2):
+    A worker that dies (killed, out of memory) is started again and sent its part of the job again, up to
+    ``max_retries`` times per job, each time with one WARNING line; the job's result is the one an undisturbed pool
+    gives (each evaluation is independent of every other). Past ``max_retries`` (default 0: the caller rebuilds the
+    pool, as the app does) the job raises ``WorkerCrashed``. ``factory(problem)`` builds each worker's evaluator
+    (default ``LocalEvaluator``; a module-level callable, pickled by name)."""
+
+    def __init__(self, problem: Problem, workers: int = 2, max_retries: int = 0,
+                 factory: Callable[[Problem], object] | None = None):
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
-        ctx = mp.get_context("spawn")
-        self._conns = []
-        self._procs = []
-        for _ in range(workers):
-            parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_worker, args=(problem, child), daemon=True)
-            proc.start()
-            child.close()
-            self._conns.append(parent)
-            self._procs.append(proc)
+        self._problem, self._factory, self.max_retries = problem, factory, max_retries
+        self._ctx = mp.get_context("spawn")
+        self._conns: list = [None] * workers
+        self._procs: list = [None] * workers
+        for i in range(workers):
+            self._start(i)
         self._in_flight: _PoolPending | None = None
         self._waiting: deque[_PoolPending] = deque()
+
+    def _start(self, i: int) -> None:
+        parent, child = self._ctx.Pipe()
+        proc = self._ctx.Process(target=_worker, args=(self._problem, child, self._factory), daemon=True)
+        proc.start()
+        child.close()
+        self._conns[i], self._procs[i] = parent, proc
+
+    def _restart(self, i: int, pending: _PoolPending, err: Exception) -> None:
+        """Worker ``i`` died during ``pending``: start it again (WorkerCrashed past ``max_retries``)."""
+        proc = self._procs[i]
+        proc.join(timeout=1)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout=5)
+        self._conns[i].close()
+        pending.retries += 1
+        if pending.retries > self.max_retries:
+            self._fail(err, f" ({pending.retries - 1} restart(s) allowed by --max-retries)"
+                       if self.max_retries else "")
+        how = f"exit code {proc.exitcode}" if proc.exitcode is not None else type(err).__name__
+        log.warning("evaluation worker %d (pid %s) died (%s); started it again and retried its part of the batch "
+                    "(retry %d of %d)", i + 1, proc.pid, how, pending.retries, self.max_retries)
+        self._start(i)
 
     @property
     def pids(self) -> list[int]:
@@ -99,28 +131,38 @@ class PoolEvaluator:
 
     def _send_next(self) -> None:
         pending = self._in_flight = self._waiting.popleft()
-        try:
-            for conn, message in zip(self._conns, pending.messages):
-                conn.send(message)
-        except (ConnectionError, OSError) as err:
-            self._fail(err)
+        for i, message in enumerate(pending.messages):
+            self._send(i, message, pending)
+
+    def _send(self, i: int, message: tuple, pending: _PoolPending) -> None:
+        while True:
+            try:
+                self._conns[i].send(message)
+                return
+            except (ConnectionError, OSError) as err:
+                self._restart(i, pending, err)
+
+    def _receive(self, i: int, pending: _PoolPending):
+        while True:
+            try:
+                return self._conns[i].recv()
+            except (EOFError, ConnectionError, OSError) as err:
+                self._restart(i, pending, err)
+                self._send(i, pending.messages[i], pending)
 
     def _advance(self) -> None:
         """Receive the job in flight, then send the next waiting one."""
         pending = self._in_flight
-        try:
-            pending.value = pending.combine([conn.recv() for conn in self._conns[: len(pending.messages)]])
-        except (EOFError, ConnectionError, OSError) as err:
-            self._fail(err)
+        pending.value = pending.combine([self._receive(i, pending) for i in range(len(pending.messages))])
         pending.done = True
         self._in_flight = None
         if self._waiting:
             self._send_next()
 
-    def _fail(self, err: Exception):
+    def _fail(self, err: Exception, why: str = ""):
         # The pool is broken: every submitted batch is lost with it (the caller rebuilds the pool).
         self._in_flight, self._waiting = None, deque()
-        raise WorkerCrashed(f"an evaluation worker died: {err!r}") from err
+        raise WorkerCrashed(f"an evaluation worker died: {err!r}{why}") from err
 
     def close(self) -> None:
         for conn in self._conns:
