@@ -126,7 +126,7 @@ def test_frames_round_trip(dataset):
 
 def test_objects_from_test_targets_when_ground_truth_is_withheld(dataset):
     (scene(dataset) / "scene_gt.json").unlink()
-    with raises_on(scene(dataset), "pass object_ids"):
+    with raises_on(scene(dataset), "--objects"):
         bop.load_frame(dataset, 3, 4)
     targets = [{"scene_id": 3, "im_id": 4, "obj_id": 2, "inst_count": 2}, {"scene_id": 3, "im_id": 0, "obj_id": 1}]
     (dataset / "test_targets_bop19.json").write_text(json.dumps(targets))

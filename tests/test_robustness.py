@@ -432,3 +432,88 @@ def test_sigterm_ends_a_command_with_a_message_and_no_traceback(tmp_path):
     proc.terminate()
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 143 and "stopped by SIGTERM" in err and "Traceback" not in err, err
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Clear words for what went wrong
+
+
+@pytest.mark.parametrize("address, words", [("http://127.0.0.1:8265", "dashboard"), ("http://[::1", "web address"),
+                                            ("[::1", "HOST:PORT"), ("host/path:1", "HOST:PORT")])
+def test_a_ray_address_that_is_no_cluster_address_is_named(address, words, capsys):
+    _refused(capsys, ["estimate", str(DEMO_DATASET), "--engine", "ray", "--ray-address", address,
+                      "--out", "/nonexistent-dir-for-the-test/r.csv"], "--ray-address", words)
+
+
+def test_a_depth_image_of_another_size_than_its_intrinsics_is_refused(demo, tmp_path, capsys):
+    from PIL import Image
+
+    png = demo / "test" / "000000" / "depth" / "000000.png"
+    image = Image.open(png)
+    image.resize((image.width * 2, image.height * 2), Image.NEAREST).save(png)
+    (demo / "camera.json").unlink()  # as in ycbv-real-dev: no image size but the depth's own
+    _refused(capsys, ["estimate", demo, "--out", tmp_path / "r.csv"], "scene_camera.json", "far from the centre",
+             "another resolution")
+
+
+def test_score_without_ground_truth_says_so_in_its_own_words(demo, tmp_path, capsys):
+    (demo / "test" / "000000" / "scene_gt.json").unlink()
+    err = _refused(capsys, ["score", demo, _results(tmp_path / "r.csv", ROW)], "no scene_gt.json",
+                   "nothing to score")
+    assert "object_ids" not in err
+
+
+def test_a_mesh_far_too_large_is_not_called_metres(demo, tmp_path, capsys):
+    ply = demo / "models" / "obj_000005.ply"
+    mesh = trimesh.load(ply)
+    mesh.apply_scale(1000)
+    mesh.export(ply)
+    err = _refused(capsys, ["score", demo, _results(tmp_path / "r.csv", ROW)], "obj_000005.ply", "micrometres")
+    assert "in metres" not in err
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Heavy meshes: said, done once
+
+
+def test_long_work_is_announced_and_never_silent_for_longer_than_the_interval():
+    import io
+    import time
+
+    from workbench.heavy import announced
+
+    out = io.StringIO()
+    with announced("simplifying obj_000006.ply (1.3M faces) for collision and rendering, once", out=out,
+                   first_s=0.05, every_s=0.1):
+        time.sleep(0.38)
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "workbench: simplifying obj_000006.ply (1.3M faces) for collision and rendering, once ..."
+    assert 2 <= sum(line.startswith("workbench: still simplifying") for line in lines) <= 4
+    assert lines[-1].startswith("workbench: done simplifying") and "cached" in lines[-1]
+    quiet = io.StringIO()
+    with announced("a cache hit", out=quiet, first_s=0.5):
+        pass
+    assert quiet.getvalue() == ""
+
+
+def test_a_heavy_mesh_is_worked_on_as_a_lighter_one(monkeypatch):
+    from workbench import heavy
+
+    sphere = trimesh.creation.icosphere(5)  # 20480 faces
+    monkeypatch.setattr(heavy, "HEAVY_FACES", 10_000)
+    monkeypatch.setattr(heavy, "WORKING_FACES", 2_000)
+    work = heavy.working_mesh(sphere)
+    assert len(work.faces) <= 2_000 and heavy.working_mesh(sphere) is work
+    assert np.abs(np.linalg.norm(work.vertices, axis=1) - 1).max() < 0.05
+    light = trimesh.creation.icosphere(2)
+    assert heavy.working_mesh(light) is light
+
+
+def test_a_pool_prepares_the_meshes_once_before_its_workers_start(monkeypatch):
+    from workbench.evaluation import pool
+
+    order = []
+    monkeypatch.setattr(pool, "prepare_meshes", lambda problem: order.append("prepare"))
+    monkeypatch.setattr(pool.PoolEvaluator, "_start", lambda self, i: order.append(f"worker {i}"))
+    pool.PoolEvaluator(object(), 3)
+    assert order == ["prepare", "worker 0", "worker 1", "worker 2"]

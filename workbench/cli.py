@@ -74,8 +74,8 @@ def ray_config(args: argparse.Namespace):
         if args.ray_address is not None:
             raise InputError("--ray-address", "joins a Ray cluster: use it with --engine ray")
         return None
+    check_reachable(args.ray_address)  # a malformed address first: it is wrong with or without Ray
     require_ray()
-    check_reachable(args.ray_address)
     retries = getattr(args, "max_retries", RayConfig.max_retries)
     check_count(retries, "--max-retries", low=0)
     return RayConfig(address=args.ray_address, max_retries=retries)

@@ -93,7 +93,12 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
     models: dict[int, tuple] = {}  # obj_id -> (symmetries, ADD-S points)
     out = []
     for (scene_id, im_id), mine in sorted(frames.items()):
-        frame = bop.load_frame(dataset, scene_id, im_id, split)
+        try:
+            frame = bop.load_frame(dataset, scene_id, im_id, split)
+        except InputError as err:
+            if "no scene_gt.json" in err.problem:  # the estimate's question (which objects?) is not score's
+                raise InputError(err.path, f"image {im_id} has no scene_gt.json: nothing to score against") from None
+            raise
         if frame.gt_T_cam_obj is None:
             raise InputError(dataset, f"scene {scene_id} image {im_id} has no scene_gt.json: nothing to score against")
         for obj_id, m in _load_shapes(dataset, sorted(set(frame.object_ids) - set(models))).items():

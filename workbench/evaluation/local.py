@@ -16,11 +16,27 @@ from workbench.render.depth import DepthRenderer
 from workbench.render.likelihood import pixel_loglik, predicted_depth, scene_loglik
 
 
+def prepare_meshes(problem: Problem) -> None:
+    """Choose every model's collision shape and render mesh now, in this process, saying so when that takes long
+    (``heavy.announced``): a pool's workers then read them from the cache instead of each computing the same."""
+    from workbench.heavy import announced, faces_text
+    from workbench.physics.projector import collision_shapes
+    from workbench.render.depth import render_mesh
+
+    for model in problem.models:
+        name = model.source.name if model.source is not None else model.name
+        with announced(f"simplifying {name} ({faces_text(len(model.mesh.faces))} faces) for collision and "
+                       "rendering, once"):
+            collision_shapes([model], problem.config.physics)
+            render_mesh(model.mesh, problem.config.render.max_depth_error)
+
+
 class LocalEvaluator:
     """Evaluates in this process with its own physics client and renderer."""
 
     def __init__(self, problem: Problem):
         self.problem = problem
+        prepare_meshes(problem)
         self.projector = PhysicsProjector(problem.models, problem.table, problem.config.physics)
         self.renderer = DepthRenderer(
             problem.render_camera, [m.mesh for m in problem.models], problem.config.render

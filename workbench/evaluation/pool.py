@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from workbench.evaluation.base import Evaluation, WorkerCrashed, joined, split_batch, split_calls
-from workbench.evaluation.local import LocalEvaluator
+from workbench.evaluation.local import LocalEvaluator, prepare_meshes
 from workbench.problem import Problem
 
 
@@ -71,6 +71,8 @@ class PoolEvaluator:
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self._problem, self._factory, self.max_retries = problem, factory, max_retries
+        if factory is None:
+            prepare_meshes(problem)  # once, here: the workers read the shapes and meshes from the cache
         self._ctx = mp.get_context("spawn")
         self._conns: list = [None] * workers
         self._procs: list = [None] * workers

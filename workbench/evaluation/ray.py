@@ -57,10 +57,17 @@ def require_ray():
 def check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
     """InputError when ``address`` is HOST:PORT and nothing answers there within ``timeout_s``: Ray itself keeps
     retrying an unreachable head node for many minutes without a word."""
-    if address is None or address == "auto" or "://" in address:
+    if address is None or address == "auto":
         return
-    host, _, port = address.rpartition(":")
-    if not host or not port.isdigit():
+    scheme, sep, rest = address.partition("://")
+    if sep and scheme != "ray":
+        raise InputError("--ray-address", f"{address!r} is a web address (Ray's dashboard is http://HOST:8265): give "
+                                          "the cluster's HOST:PORT (the port of `ray start --head`, 6379 by "
+                                          "default), ray://HOST:PORT or auto")
+    host, _, port = (rest if sep else address).rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]  # an IPv6 address, [::1]:6379
+    if not host or not port.isdigit() or "[" in host or "]" in host or "/" in host:
         raise InputError("--ray-address", f"expected auto or HOST:PORT (e.g. 10.0.0.5:6379), got {address!r}")
     try:
         socket.create_connection((host, int(port)), timeout=timeout_s).close()

@@ -277,6 +277,14 @@ def check_principal_point(K: np.ndarray, width: int, height: int, path: Path) ->
             f"cam_K principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) lies outside the {width}x{height} depth image: "
             "intrinsics for another resolution?",
         )
+    # Real cameras put it within ~10 % of the centre; a quarter of the image off is K of another resolution (a
+    # 640x480 K with a 1280x960 image puts every object tens of centimetres off, silently).
+    if abs(K[0, 2] - width / 2) > width / 4 or abs(K[1, 2] - height / 2) > height / 4:
+        raise InputError(
+            path,
+            f"cam_K principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) is far from the centre of the {width}x{height} "
+            f"depth image: intrinsics for another resolution (about {2 * K[0, 2]:.0f}x{2 * K[1, 2]:.0f}?)",
+        )
 
 
 def read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
@@ -630,7 +638,7 @@ def load_frame(
             if object_ids is None:
                 raise InputError(
                     scene_dir, f"image {im_id}: no scene_gt.json or test_targets_*.json says which objects are "
-                    "present; pass object_ids"
+                    "present; name them (`workbench estimate --objects ID ...`)"
                 )
     object_ids = [int(i) for i in object_ids]
     if not object_ids:

@@ -34,6 +34,7 @@ import trimesh
 from workbench import cache
 from workbench.errors import InputError
 from workbench.geometry import make_pose
+from workbench.heavy import working_mesh
 from workbench.physics.bullet import pybullet
 
 BOX, CYLINDER, CONVEX, COMPOUND = "box", "cylinder", "convex", "compound"
@@ -145,6 +146,7 @@ def collision_shape_for(
 
 
 def _choose(mesh, primitive_fill, primitive_deviation, convex_fill, max_hull_vertices, kind, cache_dir):
+    mesh = working_mesh(mesh)  # a mesh of over HEAVY_FACES faces: chosen from its 100k-face decimation
     solid = mesh if mesh.is_watertight else mesh.convex_hull
     volume = abs(float(solid.volume))
     surface = _SurfaceDistance(solid)

@@ -32,6 +32,7 @@ import trimesh
 
 from workbench import cache
 from workbench.errors import InputError
+from workbench.heavy import working_mesh
 from workbench.scene import Camera
 
 BACKENDS = ("osmesa", "egl")
@@ -155,8 +156,9 @@ def _decimate_within(mesh: trimesh.Trimesh, max_error: float) -> trimesh.Trimesh
     that passed and the first that failed (3 more decimations)."""
     import open3d as o3d
 
-    source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
-                                       o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)))
+    work = working_mesh(mesh)  # a mesh of over HEAVY_FACES faces: decimated from its 100k-face decimation
+    source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(work.vertices, dtype=np.float64)),
+                                       o3d.utility.Vector3iVector(np.asarray(work.faces, dtype=np.int32)))
 
     def within(target: int) -> trimesh.Trimesh | None:
         simple = source.simplify_quadric_decimation(target_number_of_triangles=target)
@@ -164,8 +166,10 @@ def _decimate_within(mesh: trimesh.Trimesh, max_error: float) -> trimesh.Trimesh
         ok = len(candidate.faces) > 0 and depth_deviation(mesh, candidate) <= max_error
         return candidate if ok else None
 
-    best, good, bad = mesh, len(mesh.faces), None
-    target = len(mesh.faces) // 2
+    best, good, bad = mesh, len(work.faces), None
+    if work is not mesh and depth_deviation(mesh, work) <= max_error:
+        best = work
+    target = len(work.faces) // 2
     while target >= _MIN_FACES:
         candidate = within(target)
         if candidate is None:

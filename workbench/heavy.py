@@ -1,0 +1,82 @@
+"""Meshes too heavy to simplify as they are, and saying so while they are simplified.
+
+Choosing a collision shape (``physics.collision``) and a render mesh (``render.depth``) costs time that grows
+faster than the face count (trimesh's oriented bounding box is quadratic in the hull's faces; every decimation step
+starts from the full mesh): a 1.3M-face model took minutes, in silence, in every worker at once. So a mesh of more
+than ``HEAVY_FACES`` faces is first reduced once to ``WORKING_FACES`` (open3d quadric decimation, well under a
+millimetre off at these counts) and both choices are made from that; its errors are still measured against the
+full mesh where they are measured by rays (the render mesh). ``announced`` says what is being done while it takes
+long: a line when a step has taken over ``FIRST_S`` seconds, then one every ``EVERY_S`` seconds, so that no
+silence is longer than that. The evaluators prepare a problem's meshes once in the main process
+(``evaluation.local.prepare_meshes``); the workers then read them from the cache.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import sys
+import threading
+import time
+
+import numpy as np
+import trimesh
+
+HEAVY_FACES = 200_000
+WORKING_FACES = 100_000
+FIRST_S = 2.0
+EVERY_S = 10.0
+
+_WORKING: dict[str, trimesh.Trimesh] = {}
+
+
+def faces_text(n: int) -> str:
+    return f"{n / 1e6:.1f}M" if n >= 1e6 else f"{n / 1e3:.0f}k" if n >= 1e4 else str(n)
+
+
+def working_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh`` itself up to ``HEAVY_FACES`` faces, else its quadric decimation to ``WORKING_FACES`` (once per
+    process and mesh)."""
+    if len(mesh.faces) <= HEAVY_FACES:
+        return mesh
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    key = h.hexdigest()
+    if key not in _WORKING:
+        import open3d as o3d
+
+        source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
+                                           o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)))
+        simple = source.simplify_quadric_decimation(target_number_of_triangles=WORKING_FACES)
+        _WORKING[key] = trimesh.Trimesh(np.asarray(simple.vertices), np.asarray(simple.triangles))
+    return _WORKING[key]
+
+
+@contextlib.contextmanager
+def announced(what: str, out=None, first_s: float = FIRST_S, every_s: float = EVERY_S):
+    """Run the block; if it takes over ``first_s`` seconds, say ``what`` on stderr (``out``), then that it goes on
+    every ``every_s`` seconds, and how long it took at the end. Quick blocks (a cache hit) say nothing."""
+    out = out or sys.stderr
+    done = threading.Event()
+    said = []
+    t0 = time.perf_counter()
+
+    def speak():
+        if done.wait(first_s):
+            return
+        print(f"workbench: {what} ...", file=out, flush=True)
+        said.append(1)
+        while not done.wait(every_s):
+            print(f"workbench: still {what} ({time.perf_counter() - t0:.0f} s)", file=out, flush=True)
+
+    thread = threading.Thread(target=speak, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+        if said:
+            print(f"workbench: done {what} in {time.perf_counter() - t0:.0f} s (cached for later runs)", file=out,
+                  flush=True)
