@@ -338,8 +338,8 @@ def test_plots_columns_and_acceptance_by_move_kind():
 
     def report(i, moves=None, accept=float("nan")):
         r = {"iteration": i, "best_loglik": -100.0 + i, "mean_loglik": -150.0 + i, "beta": 0.01 * (i + 1),
-             "best_move_m": 0.02, "best_move_deg": 1.0, "accept_rate": accept, "distinct_after_resampling": 30.0 + i,
-             "reference": "truth", "reference_loglik": -90.0}
+             "best_move_m": 0.02 if i else 0.0, "best_move_deg": 1.0, "accept_rate": accept,
+             "distinct_after_resampling": 30.0 + i, "truth_loglik": -90.0, "label_loglik": -95.0 if i == 2 else None}
         if moves is not None:
             r["moves"] = moves
         return r
@@ -348,9 +348,17 @@ def test_plots_columns_and_acceptance_by_move_kind():
     charts = {c.key: c for c in CHARTS}
     plain = [report(i) for i in range(3)]
     assert charts["acceptance"].columns(plain, ctx) is None  # PI-PF, no move kinds: no chart
-    x, best, mean, truth = charts["loglik"].columns(plain, ctx)
-    assert list(x) == [0, 1, 2] and list(truth) == [-90.0] * 3
-    assert [ln.label for ln in charts["loglik"].lines(plain)] == ["best", "mean", "truth"]
+    pipf = [report(i, {"diffuse": {"proposed": 60, "accepted": 30}}) for i in range(3)]
+    assert charts["acceptance"].columns(pipf, ctx) is None  # PI-PF's per-kind counts are not acceptances
+    # The truth's and the labels' levels apart, each the latest value across the run.
+    x, best, mean, truth, labels = charts["loglik"].columns(plain, ctx)
+    assert list(x) == [0, 1, 2] and list(truth) == [-90.0] * 3 and list(labels) == [-95.0] * 3
+    assert [ln.label for ln in charts["loglik"].lines(plain)] == ["best", "mean", "truth", "labels"]
+    assert [ln.label for ln in charts["loglik"].lines(plain[:2])] == ["best", "mean", "truth"]
+    # The convergence ratio on a log scale: a move of nothing sits at the floor, not at zero.
+    x, position, angle, rule = charts["move"].columns(plain, ctx)
+    assert position[0] > 0 and np.isclose(position[1], 2.0) and list(rule) == [1.0] * 3
+    assert charts["move"].y_scale.get("distr") == 3
     x, distinct, n = charts["distinct"].columns(plain, ctx)
     assert list(distinct) == [30.0, 31.0, 32.0] and list(n) == [64.0] * 3
     moves = [report(i, {"diffuse": {"proposed": 60, "accepted": 30}, "turn": {"proposed": 4, "accepted": i}},
@@ -391,3 +399,54 @@ def test_turns_and_laying_on_a_face_keep_the_object_on_the_table():
         assert np.allclose(L[:3, :3] @ np.array(face, float), [0, 0, -1], atol=1e-9), name
         assert np.isclose(np.min((box @ L[:3, :3].T)[:, 2]) + L[2, 3], 0.0), name
         assert np.allclose(L[:2, 3], T[:2, 3])
+
+
+def test_outlines_are_feature_edges_not_every_triangle():
+    import trimesh
+
+    from workbench.app.observation import outline_edges
+    from workbench.app.protocol import MeshData
+    from workbench.app.views import outline_mesh, outline_segments
+
+    box = trimesh.creation.box(extents=(0.1, 0.06, 0.02))
+    edges = outline_edges(box.vertices, box.faces)
+    assert edges.shape == (12, 2, 3)  # a box's 12 edges, not its 18 triangle edges
+    can = trimesh.creation.cylinder(radius=0.05, height=0.1, sections=64)
+    assert len(outline_edges(can.vertices, can.faces)) < len(can.edges_unique)
+    mesh = MeshData("box", box.vertices.astype(np.float32), box.faces.astype(np.int32), edges)
+    vertices, faces = outline_mesh(mesh)
+    assert faces.shape == (12, 3) and np.all(faces[:, 1] == faces[:, 2])  # degenerate: the wireframe is the line
+    assert len(outline_segments(MeshData("box", mesh.vertices, mesh.faces))) == 18  # no outline: every edge
+
+
+def test_markdown_escape_keeps_underscores():
+    from workbench.app.markdown import escape
+
+    assert escape("letters, digits, '.', '_' or '-'") == "letters, digits, '.', '\\_' or '-'"
+    assert escape("002_master_chef_can") == "002\\_master\\_chef\\_can"
+
+
+def test_panel_reads_every_field_and_reverts_the_refused_ones():
+    import viser
+
+    from workbench.app.panel import build_panel
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        from workbench.inference.config import EstimatorConfig
+
+        base = EstimatorConfig(particles=128)
+        panel = build_panel(server.gui, base, "robust")
+        panel.particles.value = "-5"
+        panel.sigma_xy.value = "abc"
+        panel.iterations.value = "30"
+        config, errors = panel.read_config(base)
+        assert set(errors) == {"Particles", "σ x, y (cm)"}, errors
+        assert config.particles == 128 and config.sigma == base.sigma and config.iterations == 30
+        panel.revert(tuple(errors), config)
+        assert panel.particles.value == "128" and panel.sigma_xy.value == "1, 1"
+        assert panel.iterations.value == "30"  # a valid field keeps what was typed
+        panel.outline(tuple(errors))
+        assert panel.particles._impl.uuid in panel.field_style.content
+    finally:
+        server.stop()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -139,7 +140,7 @@ def test_inspecting_a_particle_shows_its_heatmap_and_what_physics_changed(page, 
     # Shared GUI state: set on the server (as another tab would), followed by this page.
     app.panel.heatmap_mode.value = "log-likelihood"
     page.get_by_text(re.compile(r"log-likelihood \(per pixel\), particle rank 0")).wait_for(timeout=TIMEOUT_MS)
-    assert not app.panel.show_observation.value  # the heatmap replaces the observed points
+    assert not app.display.points_visible()  # the heatmap replaces the observed points
     app.panel.rank.value = 3
     page.get_by_text(re.compile(r"Rank 3 \(particle \d+\)")).wait_for(timeout=TIMEOUT_MS)
     app.panel.heatmap_mode.value = "residual"
@@ -151,7 +152,7 @@ def test_inspecting_a_particle_shows_its_heatmap_and_what_physics_changed(page, 
     app.panel.heatmap_mode.value = "off"
     app.panel.scene_mode.value = "before + after"
     app.pick(0)
-    assert app.panel.show_observation.value
+    assert app.display.points_visible()
     page.get_by_role("tab", name="Estimator").click()
 
 
@@ -212,6 +213,8 @@ def test_plots_draw_lines_after_reset(page, workbench):
 
 def test_the_legend_names_every_colour_and_the_objects(page, workbench):
     legend = page.locator('[data-legend="3d-view"]')
+    if not legend.is_visible():
+        page.get_by_text("Legend", exact=True).click()  # folded by default: the panel's top stays short
     expect(legend).to_be_visible(timeout=TIMEOUT_MS)
     for text in ("particles", "most likely scene", "before physics", "label", "ground truth", "object region",
                  "depth sensor", "observed points"):
@@ -220,22 +223,39 @@ def test_the_legend_names_every_colour_and_the_objects(page, workbench):
         expect(legend).to_contain_text(name)
 
 
-def test_error_banners_clear_once_the_input_is_corrected(page, workbench):
+def test_refused_values_are_put_back_outlined_and_all_listed(page, workbench):
+    """Bug: Particles -5 and σ x, y "abc" stayed on screen while the run used 128 and 1, and the banner showed only
+    the newest error."""
     app = workbench.app
     page.get_by_role("tab", name="Estimator").click()
-    field = gui_input(page, "Particles")
-    field.fill("abc")
-    field.press("Enter")
-    banner = page.get_by_text(re.compile(r"Particles.*whole number.*'abc'"))
+    in_use = str(app.config.particles)
+    particles = gui_input(page, "Particles")
+    particles.fill("-5")
+    particles.press("Enter")
+    sigma = gui_input(page, "σ x, y (cm)")
+    sigma.fill("abc")
+    sigma.press("Enter")
+    banner = page.get_by_text(re.compile(r"2 problems"))
     banner.first.wait_for(timeout=TIMEOUT_MS)
-    field.fill(str(app.config.particles))
-    field.press("Enter")
+    listed = page.locator(".mantine-List-itemLabel")  # the banner's list, not the notifications
+    expect(listed.filter(has_text=re.compile(r"Particles.*whole number.*-5"))).to_be_visible(timeout=TIMEOUT_MS)
+    expect(listed.filter(has_text=re.compile(r"σ x, y \(cm\).*'abc'"))).to_be_visible(timeout=TIMEOUT_MS)
+    # The fields show the values in use again, outlined.
+    expect(particles).to_have_value(in_use, timeout=TIMEOUT_MS)
+    expect(sigma).to_have_value(re.compile(r"^\d"), timeout=TIMEOUT_MS)
+    outline = particles.evaluate("e => getComputedStyle(e).outlineStyle")
+    assert outline == "solid", outline
+    assert app.config.particles == int(in_use)
+    step(page, app)  # an iteration went through: the problems are dealt with
     expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
-    # The diffusion's error speaks the fields' units (cm), as another tab would have typed it.
-    app.panel.sigma_z.value = -1.0
-    banner = page.get_by_text(re.compile(r"σ elevation \(cm\).*>= 0 cm, got -1"))
+    expect(particles).to_have_value(in_use)
+    # A corrected value clears its line; the diffusion's error speaks the field's units (cm).
+    app.panel.sigma_z.value = "-1"  # as another tab would type it
+    banner = page.get_by_text(re.compile(r"σ elevation \(cm\).*>= 0 cm, got '-1'"))
     banner.first.wait_for(timeout=TIMEOUT_MS)
-    app.panel.sigma_z.value = 1.0
+    z = gui_input(page, "σ elevation (cm)")
+    z.fill("1")
+    z.press("Enter")
     expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
     # An error from the engine clears once an iteration goes through.
     app.reporter.report(Failure("Input error", "a test problem"))
@@ -243,6 +263,142 @@ def test_error_banners_clear_once_the_input_is_corrected(page, workbench):
     banner.first.wait_for(timeout=TIMEOUT_MS)
     step(page, app)
     expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
+
+
+def test_reset_clears_the_old_run_from_the_view_and_the_tables(page, workbench):
+    """Bug: after Reset the old estimate, the inspected particle's wireframe and the stage timings stayed."""
+    app = workbench.app
+    page.get_by_role("tab", name="Estimator").click()
+    step(page, app)
+    app.pick(3)
+    assert app.wait_for(lambda s: s.chosen is not None and s.chosen.rank == 3, 60)
+    page.get_by_role("cell", name="projection").wait_for(timeout=TIMEOUT_MS)  # the timings table
+    page.get_by_text("Estimate vs ground truth").wait_for(timeout=TIMEOUT_MS)
+    step(page, app)
+    page.get_by_role("button", name="Reset").click()
+    assert app.wait_for(lambda s: s.iteration == -1 and s.last_state.reason == "reset", 60)
+    page.get_by_text(re.compile(r"No iterations yet")).first.wait_for(timeout=TIMEOUT_MS)
+    expect(page.get_by_role("cell", name="projection")).to_have_count(0, timeout=TIMEOUT_MS)
+    expect(page.get_by_text("Estimate vs ground truth")).to_have_count(0, timeout=TIMEOUT_MS)
+    d = app.display
+    assert not d.particles.best and not d.particles.batches  # no estimate, no particles
+    assert not any(h.visible for h in d.chosen.before + d.chosen.after)  # no inspected particle
+    assert not d.chosen.extras.handles and not d.heatmap.nodes.handles
+    app.pick(0)
+    step(page, app)
+
+
+def test_session_name_error_keeps_its_underscores(page, workbench):
+    """Bug: the session-name error lost its underscores ('_' was read as Markdown emphasis)."""
+    page.get_by_role("tab", name="Sessions").click()
+    name = gui_input(page, "Session name")
+    name.fill("no good!")
+    name.press("Enter")
+    page.get_by_role("button", name="Save session").click()
+    expect(page.get_by_text("'.', '_' or '-'", exact=False).first).to_be_visible(timeout=TIMEOUT_MS)
+    page.get_by_role("tab", name="Estimator").click()
+
+
+def test_turning_the_heatmap_off_leaves_the_points_as_they_were(page, workbench):
+    """Bug: turning the heatmap off turned Observed points back on, even when they were off."""
+    app = workbench.app
+    if app.state.iteration < 0:
+        step(page, app)
+    bar = page.get_by_role("button", name=re.compile(r"^[●○] points$"))
+    bar.click()
+    expect(page.get_by_role("button", name="○ points")).to_be_visible(timeout=TIMEOUT_MS)
+    assert app.wait_for(lambda s: not app.panel.show("points"), 10)
+    page.get_by_role("tab", name="Inspect").click()
+    app.panel.heatmap_mode.value = "residual"  # shared GUI state, as another tab would choose it
+    page.get_by_text(re.compile(r"residual \(cm\), particle rank")).wait_for(timeout=TIMEOUT_MS)
+    app.panel.heatmap_mode.value = "off"
+    expect(page.get_by_role("button", name="○ heatmap")).to_be_visible(timeout=TIMEOUT_MS)
+    assert not app.panel.show("points") and not any(h.visible for h in app.display.observation.clouds)
+    page.get_by_role("button", name="○ points").click()
+    assert app.wait_for(lambda s: all(h.visible for h in app.display.observation.clouds), 10)
+    page.get_by_role("tab", name="Estimator").click()
+
+
+def test_the_visibility_bar_shows_and_hides_each_layer(page, workbench):
+    app = workbench.app
+    if app.state.iteration < 0:
+        step(page, app)
+    d = app.display
+    layers = {
+        "points": lambda: d.observation.clouds,
+        "particles": lambda: d.particles.batches,
+        "estimate": lambda: d.particles.best,
+        "truth": lambda: d.observation.gt,
+    }
+    assert d.observation.gt, "the demo has ground truth"
+    for item, handles in layers.items():
+        page.get_by_role("button", name=f"● {item}").click()  # shown by default: hide
+        expect(page.get_by_role("button", name=f"○ {item}")).to_be_visible(timeout=TIMEOUT_MS)
+        assert app.wait_for(lambda s: not any(h.visible for h in handles()), 10), item
+        page.get_by_role("button", name=f"○ {item}").click()
+        expect(page.get_by_role("button", name=f"● {item}")).to_be_visible(timeout=TIMEOUT_MS)
+        assert app.wait_for(lambda s: all(h.visible for h in handles()), 10), item
+    page.get_by_role("button", name="○ heatmap").click()
+    expect(page.get_by_role("button", name="● heatmap")).to_be_visible(timeout=TIMEOUT_MS)
+    assert app.panel.heatmap_mode.value != "off" and not app.display.points_visible()  # the mode last used
+    page.get_by_role("button", name="● heatmap").click()
+    expect(page.get_by_role("button", name="○ heatmap")).to_be_visible(timeout=TIMEOUT_MS)
+    assert app.panel.heatmap_mode.value == "off" and app.display.points_visible()
+    page.get_by_role("button", name="● labels").click()
+    expect(page.get_by_role("button", name="○ labels")).to_be_visible(timeout=TIMEOUT_MS)
+    assert not app.labelling.editor.shown
+    page.get_by_role("button", name="○ labels").click()
+    expect(page.get_by_role("button", name="● labels")).to_be_visible(timeout=TIMEOUT_MS)
+
+
+def test_the_truth_table_agrees_with_workbench_score(page, workbench, tmp_path):
+    """The per-object errors against scene_gt.json, as shown, are what `workbench score` says of the same estimate."""
+    from workbench.bench.scoring import score_results
+    from workbench.io import bop
+
+    app = workbench.app
+    step(page, app)
+    assert app.wait_for(lambda s: s.truth is not None and s.truth.iteration == s.iteration, 60)
+    truth = app.state.truth
+    table = page.get_by_text("Estimate vs ground truth")
+    table.wait_for(timeout=TIMEOUT_MS)
+    expect(page.get_by_text(re.compile(rf"iteration {truth.iteration} · \d+/\d+ right"))).to_be_visible(timeout=TIMEOUT_MS)
+    view = app.state.view
+    scene_id, im_id = view.where[1], view.where[2]
+    T_cam_world = np.linalg.inv(view.T_world_cam)
+    obj_ids = [r["obj_id"] for r in truth.rows]
+    rows = [bop.ResultRow(scene_id, im_id, o, 1.0, T_cam_world @ T, -1.0) for o, T in zip(obj_ids, truth.estimate)]
+    csv = tmp_path / "results.csv"
+    bop.write_results_csv(csv, rows)
+    scored = score_results(Path(view.where[0]), bop.read_results_csv(csv))[0].objects
+    for shown, ref in zip(truth.rows, scored):
+        assert shown["obj_id"] == ref.obj_id and shown["right"] == ref.right
+        assert np.isclose(shown["position_cm"], ref.position_cm, atol=1e-6)
+        assert np.isclose(shown["rotation_deg"], ref.rotation_deg, atol=1e-4)
+        assert np.isclose(shown["add_s_mm"], ref.add_s_mm, atol=1e-4)
+        # ... and the page shows those numbers.
+        page.get_by_role("cell", name=f"{ref.position_cm:.2f}", exact=True).first.wait_for(timeout=TIMEOUT_MS)
+        page.get_by_role("cell", name=f"{ref.add_s_mm:.1f}", exact=True).first.wait_for(timeout=TIMEOUT_MS)
+
+
+def test_a_running_step_shows_a_spinner_and_disables_step(page, workbench):
+    app = workbench.app
+    page.get_by_role("tab", name="Estimator").click()
+    field = gui_input(page, "Particles")
+    field.fill("600")  # a slow step, long enough to see
+    field.press("Enter")
+    assert app.wait_for(lambda s: app.config.particles == 600, 30)
+    nxt = app.state.iteration + 1
+    button = page.get_by_role("button", name="Step")
+    button.click()
+    expect(page.get_by_text(re.compile(r"Step running · \d+ s"))).to_be_visible(timeout=TIMEOUT_MS)
+    expect(button).to_be_disabled(timeout=TIMEOUT_MS)
+    page.get_by_text(iteration_text(nxt)).wait_for(timeout=TIMEOUT_MS)
+    expect(button).to_be_enabled(timeout=TIMEOUT_MS)
+    expect(page.get_by_text(re.compile(r"Step running"))).to_have_count(0, timeout=TIMEOUT_MS)
+    field.fill("48")
+    field.press("Enter")
+    assert app.wait_for(lambda s: app.config.particles == 48, 30)
 
 
 def test_bad_dataset_path_shows_an_error_and_the_page_keeps_working(page, workbench):
@@ -327,6 +483,9 @@ def test_label_snap_save_session_reload_and_load_it(page, workbench):
     page.get_by_role("tab", name="Sessions").click()
     assert app.sessions.tab.choice.value == "labelled"  # the save selected it
     page.get_by_role("button", name="Load session").click()
+    # The run went on past the save: loading would lose that, so the tab asks first.
+    page.get_by_text("The current run is not saved").wait_for(timeout=TIMEOUT_MS)
+    page.get_by_role("button", name="Load anyway").click()
     page.get_by_text(re.compile(r"Loaded session labelled at iteration")).wait_for(timeout=TIMEOUT_MS)
     assert app.state.iteration == saved_iteration
     assert np.array_equal(app.labelling.editor.labels[0], snapped)
@@ -362,7 +521,11 @@ def test_a_damaged_session_shows_its_problem_and_the_run_goes_on(page, workbench
     page.get_by_role("tab", name="Sessions").click()
     page.get_by_text(re.compile(r"damaged — ⚠ cannot be loaded: corrupt session file")).wait_for(timeout=TIMEOUT_MS)
     app.sessions.tab.choice.value = "damaged"  # shared GUI state, as another tab would choose it
+    unsaved = app.unsaved() is not None
     page.get_by_role("button", name="Load session").click()
+    if unsaved:  # the current run is not saved: asked first
+        page.get_by_text("The current run is not saved").wait_for(timeout=TIMEOUT_MS)
+        page.get_by_role("button", name="Load anyway").click()
     page.get_by_text(re.compile(r"damaged\.json: corrupt session file")).first.wait_for(timeout=TIMEOUT_MS)
     assert any(f.topic == "session" and f.path.endswith("damaged.json") for f in app.state.failures)
     step(page, app)

@@ -195,7 +195,7 @@ class Engine:
         dataset, frame, problem = load(cmd.source, cmd.likelihood)  # on failure the old run stays
         from workbench.app.observation import build_view
 
-        view = build_view(frame, problem, title_of(cmd.source, frame))
+        view = build_view(frame, problem, title_of(cmd.source, frame), dataset)
         self.replace_frame(cmd.source, view, frame, problem, cmd.config)
         self.new_estimator()
         self.labels.adopt_frame(dataset)
@@ -290,6 +290,7 @@ class Engine:
         self.unshown = est.iteration
         self.publish_chosen()
         self.labels.publish_errors()
+        self.labels.publish_truth()
 
     def publish_chosen(self) -> None:
         if self.estimator is None:
@@ -327,7 +328,7 @@ class Engine:
             return
         state, frame, problem = opened.state, opened.frame, opened.problem
         source = session_source(opened.dataset, state.frame.split, frame)
-        view = build_view(frame, problem, opened.title())
+        view = build_view(frame, problem, opened.title(), opened.dataset)
 
         # From here on the current run is replaced.
         self.replace_frame(source, view, frame, problem, state.estimator_config)

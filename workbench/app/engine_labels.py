@@ -30,6 +30,13 @@ def turned(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(rotation_angle(np.swapaxes(a[:, :3, :3], -1, -2) @ b[:, :3, :3]))
 
 
+def truth_points(problem) -> list:
+    """Per object the ADD-S points of ``workbench score`` (bench.scoring: 500 surface samples, seed 0)."""
+    from workbench.metrics import model_points
+
+    return [model_points(m.mesh, 500) for m in problem.models]
+
+
 def movement_table(names: list[str], which: list[int], moved: np.ndarray, turns: np.ndarray) -> str:
     """Markdown table of how far each labelled object (``which``) moved (m -> cm) and turned (deg)."""
     rows = "\n".join(f"| {names[k]} | {moved[k] * 100:.2f} | {turns[k]:.1f} |" for k in which)
@@ -49,7 +56,8 @@ class FrameLabels:
         self.dirty = False  # labels changed: heatmap and errors to recompute once the queue is drained
         # The log-likelihood of the known scene the Plots tab compares the estimate with: (kind, value) or None
         # while not yet computed; dropped whenever the labels, the frame or the likelihood change.
-        self.reference: tuple[str | None, float] | None = None
+        self.reference: dict[str, float] | None = None
+        self.truth_points: list | None = None  # per object the ADD-S points ``workbench score`` uses
 
     def adopt_frame(self, dataset: Path, labels: list | None = None) -> None:
         """Note where the loaded frame lives in its dataset (sessions and label files need it) and take its labels:
@@ -78,6 +86,7 @@ class FrameLabels:
                     note = f"{n} label(s) read from `{where}`"
         self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in labels]
         self.reference = None
+        self.truth_points = None
         results.put(p.Labels(list(self.labels), reason, note))
         self.dirty = True
 
@@ -225,24 +234,44 @@ class FrameLabels:
             log.error("label heatmap\n%s", traceback.format_exc())
             results.put(p.Failure(f"Label heatmap failed ({type(err).__name__})", str(err), topic="labels"))
 
-    def reference_loglik(self) -> tuple[str | None, float]:
-        """("label" or "truth", the log-likelihood of that scene as given) for the Plots tab, or (None, nan):
-        the labels when every object is labelled, else the frame's ground truth when it has one for every object.
-        One render, cached until the labels, frame or likelihood change."""
+    def reference_loglik(self) -> dict[str, float]:
+        """The log-likelihoods of the known scenes, as given, for the Plots tab: {"truth_loglik": the frame's
+        ground truth where it has one for every object, "label_loglik": the labels when every object is labelled},
+        NaN where there is none. One render each, cached until the labels, frame or likelihood change."""
         if self.reference is None:
             frame, problem = self.engine.frame, self.engine.problem
-            kind, scene = None, None
+            scenes = {"truth_loglik": self.truth_scene(), "label_loglik": None}
             if self.labels and all(T is not None for T in self.labels):
-                kind, scene = "label", np.stack(self.labels)
-            elif frame is not None and frame.gt_T_cam_obj is not None:
-                from workbench.geometry import invert_pose
-
-                gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
-                if len(gt) == problem.n_objects and np.all(np.isfinite(gt)):
-                    kind, scene = "truth", gt
-            value = float("nan")
-            if scene is not None:
-                pixels, _ = self.engine.evaluators.explain(scene)
-                value = float(pixels.sum(dtype=np.float64))
-            self.reference = (kind, value)
+                scenes["label_loglik"] = np.stack(self.labels)
+            out = {}
+            for key, scene in scenes.items():
+                value = float("nan")
+                if scene is not None and frame is not None and problem is not None:
+                    pixels, _ = self.engine.evaluators.explain(scene)
+                    value = float(pixels.sum(dtype=np.float64))
+                out[key] = value
+            self.reference = out
         return self.reference
+
+    def truth_scene(self) -> np.ndarray | None:
+        """The frame's ground truth (K, 4, 4) in the table frame when it has a pose for every object, else None."""
+        frame, problem = self.engine.frame, self.engine.problem
+        if frame is None or problem is None or frame.gt_T_cam_obj is None:
+            return None
+        from workbench.geometry import invert_pose
+
+        gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
+        return gt if len(gt) == problem.n_objects and np.all(np.isfinite(gt)) else None
+
+    def publish_truth(self) -> None:
+        """The best scene against the dataset's ground truth, every iteration, where the frame has one."""
+        est, frame, problem = self.engine.estimator, self.engine.frame, self.engine.problem
+        if est is None or est.particles is None or frame is None or frame.gt_T_cam_obj is None:
+            return
+        from workbench.app.truth import truth_rows
+
+        if self.truth_points is None:
+            self.truth_points = truth_points(problem)
+        estimate = np.array(est.best, dtype=np.float64)
+        rows = truth_rows(frame, problem, estimate, self.truth_points)
+        self.engine.results.put(p.TruthErrors(est.iteration, rows, estimate))

@@ -23,7 +23,7 @@ from workbench.app import protocol as p
 from workbench.app.colors import LABEL_COLOR
 from workbench.app.label_tab import AXES, FACES, NO_OBJECT, TURNS, LabelTab
 from workbench.app.quiet import Quiet
-from workbench.app.views import NO_SHADOW, Nodes, split_pose
+from workbench.app.views import OUTLINE_WIDTH, Nodes, outline_segments, split_pose
 from workbench.geometry import (
     euler_to_matrix,
     make_pose,
@@ -83,6 +83,7 @@ class LabelEditor:
     gizmos: list = field(default_factory=list)
     meshes: list = field(default_factory=list)
     nodes: Nodes = field(default_factory=Nodes)
+    shown: bool = True  # the labels' outlines shown (the View box's visibility bar)
     _last_send: float = 0.0
 
     def __post_init__(self) -> None:
@@ -126,8 +127,10 @@ class LabelEditor:
             ))
             gizmo.on_update(lambda event, k=k: self.gizmo_moved(k, event))
             self.gizmos.append(gizmo)
-            self.meshes.append(self.nodes.add(scene.add_mesh_simple(
-                f"/label_mesh/{k}", m.vertices, m.faces, color=LABEL_COLOR, opacity=0.75, visible=False, **NO_SHADOW)))
+            # An outline, as the ground truth's: the depth's points and the estimate stay visible inside it.
+            self.meshes.append(self.nodes.add(scene.add_line_segments(
+                f"/label_mesh/{k}", outline_segments(m), colors=LABEL_COLOR, thickness=OUTLINE_WIDTH + 0.5,
+                thickness_units="screen", visible=False)))
         with self.quiet:
             self.tab.object.options = tuple(self.names) or (NO_OBJECT,)
             self.tab.object.value = self.tab.object.options[0]
@@ -174,8 +177,15 @@ class LabelEditor:
                 gizmo.wxyz, gizmo.position = q, t
                 gizmo.visible = k == sel and self.tab.show_gizmo.value
                 mesh.wxyz, mesh.position = q, t
-                mesh.visible = self.labels[k] is not None
+                mesh.visible = self.labels[k] is not None and self.shown
             self.show_fields(sel)
+
+    def set_shown(self, shown: bool) -> None:
+        """Show or hide the labels' outlines (the View box's visibility bar)."""
+        self.shown = shown
+        with self.server.atomic():
+            for k, mesh in enumerate(self.meshes):
+                mesh.visible = self.labels[k] is not None and shown
 
     def show_fields(self, sel: int | None) -> None:
         t = self.tab

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.app.colors import VIRIDIS, apply_map, robust_range
+from workbench.app.colors import apply_map, robust_range
 from workbench.app.protocol import MeshData, ObservationView, PointSet
 from workbench.geometry import invert_pose, transform_points
 from workbench.problem import Problem
@@ -17,11 +17,20 @@ from workbench.scene import Camera, Frame
 NEAR_POINTS = 20_000
 FAR_STRIDE = 4  # times the near stride
 NEAR_MARGIN = 0.05  # m around the object region still drawn finely
-POINT_FILL = 0.9  # a point's diameter over the spacing of its pixels at its depth: the surface reads as closed
+# A point's diameter over the spacing of its pixels at its depth. Below 1, so that the estimate drawn on the same
+# surface shows between the points instead of hiding under them (0.9 buried the converged demo's estimate).
+POINT_FILL = 0.6
 # The coarse points' diameter over their spacing: dots, not a closed surface. Squares as wide as their spacing
 # covered most of the view (~50-90 ms of every software-rendered frame); half as wide cover a quarter of that.
 FAR_FILL = 0.5
 MAX_IMAGE_WIDTH = 320  # the panel is ~20 em wide
+# Observed points are grey: no object, particle, label or truth colour is a grey, so whatever is drawn on the points
+# stands out from them. Dark (low) to pale (high) above the table; the table's own points a warm mid grey.
+GREYS = np.array([[70, 74, 82], [228, 228, 232]], dtype=np.float64)
+TABLE_POINTS = (160, 152, 140)
+BELOW_POINTS = (60, 60, 60)
+OUTLINE_FACES = 300  # the coarse mesh whose feature edges outline an object (ground truth, labels, particles)
+OUTLINE_DEGREES = 20.0  # a coarse mesh's edge is drawn where its faces meet at more than this
 
 
 def backproject(camera: Camera, depth: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -55,14 +64,57 @@ def height_top(z: np.ndarray) -> float:
 
 
 def height_colors(z: np.ndarray, top: float | None = None) -> tuple[np.ndarray, str]:
-    """Colour by height above the table: the table itself grey, objects from viridis' dark (low) to yellow (at
+    """Grey by height above the table: the table itself warm grey, objects from dark grey (low) to pale (at
     ``top``, default the 99th percentile of ``z`` above the table, at least 5 cm), points below the table darker
-    grey -> ((P, 3) uint8, what the colours mean)."""
+    -> ((P, 3) uint8, what the colours mean)."""
     top = height_top(z) if top is None else top
-    colors = apply_map(z, 0.0, top, VIRIDIS)
-    colors[np.abs(z) <= 0.005] = (150, 150, 150)
-    colors[z < -0.005] = (90, 90, 90)
-    return colors, f"height above the table, 0 (dark) to {top * 100:.0f} cm (yellow); table grey"
+    colors = apply_map(z, 0.0, top, GREYS)
+    colors[np.abs(z) <= 0.005] = TABLE_POINTS
+    colors[z < -0.005] = BELOW_POINTS
+    return colors, f"grey by height above the table, 0 (dark) to {top * 100:.0f} cm (pale); table warm grey"
+
+
+def grey_of(rgb: np.ndarray) -> np.ndarray:
+    """(P, 3) uint8 colours -> their luminance as (P, 3) uint8 greys, kept within GREYS' range."""
+    y = rgb.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    y = GREYS[0, 0] + (GREYS[1, 0] - GREYS[0, 0]) * y / 255.0
+    return np.repeat(np.round(y).astype(np.uint8)[:, None], 3, axis=1)
+
+
+def outline_edges(vertices: np.ndarray, faces: np.ndarray, n_faces: int = OUTLINE_FACES,
+                  degrees: float = OUTLINE_DEGREES) -> np.ndarray:
+    """The lines that outline a mesh: its feature edges (faces meeting at more than ``degrees``) and open
+    boundaries, on a quadric decimation to about ``n_faces`` faces -> (E, 2, 3) float32 segments, object frame.
+
+    Every triangle edge of a 16k-face YCB scan was noise in the view and costly to draw in software WebGL;
+    a box keeps its 12 edges, a can its rims and a few rings, a banana a coarse cage."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=True)
+    if len(mesh.faces) > n_faces:
+        try:
+            import open3d as o3d
+
+            source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                               o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
+            simple = source.simplify_quadric_decimation(target_number_of_triangles=n_faces)
+            coarse = trimesh.Trimesh(np.asarray(simple.vertices), np.asarray(simple.triangles), process=True)
+            if len(coarse.faces):
+                mesh = coarse
+        except ImportError:  # without open3d the full mesh's feature edges, fewer on smooth shapes
+            pass
+    sharp = mesh.face_adjacency_edges[mesh.face_adjacency_angles > np.radians(degrees)]
+    edges, counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
+    lines = np.concatenate([sharp, edges[counts == 1]]).reshape(-1, 2)
+    if len(lines) == 0:  # a mesh smooth everywhere: its decimation's edges then
+        lines = edges
+    return np.asarray(mesh.vertices, np.float32)[lines]
+
+
+def image_thumbnail(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) -> (H', W', 3) uint8 no wider than MAX_IMAGE_WIDTH."""
+    stride = max(1, int(np.ceil(rgb.shape[1] / MAX_IMAGE_WIDTH)))
+    return np.ascontiguousarray(rgb[::stride, ::stride, :3]).astype(np.uint8)
 
 
 def depth_image(depth: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
@@ -97,7 +149,8 @@ def cloud_points(frame: Frame, camera: Camera, T_world_cam: np.ndarray, stride: 
     return points[mask], flat[mask]
 
 
-def build_view(frame: Frame, problem: Problem, title: str) -> ObservationView:
+def build_view(frame: Frame, problem: Problem, title: str, dataset=None) -> ObservationView:
+    """The frame as the workbench shows it; ``dataset``: its folder, for the Data tab."""
     camera = problem.camera
     T_world_cam = invert_pose(camera.T_cam_world)
     t = problem.table
@@ -113,9 +166,11 @@ def build_view(frame: Frame, problem: Problem, title: str) -> ObservationView:
     far_pts, far_flat = cloud_points(frame, camera, T_world_cam, far_stride,
                                      lambda pts: ~split_near(pts, region, NEAR_MARGIN))
     if frame.rgb is not None:
-        near_rgb = frame.rgb[::stride, ::stride].reshape(-1, 3)[near_flat].astype(np.uint8)
-        far_rgb = frame.rgb[::far_stride, ::far_stride].reshape(-1, 3)[far_flat].astype(np.uint8)
-        legend = "the frame's colour image"
+        # The image's brightness, in grey: its texture without the hues the objects wear (the colours are in the
+        # panel's thumbnail).
+        near_rgb = grey_of(frame.rgb[::stride, ::stride, :3].reshape(-1, 3)[near_flat])
+        far_rgb = grey_of(frame.rgb[::far_stride, ::far_stride, :3].reshape(-1, 3)[far_flat])
+        legend = "the colour image's brightness, in grey (the image: Data tab)"
     else:
         top = height_top(near_pts[:, 2])  # the objects are near: they set the scale of both
         near_rgb, legend = height_colors(near_pts[:, 2], top)
@@ -140,7 +195,8 @@ def build_view(frame: Frame, problem: Problem, title: str) -> ObservationView:
         table=(t.x_min, t.x_max, t.y_min, t.y_max),
         region=region,
         meshes=[
-            MeshData(name, np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32))
+            MeshData(name, np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32),
+                     outline_edges(m.mesh.vertices, m.mesh.faces))
             for name, m in zip(display_names(problem.models), problem.models)
         ],
         T_world_cam=T_world_cam,
@@ -150,4 +206,6 @@ def build_view(frame: Frame, problem: Problem, title: str) -> ObservationView:
         grid_point_size=point_size(problem.render_camera, problem.observed, 1),
         grid_mask=problem.observed > 0,
         gt_T_world_obj=gt,
+        rgb_image=None if frame.rgb is None else image_thumbnail(frame.rgb),
+        where=None if dataset is None else (str(dataset), int(frame.scene_id), int(frame.im_id)),
     )

@@ -34,9 +34,10 @@ class ParticleDisplay:
         """A new run: there is no snapshot to choose from."""
         self.order = np.zeros(0, int)
 
-    def snapshot(self, est, report, running: bool, particles: int, reference: tuple[str | None, float]) -> p.Snapshot:
+    def snapshot(self, est, report, running: bool, particles: int, reference: dict[str, float]) -> p.Snapshot:
         """The Snapshot of ``est``'s iteration, ``report`` its row; ``particles``: the configured count (the
-        resampling target), ``reference``: the known scene's log-likelihood for the Plots tab."""
+        resampling target), ``reference``: the known scenes' log-likelihoods for the Plots tab ("truth_loglik",
+        "label_loglik", NaN where unknown)."""
         # -inf (failed physics, or outside the object region) last
         order = np.argsort(-est.particles.loglik, kind="stable")
         self.order = order
@@ -52,7 +53,7 @@ class ParticleDisplay:
         )
         row = report.as_dict()
         row["distinct_after_resampling"] = expected_distinct(weights, particles)
-        row["reference"], row["reference_loglik"] = reference
+        row.update(reference)
         return p.Snapshot(row, cloud, running, particles)
 
     def chosen(self, est, explain: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> p.Chosen | None:

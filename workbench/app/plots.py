@@ -1,13 +1,15 @@
 """Plots over iterations with viser's uPlot, one chart per question a researcher asks of a run:
 
-- **log-likelihood**: the best and mean particle's, and the truth's or the label's where one is known (the
-  estimate should reach it; above it means the likelihood prefers a wrong scene);
+- **log-likelihood**: the best and mean particle's, and the dataset's truth's and the labels' as two levels where
+  known (the estimate should reach them; above them means the likelihood prefers a wrong scene);
 - **tempering exponent β**: how much of the raw likelihood the weights use (the effective sample size is held at
   a fixed share of N by choosing β, so ESS itself says nothing);
 - **distinct particles after resampling**: how many different particles the resampling keeps (few: collapse);
-- **acceptance**: PI-MCPF's accepted share of proposals, per move kind where the report carries ``moves``
+- **acceptance** (PI-MCPF only): the accepted share of proposals, per move kind where the report carries ``moves``
   (``{kind: {"proposed": n, "accepted": m}}``);
-- **best particle's move / convergence threshold**: below 1 on both curves = calm.
+- **best particle's move / convergence threshold** (log scale): below 1 on both curves = calm.
+
+Every chart spans the same iterations, from 0 to the latest (one x-axis, labelled "iteration").
 
 Each chart is a ``Chart``: a title, its series and a function from the reports to its columns. Charts are created
 when their first point arrives and removed at Reset or a new frame: a uPlot created empty (or while its tab is
@@ -24,13 +26,15 @@ import numpy as np
 import viser
 import viser.uplot as uplot
 
-HEIGHT = 140
-# Iterations, not timestamps (uPlot's default x scale is time); room for numbers like -20,000 on the y axis.
-X_SCALE: uplot.Scale = {"time": False, "auto": True}
-AXES: tuple[uplot.Axis, ...] = ({}, {"size": 64})
+HEIGHT = 140  # px per chart; the tab's "Plot height" slider changes it (100 to 400)
+# Iterations, not timestamps (uPlot's default x scale is time); every chart spans the same iterations (one shared
+# x-axis, labelled on each); room for numbers like -20,000 on the y axis.
+X_AXIS: uplot.Axis = {"label": "iteration", "labelSize": 16, "size": 34}
+AXES: tuple[uplot.Axis, ...] = (X_AXIS, {"size": 64})
 NO_LEGEND: uplot.Legend = {"show": False}
 MOVE_COLORS = ("#1c7ed6", "#e8590c", "#2f9e44", "#ae3ec9", "#f59f00", "#0c8599", "#868e96")
-REFERENCE_COLOR = "#c2255c"
+TRUTH_COLOR = "#212529"  # the ground truth's level: near-black as its outline in the 3D view
+LABEL_LEVEL_COLOR = "#c2255c"  # the labels' level: magenta as their outline
 
 
 @dataclass(frozen=True)
@@ -90,21 +94,28 @@ class Chart:
     note: str = ""
 
 
+LEVELS = (("truth_loglik", "truth", TRUTH_COLOR), ("label_loglik", "labels", LABEL_LEVEL_COLOR))
+
+
+def _levels(reports: list[dict]) -> list[tuple[str, str, str]]:
+    """The known scenes' levels the reports carry a value for: the dataset's truth and the labels, apart."""
+    return [lv for lv in LEVELS if np.isfinite(column(reports, lv[0])).any()]
+
+
 def _loglik_lines(reports: list[dict]) -> tuple[Line, ...]:
-    kind = next((r["reference"] for r in reversed(reports) if r.get("reference")), None)
-    extra = (Line(kind, REFERENCE_COLOR, dashed=True),) if kind else ()
+    extra = tuple(Line(label, color, dashed=True) for _, label, color in _levels(reports))
     return (Line("best", "#e8590c"), Line("mean", "#1c7ed6"), *extra)
 
 
 def _loglik_columns(reports: list[dict], ctx: dict) -> tuple[np.ndarray, ...] | None:
     it = column(reports, "iteration")
     best, mean = column(reports, "best_loglik"), column(reports, "mean_loglik")
-    if len(_loglik_lines(reports)) == 3:
-        # The reference as a level across the whole run: its latest value (labels can change during a run).
-        ref = column(reports, "reference_loglik")
-        latest = ref[np.isfinite(ref)][-1]
-        return finite_rows(it, best, mean, np.full_like(it, latest))
-    return finite_rows(it, best, mean)
+    # Each known scene as a level across the whole run: its latest value (labels can change during a run).
+    levels = []
+    for key, _, _ in _levels(reports):
+        ref = column(reports, key)
+        levels.append(np.full_like(it, ref[np.isfinite(ref)][-1]))
+    return finite_rows(it, best, mean, *levels)
 
 
 def _beta_columns(reports: list[dict], ctx: dict) -> tuple[np.ndarray, ...] | None:
@@ -120,8 +131,12 @@ def _distinct_columns(reports: list[dict], ctx: dict) -> tuple[np.ndarray, ...] 
 
 
 def _acceptance_series(reports: list[dict]) -> list[tuple[Line, np.ndarray]]:
-    """The overall acceptance (PI-MCPF's ``accept_rate``) and one per move kind, each only where it has values."""
-    out = [(Line("all", "#495057"), column(reports, "accept_rate"))]
+    """The overall acceptance (PI-MCPF's ``accept_rate``) and one per move kind, each only where it has values;
+    nothing where nothing is accepted or rejected (PI-PF, whose per-kind counts are expected offspring)."""
+    overall = column(reports, "accept_rate")
+    if not np.isfinite(overall).any():
+        return []
+    out = [(Line("all", "#495057"), overall)]
     out += [(Line(k, MOVE_COLORS[i % len(MOVE_COLORS)]), acceptance(reports, k))
             for i, k in enumerate(move_kinds(reports))]
     return [(line, y) for line, y in out if np.isfinite(y).any()]
@@ -134,25 +149,28 @@ def _acceptance_columns(reports: list[dict], ctx: dict) -> tuple[np.ndarray, ...
     return finite_rows(column(reports, "iteration"), *(y for _, y in series))
 
 
+MOVE_FLOOR = 1e-3  # a log scale has no zero: a move of nothing is drawn at this ratio
+
+
 def _move_columns(reports: list[dict], ctx: dict) -> tuple[np.ndarray, ...] | None:
     x, dm, dd = finite_rows(column(reports, "iteration"), column(reports, "best_move_m") / ctx["converge_m"],
                            column(reports, "best_move_deg") / ctx["converge_deg"])
-    return x, dm, dd, np.ones_like(x)
+    return x, np.maximum(dm, MOVE_FLOOR), np.maximum(dd, MOVE_FLOOR), np.ones_like(x)
 
 
 CHARTS: tuple[Chart, ...] = (
     Chart("loglik", "log-likelihood", _loglik_lines, _loglik_columns),
-    Chart("beta", "tempering exponent β (log scale)", lambda r: (Line("β", "#2f9e44"),), _beta_columns,
-          y_scale={"auto": True, "distr": 3}, note="weights ∝ exp(β · log-likelihood)"),
+    Chart("beta", "tempering exponent β", lambda r: (Line("β", "#2f9e44"),), _beta_columns,
+          y_scale={"auto": True, "distr": 3}, note="log scale; weights ∝ exp(β · log-lik)"),
     Chart("distinct", "distinct particles after resampling",
           lambda r: (Line("distinct (expected)", "#0c8599"), Line("N", "#868e96", dashed=True)), _distinct_columns,
           y_scale={"auto": True, "range": (0.0, None)}),
-    Chart("acceptance", "accepted share of proposals", lambda r: tuple(ln for ln, _ in _acceptance_series(r)),
+    Chart("acceptance", "accepted share (PI-MCPF)", lambda r: tuple(ln for ln, _ in _acceptance_series(r)),
           _acceptance_columns,
           y_scale={"auto": False, "range": (0.0, 1.0)}),
-    Chart("move", "best particle's move / convergence threshold",
+    Chart("move", "best's move / convergence threshold",
           lambda r: (Line("position", "#ae3ec9"), Line("angle", "#f59f00"), Line("rule", "#495057", dashed=True)),
-          _move_columns, y_scale={"auto": True, "range": (0.0, None)}, note="below 1 on both = calm"),
+          _move_columns, y_scale={"auto": True, "distr": 3}, note="log scale; below 1 on both = calm"),
 )
 
 
@@ -178,7 +196,7 @@ class Drawn:
 @dataclass
 class Plots:
     """The Plots tab: its charts over the run's reports (dicts of ``IterationReport.as_dict()``, plus what the
-    engine adds: ``distinct_after_resampling``, ``reference_loglik`` and ``reference``)."""
+    engine adds: ``distinct_after_resampling``, ``truth_loglik`` and ``label_loglik``)."""
 
     gui: viser.GuiApi
     tab: viser.GuiTabHandle
@@ -187,10 +205,25 @@ class Plots:
     drawn: dict[str, Drawn] = field(default_factory=dict)
     context: dict = field(default_factory=lambda: {"converge_m": 0.01, "converge_deg": 3.0})
 
+    height: int = HEIGHT
+
     def __post_init__(self) -> None:
         with self.tab:
+            self.size = self.gui.add_slider("Plot height", 100, 400, 20, HEIGHT, order=-1.0,
+                                            hint="px per chart: taller charts, or more of them on screen")
             self.empty = self.gui.add_markdown("No iterations yet: **Step** or **Run** draws the plots here.",
                                                order=0.0)
+        self.size.on_update(lambda _: self.resize(int(self.size.value)))
+
+    def resize(self, height: int) -> None:
+        """Every chart ``height`` px tall (re-created: uPlot takes its size when made)."""
+        self.height = height
+        for d in self.drawn.values():
+            d.header.remove()
+            d.plot.remove()
+        self.drawn = {}
+        if self.reports:
+            self.redraw(self.context.get("converge_m", 0.01), self.context.get("converge_deg", 3.0))
 
     def clear(self) -> None:
         self.reports, self.particles = [], []
@@ -233,14 +266,20 @@ class Plots:
                 self.drawn[chart.key] = self._create(i, chart, lines, data)
             else:
                 d.plot.data = data
+                d.plot.scales = self.scales(chart)
         self.empty.visible = not self.drawn
+
+    def scales(self, chart: Chart) -> dict:
+        """One x range for every chart: the run's iterations so far, from 0."""
+        last = max((r["iteration"] for r in self.reports), default=0)
+        return {"x": {"time": False, "auto": False, "range": (0.0, float(max(1, last)))}, "y": chart.y_scale}
 
     def _create(self, i: int, chart: Chart, lines: tuple[Line, ...], data: tuple[np.ndarray, ...]) -> Drawn:
         with self.tab:
             header = self.gui.add_html(legend_html(chart, lines), order=10.0 * (i + 1))
             plot = self.gui.add_uplot(
-                data, ({"label": "iteration"}, *(ln.series() for ln in lines)), height=HEIGHT,
-                scales={"x": X_SCALE, "y": chart.y_scale}, axes=AXES, legend=NO_LEGEND,
+                data, ({"label": "iteration"}, *(ln.series() for ln in lines)), height=self.height,
+                scales=self.scales(chart), axes=AXES, legend=NO_LEGEND,
                 order=10.0 * (i + 1) + 1.0,
             )
         return Drawn(lines, header, plot)

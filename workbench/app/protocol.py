@@ -172,6 +172,9 @@ class MeshData:
     name: str
     vertices: np.ndarray  # (V, 3) float32, object frame, metres
     faces: np.ndarray  # (F, 3) int32
+    # (E, 2, 3) float32, object frame: the outline drawn for ground truth, labels and particles (the feature edges
+    # of a coarse decimation, see observation.outline_edges); None: every triangle edge
+    edges: np.ndarray | None = None
 
 
 @dataclass
@@ -208,6 +211,8 @@ class ObservationView:
     grid_point_size: float  # m: the grid's pixel spacing at the median depth
     grid_mask: np.ndarray  # (h, w) bool
     gt_T_world_obj: np.ndarray | None  # (K, 4, 4), NaN rows where unknown; None without ground truth
+    rgb_image: np.ndarray | None = None  # (H', W', 3) uint8, the frame's colour image for the panel, if it has one
+    where: tuple[str, int, int] | None = None  # (dataset folder, scene id, frame id), for the Data tab's fields
 
 
 @dataclass
@@ -321,6 +326,17 @@ class LabelErrors:
 
 
 @dataclass
+class TruthErrors:
+    """The estimate against the dataset's ground truth (scene_gt.json), scored as ``workbench score`` scores a
+    results CSV: per ground-truth object a row {"obj_id", "position_cm", "rotation_deg", "add_s_mm", "right"}
+    (NaN errors where no estimate is matched). ``estimate``: the scored scene (K, 4, 4) in the table frame."""
+
+    iteration: int
+    rows: list[dict]
+    estimate: np.ndarray
+
+
+@dataclass
 class Saved:
     """A file was written: ``kind`` "labels" or "session"."""
 
@@ -351,4 +367,4 @@ class SessionRestored:
 
 
 Message = (Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready | Labels | LabelHeatmap | LabelErrors
-           | Saved | SessionQuestion | SessionRestored)
+           | TruthErrors | Saved | SessionQuestion | SessionRestored)

@@ -12,6 +12,7 @@ import viser
 
 from workbench.app import protocol as p
 from workbench.app.labelling import Labelling
+from workbench.app.markdown import escape
 from workbench.app.panel import Panel
 from workbench.app.sessions_panel import Sessions
 from workbench.app.status import RunView
@@ -28,6 +29,10 @@ class Reporter:
                  labelling: Labelling, sessions: Sessions):
         self.server, self.panel, self.lock, self.state = server, panel, lock, state
         self.labelling, self.sessions = labelling, sessions
+        # Every current error, banner line by banner line: key (a field's label, or the failure's title and path)
+        # -> markdown. All are listed, not only the newest; they go when the input is corrected or an iteration
+        # goes through.
+        self.current: dict[str, str] = {}
 
     def guarded(self, action: Callable[[], None]) -> None:
         """Run a panel action; bad input becomes a message in the panel, never a dead callback. An action that
@@ -40,12 +45,44 @@ class Reporter:
             self.clear_error()
 
     def clear_error(self) -> None:
-        """Hide the error banner, unless the estimator is gone for good (only a restart helps then)."""
+        """Hide the error banner and the fields' outlines, unless the estimator is gone for good (only a restart
+        helps then)."""
         with self.lock:
             failures = self.state().failures
             last = failures[-1] if failures else None
-            if self.panel.error.visible and not (last is not None and last.fatal):
+            if last is not None and last.fatal:
+                return
+            self.current = {}
+            self.panel.outline(())
+            if self.panel.error.visible:
                 self.panel.error.visible = False
+
+    def field_errors(self, errors: dict[str, str]) -> None:
+        """The typed fields refused now ({label: problem}; they were put back to the values in use): each
+        outlined and listed in the banner, with whatever else is wrong. An empty dict clears the fields'
+        lines (the banner goes if nothing else is on it)."""
+        with self.lock:
+            before = dict(self.current)
+            self.current = {k: v for k, v in self.current.items() if not k.startswith("field:")}
+            for label, problem in errors.items():
+                log.warning("Input error: %s: %s", label, problem)
+                self.current[f"field:{label}"] = (f"`{label}`: {escape(problem)} — **kept the value in use**")
+            self.panel.outline(tuple(errors))
+            self.show_banner()
+            new = {label: problem for label, problem in errors.items()
+                   if before.get(f"field:{label}") != self.current[f"field:{label}"]}
+        for label, problem in new.items():  # each once, not on every keystroke
+            self.notify("Input error", f"{label}: {problem}; the value in use was put back", color="red")
+
+    def show_banner(self) -> None:
+        lines = list(self.current.values())
+        if not lines:
+            self.panel.error.visible = False
+            return
+        head = f"**⚠ {len(lines)} problems**\n\n" if len(lines) > 1 else ""
+        self.panel.error.content = head + "\n".join(f"- {line}" if len(lines) > 1 else f"**⚠** {line}"
+                                                     for line in lines)
+        self.panel.error.visible = True
 
     def report(self, failure: p.Failure) -> None:
         # The terminal hears of every failure too: a server started on a bad path must not look healthy there.
@@ -58,8 +95,8 @@ class Reporter:
             state = self.state()
             state.failures.append(failure)
             where = f"`{failure.path}`: " if failure.path else ""
-            self.panel.error.content = f"**⚠ {failure.title}** — {where}{failure.problem}"
-            self.panel.error.visible = True
+            self.current[f"{failure.title}|{failure.path}"] = f"**{escape(failure.title)}** — {where}{escape(failure.problem)}"
+            self.show_banner()
             view = state.view  # a failed load leaves the loaded frame in place
             self.panel.title.content = f"**workbench** · {view.title if view else 'nothing loaded'}"
         self.notify(failure.title, f"{failure.path + ': ' if failure.path else ''}{failure.problem}", color="red")

@@ -44,13 +44,14 @@ class RunDisplay:
         self.view: p.ObservationView | None = None  # the frame drawn
         self.names: list[str] = []  # the loaded objects' display names, as every part of the panel shows them
         self.choice: p.Chosen | None = None  # the chosen particle drawn
+        self.last_heat_mode = "log-likelihood"  # what the visibility bar's heatmap toggle turns on
 
     def set_frame(self, view: p.ObservationView) -> None:
         """A new frame: its observation, and nothing of a run yet (the caller batches this with ``server.atomic``)."""
         P = self.panel
         self.throttle.cancel()
         self.view, self.choice = view, None
-        self.observation.draw(view, P.show_observation.value, P.show_gt.value)
+        self.observation.draw(view, self.points_visible(), P.show("truth"))
         self.particles.set_frame(view.meshes)
         self.chosen.set_frame(view)
         self.heatmap.set_frame(view)
@@ -59,9 +60,17 @@ class RunDisplay:
         lo, hi = view.depth_range
         P.depth_legend.content = legend_html("depth (m)", f"{lo:.2f}", f"{hi:.2f}", VIRIDIS,
                                              f"3D points: {view.color_legend}")
+        for image in (P.rgb_image, P.label_rgb):
+            if view.rgb_image is not None:
+                image.image = view.rgb_image
+            image.visible = view.rgb_image is not None
+        if view.where is not None:  # the Data tab names the frame on show
+            P.dataset.value, P.scene_id.value, P.im_id.value = view.where[0], str(view.where[1]), str(view.where[2])
         P.heat_image.visible = False
         P.legend.content = ""
         P.physics_change.content = ""
+        P.truth.content = ""
+        P.timings.content = ""
         P.plots.clear()
         self.names = [m.name for m in view.meshes]
         self.show_view_legend()
@@ -94,6 +103,11 @@ class RunDisplay:
     def redraw_chosen(self) -> None:
         with self.lock:
             c, P = self.choice, self.panel
+            if c is None:  # nothing chosen in this run (yet): nothing of an earlier one stays drawn
+                self.chosen.clear()
+                self.heatmap.nodes.clear()
+                P.legend.content, P.heat_image.visible, P.physics_change.content = "", False, ""
+                return
             self.chosen.update(c, P.scene_mode.value)
             legend, image = self.heatmap.update(c, P.heatmap_mode.value)
             P.legend.content = legend
@@ -102,28 +116,66 @@ class RunDisplay:
             P.heat_image.visible = image is not None
             P.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
 
+    def heat_on(self) -> bool:
+        return self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
+
+    def points_visible(self) -> bool:
+        """The observed points show when the user wants them and no heatmap is drawn on them."""
+        return self.panel.show("points") and not self.heat_on()
+
+    def apply_visibility(self) -> None:
+        """Draw the visibility bar's choices (and the heatmap's) into the 3D view."""
+        P = self.panel
+        P.set_shown("heatmap", self.heat_on())
+        with self.server.atomic():
+            self.observation.set_visible(self.points_visible(), P.show("truth"))
+            self.particles.set_visible(P.show("particles"), P.show("estimate"))
+            self.labelling.editor.set_shown(P.show("labels"))
+        self.show_view_legend()
+
+    def toggle(self, item: str) -> None:
+        """The visibility bar's ``item`` was clicked: show or hide that layer. The heatmap's toggle switches the
+        chosen particle's heatmap between off and the mode last used."""
+        P = self.panel
+        if item == "heatmap":
+            if self.heat_on():
+                P.heatmap_mode.value = "off"
+                P.label.heatmap.value = "off"
+            else:
+                P.heatmap_mode.value = self.last_heat_mode
+            return  # the dropdowns' callbacks redraw
+        if item in P.shown:
+            P.set_shown(item, not P.show(item))
+            self.apply_visibility()
+
     def heatmap_mode_changed(self) -> None:
         # The heatmap is drawn on the observed points: showing both would bury one under the other. So would the
-        # label heatmap, on the same points: one heatmap at a time.
-        if self.panel.heatmap_mode.value != "off" and self.panel.label.heatmap.value != "off":
-            self.panel.label.heatmap.value = "off"
-        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
-            self.panel.label.heatmap.value == "off"
-        self.show_view_legend()
+        # label heatmap, on the same points: one heatmap at a time. The points come back as the user left them.
+        if self.panel.heatmap_mode.value != "off":
+            self.last_heat_mode = self.panel.heatmap_mode.value
+            if self.panel.label.heatmap.value != "off":
+                self.panel.label.heatmap.value = "off"
+        self.apply_visibility()
         self.redraw_chosen()
 
     def label_heatmap_mode_changed(self) -> None:
         if self.panel.label.heatmap.value != "off" and self.panel.heatmap_mode.value != "off":
             self.panel.heatmap_mode.value = "off"
-        self.panel.show_observation.value = self.panel.heatmap_mode.value == "off" and \
-            self.panel.label.heatmap.value == "off"
-        self.show_view_legend()
+        self.apply_visibility()
 
     def reset(self) -> None:
-        """A new run on the same frame: no particles, no chosen one."""
+        """A new run on the same frame: no particles, no chosen one, no tables of the old run."""
+        P = self.panel
         self.throttle.cancel()
-        self.panel.plots.clear()
+        P.plots.clear()
         self.particles.set_frame(self.particles.meshes)
         self.choice = None
-        self.redraw_chosen()
+        self.chosen.clear()
+        self.heatmap.nodes.clear()
+        P.legend.content = ""
+        P.heat_image.visible = False
+        P.physics_change.content = ""
+        P.timings.content = ""
+        P.truth.content = ""
+        self.labelling.tab.errors.content = ""
         self.labelling.editor.show_estimate(None)

@@ -26,12 +26,13 @@ from workbench.app.camera import FRAME_OBJECTS, TabCameras
 from workbench.app.engine import DEMO_DIR
 from workbench.app.engine_process import EngineClient
 from workbench.app.labelling import Labelling
-from workbench.app.panel import Panel, build_panel
+from workbench.app.panel import Panel, build_panel, pending_markdown, visibility_item
 from workbench.app.quiet import Quiet
 from workbench.app.reporting import Reporter
 from workbench.app.run_display import RunDisplay
 from workbench.app.sessions_panel import Sessions
 from workbench.app.status import RunView, status_markdown, timings_markdown
+from workbench.app.truth import truth_markdown
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 
@@ -40,6 +41,7 @@ log = logging.getLogger(__name__)
 # Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
 SESSIONS_DIR = Path("sessions")
+REVERT_S = 1.5  # a refused typed value is put back this long after the last keystroke
 
 
 
@@ -61,7 +63,12 @@ class App:
         self.panel: Panel = build_panel(server.gui, config, likelihood)
         self.labelling = Labelling(server, self.panel.label, self.send, self.lock, self.quiet,
                                    on_heatmap_mode=lambda: self.display.label_heatmap_mode_changed())
-        self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.lock, self.quiet)
+        self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.lock, self.quiet,
+                                 unsaved=self.unsaved)
+        self.likelihood = likelihood  # the likelihood model of the run (the panel's applies at Reset)
+        self.saved_iteration: int | None = None  # the run's iteration last saved to or loaded from a session
+        self.stepping_since: float | None = None  # monotonic time the pending Step was sent
+        self.revert_timer: threading.Timer | None = None
         self.reporter = Reporter(server, self.panel, self.lock, lambda: self.state, self.labelling, self.sessions)
         self.display = RunDisplay(server, self.panel, self.lock, self.labelling, on_pick=self.pick,
                                   on_error=self.reporter.drawing_failed)
@@ -78,20 +85,18 @@ class App:
 
     def _wire(self) -> None:
         P, display = self.panel, self.display
-        P.step.on_click(lambda _: self.send(p.Step()))
-        P.run.on_click(lambda _: self.send(p.Run(P.stop_on_convergence.value)))
+        P.step.on_click(lambda _: self.step())
+        P.run.on_click(lambda _: self.run())
         P.pause.on_click(lambda _: self.pause())
         P.reset.on_click(lambda _: self.reset())
-        for h in (P.method, P.particles, P.iterations, P.sigma_xy, P.sigma_z, P.sigma_angles):
+        for h in (P.method, P.particles, P.iterations, P.sigma_xy, P.sigma_z, P.sigma_angles, P.seed):
             h.on_update(lambda _: self.config_changed())
+        P.likelihood.on_update(lambda _: self.show_pending())
         P.rank.on_update(lambda _: self.send(p.Select(int(P.rank.value))))
         P.best.on_click(lambda _: self.pick(0))
         P.scene_mode.on_update(lambda _: display.redraw_chosen())
         P.heatmap_mode.on_update(lambda _: display.heatmap_mode_changed())
-        for h in (P.show_observation, P.show_gt):
-            h.on_update(lambda _: display.observation.set_visible(P.show_observation.value, P.show_gt.value))
-        for h in (P.show_particles, P.show_best):
-            h.on_update(lambda _: display.particles.set_visible(P.show_particles.value, P.show_best.value))
+        P.visibility.on_click(lambda event: self.toggle(event.target.value))
         P.max_particles.on_update(lambda _: self.send(p.SetDisplay(int(P.max_particles.value))))
         P.load.on_click(lambda _: self.load_typed())
         P.camera.on_click(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client))
@@ -102,14 +107,120 @@ class App:
         self.engine.send(cmd)
 
     def config_changed(self) -> None:
+        """A setting was typed: the valid ones go to the engine at once (the seed waits for Reset); refused ones
+        are outlined and listed now, and put back to the value in use once the typing pauses (REVERT_S: reverting
+        mid-word would fight the user) or at Step, Run or Reset."""
         if self.quiet.active:
             return  # a restored session's settings being shown, not a user's edit
+        with self.lock:
+            try:
+                config, errors = self.panel.read_config(self.config)
+            except InputError as err:
+                self.reporter.report(p.Failure("Input error", err.problem, err.path))
+                return
+            self.reporter.field_errors(errors)
+            if self.revert_timer is not None:
+                self.revert_timer.cancel()
+                self.revert_timer = None
+            if errors:
+                self.revert_timer = threading.Timer(REVERT_S, self.revert_fields)
+                self.revert_timer.daemon = True
+                self.revert_timer.start()
+            config = replace(config, seed=self.config.seed)  # the seed applies at Reset
+            if config != self.config:
+                self.config = config
+                self.send(p.SetConfig(self.config))
+            self.show_pending()
 
-        def apply():
-            self.config = self.panel.estimator_config(self.config)
-            self.send(p.SetConfig(self.config))
+    def revert_fields(self) -> bool:
+        """Put the values in use back into the fields that hold refused ones (they stay outlined and listed)
+        -> whether any was refused."""
+        with self.lock:
+            if self.revert_timer is not None:
+                self.revert_timer.cancel()
+                self.revert_timer = None
+            _, errors = self.panel.read_config(self.config)
+            if errors:
+                with self.quiet:
+                    self.panel.revert(tuple(errors), self.config)
+            return bool(errors)
 
-        self.reporter.guarded(apply)
+    def show_pending(self) -> None:
+        """Say which settings wait for Reset (likelihood, seed), and which apply at once."""
+        if self.quiet.active:
+            return
+        with self.lock:
+            try:
+                seed = int(str(self.panel.seed.value).strip())
+            except ValueError:
+                seed = self.config.seed
+            content = pending_markdown((self.likelihood, self.config.seed), (self.panel.likelihood.value, seed))
+            if self.panel.pending.content != content:
+                self.panel.pending.content = content
+
+    def toggle(self, option: str) -> None:
+        """A click on the visibility bar."""
+        with self.lock:
+            self.display.toggle(visibility_item(option))
+
+    def step(self) -> None:
+        """One iteration: Step is disabled and a spinner counts the seconds until the engine answers."""
+        with self.lock:
+            self.revert_fields()
+            if self.stepping_since is not None or self.state.running:
+                return
+            self.stepping_since = started = time.monotonic()
+            P = self.panel
+            P.step.disabled = True
+            P.busy.content = "⏳ **Step running** · 0 s"
+            P.busy.visible = P.busy_bar.visible = True
+            self.send(p.Step())
+        threading.Thread(target=self._count_step, args=(started,), daemon=True, name="step-timer").start()
+
+    def _count_step(self, started: float) -> None:
+        while True:
+            time.sleep(1.0)
+            with self.lock:
+                if self.stepping_since != started:
+                    return
+                self.panel.busy.content = f"⏳ **Step running** · {time.monotonic() - started:.0f} s"
+
+    def step_done(self) -> None:
+        """The engine answered the Step (or the run started, stopped or failed): Step is back."""
+        with self.lock:
+            if self.stepping_since is None:
+                return
+            self.stepping_since = None
+            P = self.panel
+            P.busy.visible = P.busy_bar.visible = False
+            P.step.disabled = self.state.running
+
+    def run(self) -> None:
+        with self.lock:
+            self.revert_fields()
+        self.send(p.Run(self.panel.stop_on_convergence.value))
+
+    def unsaved(self) -> str | None:
+        """What of the current run a session load would lose, or None (nothing run, or saved as it is)."""
+        it = self.state.iteration
+        if it < 0 or it == self.saved_iteration:
+            return None
+        return f"iteration {it}" + (f"; last saved at iteration {self.saved_iteration}"
+                                    if self.saved_iteration is not None else "")
+
+    def on_saved(self, msg: p.Saved) -> None:
+        if msg.kind == "session":
+            self.saved_iteration = self.state.iteration
+        self.reporter.on_saved(msg)
+
+    def on_truth(self, msg: p.TruthErrors) -> None:
+        self.state.truth = msg
+        self.panel.truth.content = truth_markdown(msg.iteration, msg.rows, self.display.names)
+
+    def on_failure(self, failure: p.Failure) -> None:
+        if failure.topic not in ("labels", "session"):
+            self.step_done()
+        self.reporter.report(failure)
 
     def pause(self) -> None:
         # Sent under the lock, so it reaches the engine before the Shown of any later iteration (on_snapshot sends
@@ -120,14 +231,19 @@ class App:
 
     def reset(self) -> None:
         def apply():
+            self.revert_fields()
             self.config = self.panel.estimator_config(self.config)
-            self.send(p.Reset(self.config, self.panel.likelihood.value))
+            self.likelihood = self.panel.likelihood.value
+            self.send(p.Reset(self.config, self.likelihood))
+            self.show_pending()
 
         self.reporter.guarded(apply)
 
     def load(self, source: p.Source) -> None:
         self.panel.title.content = f"**workbench** · loading {source.describe()} …"
-        self.send(p.Load(source, self.config, self.panel.likelihood.value))
+        self.likelihood = self.panel.likelihood.value
+        self.send(p.Load(source, self.config, self.likelihood))
+        self.show_pending()
 
     def load_typed(self) -> None:
         def apply():
@@ -157,12 +273,13 @@ class App:
                 p.Snapshot: self.on_snapshot,
                 p.Chosen: self.on_chosen,
                 p.RunState: self.on_run_state,
-                p.Failure: self.reporter.report,
+                p.Failure: self.on_failure,
                 p.Workers: self.reporter.on_workers,
                 p.Labels: self.labelling.show_labels,
                 p.LabelHeatmap: self.labelling.show_heatmap,
                 p.LabelErrors: self.labelling.show_errors,
-                p.Saved: self.reporter.on_saved,
+                p.TruthErrors: self.on_truth,
+                p.Saved: self.on_saved,
                 p.SessionQuestion: self.sessions.on_question,
                 p.SessionRestored: self.on_session_restored,
             }[type(msg)]
@@ -182,6 +299,7 @@ class App:
         old = self.state
         self.state = replace(RunView(), view=view, engine_pid=old.engine_pid, restarts=old.restarts,
                              failures=old.failures, display_errors=old.display_errors)
+        self.saved_iteration = None
         with self.server.atomic():
             P.title.content = f"**workbench** · {view.title}"
             P.error.visible = False
@@ -211,8 +329,9 @@ class App:
     def on_run_state(self, msg: p.RunState) -> None:
         s, P = self.state, self.panel
         s.last_state, s.running = msg, msg.running
+        self.step_done()
         if msg.reason == "reset":
-            s.reports, s.cloud, s.chosen, s.iteration = [], None, None, -1
+            s.reports, s.cloud, s.chosen, s.iteration, s.truth = [], None, None, -1, None
             self.display.reset()
         elif not msg.running:
             self.display.throttle.flush()  # the run stopped: show where it stopped now
@@ -224,17 +343,20 @@ class App:
     def on_session_restored(self, msg: p.SessionRestored) -> None:
         """Show the restored run's settings and history (its frame came in ``Loaded`` just before)."""
         s, P = self.state, self.panel
-        self.config = msg.config
+        self.config, self.likelihood = msg.config, msg.likelihood
         with self.quiet:  # the engine has these settings already; showing them must not send them back
             P.show_config(msg.config, msg.likelihood)
         s.reports = list(msg.reports)
         s.iteration = msg.reports[-1]["iteration"] if msg.reports else -1
+        self.saved_iteration = s.iteration
+        self.show_pending()
         P.plots.set_history(msg.reports, msg.config.particles, msg.config.converge_position,
                             msg.config.converge_degrees)
         self.sessions.on_restored(msg)
         P.status.content = status_markdown(self.state, self.config)
 
     def on_engine_died(self, exitcode: int | None, gave_up: bool) -> None:
+        self.step_done()
         with self.lock:
             self.state.restarts += 1
             source = self.source
@@ -258,6 +380,8 @@ class App:
     # -- lifetime
 
     def stop(self) -> None:
+        if self.revert_timer is not None:
+            self.revert_timer.cancel()
         self.display.throttle.cancel()
         self.engine.stop()
 

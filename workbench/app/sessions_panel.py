@@ -18,6 +18,7 @@ import viser
 
 from workbench import sessions
 from workbench.app import protocol as p
+from workbench.app.markdown import escape
 from workbench.app.quiet import Quiet
 from workbench.errors import InputError
 
@@ -83,6 +84,10 @@ class Sessions:
     quiet: Quiet
     rows: dict[str, sessions.SessionInfo] = field(default_factory=dict)
     pending: Path | None = None  # the session waiting for the user's confirmation
+    # What of the current run no session holds ("iteration 7 of the current run"), or None: asked before a load
+    # replaces it.
+    unsaved: Callable[[], str | None] = lambda: None
+    unsaved_ok: bool = False  # the pending question is about the unsaved run, not a changed dataset
 
     def __post_init__(self) -> None:
         self.directory = Path(self.directory).expanduser().resolve()
@@ -121,8 +126,8 @@ class Sessions:
             suggestion = sessions.suggest_name(text)
             with self.quiet:
                 self.tab.name.value = suggestion
-            self.tab.message.content = (f"**⚠ {err.problem}.** The field now holds `{suggestion}`: press **Save "
-                                        "session** again to use it.")
+            self.tab.message.content = (f"**⚠ {escape(err.problem)}.** The field now holds `{suggestion}`: press "
+                                        "**Save session** again to use it.")
             return
         self.tab.message.content = f"Saving `{name}` …"
         self.send(p.SaveSession(self.directory, name, overwrite=bool(self.tab.overwrite.value)))
@@ -133,6 +138,10 @@ class Sessions:
             self.tab.message.content = "No session chosen: save one first, or press **Refresh list**."
             return
         self.ask(None)
+        lost = self.unsaved()
+        if lost is not None:  # a load replaces the run: ask first
+            self.ask(p.SessionQuestion(info.path, []), unsaved=lost)
+            return
         self.tab.message.content = f"Loading `{info.name}` …"
         self.send(p.LoadSession(info.path, confirmed=False))
 
@@ -143,7 +152,12 @@ class Sessions:
         self.send(p.LoadSession(Path(path), confirmed=False))
 
     def confirm(self) -> None:
-        if self.pending is not None:
+        if self.pending is not None and self.unsaved_ok:
+            path = self.pending
+            self.ask(None)  # the run may go; the dataset's check still comes
+            self.tab.message.content = f"Loading `{path.name}` …"
+            self.send(p.LoadSession(path, confirmed=False))
+        elif self.pending is not None:
             path, self.pending = self.pending, None
             self.ask(None)
             self.tab.message.content = f"Loading `{path.name}` despite the changes …"
@@ -153,11 +167,16 @@ class Sessions:
         self.ask(None)
         self.tab.message.content = "Not loaded: the current run goes on."
 
-    def ask(self, question: p.SessionQuestion | None) -> None:
-        """Show (or, with None, hide) the dataset warnings with their Load anyway / Cancel buttons."""
+    def ask(self, question: p.SessionQuestion | None, unsaved: str | None = None) -> None:
+        """Show (or, with None, hide) the dataset warnings, or (``unsaved``) that the current run is not saved,
+        with their Load anyway / Cancel buttons."""
         t = self.tab
         self.pending = None if question is None else Path(question.path)
-        if question is not None:
+        self.unsaved_ok = unsaved is not None
+        if unsaved is not None:
+            t.question.content = (f"**⚠ The current run is not saved** ({unsaved}): loading `{self.pending.name}` "
+                                  "replaces it. Save it first, or load anyway.")
+        elif question is not None:
             items = "\n".join(f"- {w}" for w in question.warnings)
             t.question.content = (f"**⚠ The dataset of `{self.pending.name}` changed since it was saved:**\n\n{items}"
                                   "\n\nLoading it anyway continues on the files as they are now; the run will not "
@@ -196,4 +215,4 @@ class Sessions:
 
     def on_failure(self, failure: p.Failure) -> None:
         where = f"`{failure.path}`: " if failure.path else ""
-        self.tab.message.content = f"**⚠ {where}{failure.problem}**"
+        self.tab.message.content = f"**⚠ {where}{escape(failure.problem)}**"

@@ -29,6 +29,7 @@ class RunView:
     restarts: int = 0
     pause_requested_at: int | None = None  # the iteration on display when Pause was pressed
     display_errors: list[str] = field(default_factory=list)  # bugs in drawing a message (logged, kept for tests)
+    truth: p.TruthErrors | None = None  # the estimate against the dataset's ground truth, latest iteration
 
 
 def status_markdown(s: RunView, cfg) -> str:

@@ -68,6 +68,29 @@ def split_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return wxyz_from_matrices(T[..., :3, :3]), np.asarray(T[..., :3, 3], dtype=np.float64)
 
 
+def outline_segments(mesh: MeshData) -> np.ndarray:
+    """(E, 2, 3) float32 object-frame segments outlining ``mesh``: its ``edges`` (observation.outline_edges), else
+    every triangle edge."""
+    if mesh.edges is not None:
+        return np.asarray(mesh.edges, np.float32)
+    f = np.asarray(mesh.faces)
+    pairs = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    return np.asarray(mesh.vertices, np.float32)[pairs]
+
+
+def outline_mesh(mesh: MeshData) -> tuple[np.ndarray, np.ndarray]:
+    """``mesh``'s outline as a mesh whose wireframe draws only the outline (vertices (2E, 3), faces (E, 3)): each
+    segment a degenerate triangle (a, b, b), whose wireframe is the line a-b. Instanced meshes (the particles)
+    have no line-segment form in viser."""
+    seg = outline_segments(mesh)
+    vertices = seg.reshape(-1, 3)
+    a = np.arange(0, len(vertices), 2, dtype=np.int32)
+    return vertices, np.stack([a, a + 1, a + 1], axis=1)
+
+
+OUTLINE_WIDTH = 2.0  # px, the ground truth's and labels' lines
+
+
 @dataclass
 class Nodes:
     """Scene handles to remove together when a new frame is loaded."""
@@ -129,12 +152,13 @@ class ObservationLayer:
         ))
         self.gt = []
         if view.gt_T_world_obj is not None:
+            # Outlines (feature edges of a coarse mesh), not every triangle edge: legible on a YCB scan, and cheap.
             for k, (mesh, T) in enumerate(zip(view.meshes, view.gt_T_world_obj)):
                 if np.all(np.isfinite(T)):
                     q, t = split_pose(T)
-                    self.gt.append(add(scene.add_mesh_simple(
-                        f"/observation/ground_truth/{k}", mesh.vertices, mesh.faces, color=colors.GROUND_TRUTH_COLOR,
-                        wireframe=True, wxyz=q, position=t, visible=show_gt, **NO_SHADOW)))
+                    self.gt.append(add(scene.add_line_segments(
+                        f"/observation/ground_truth/{k}", outline_segments(mesh), colors=colors.GROUND_TRUTH_COLOR,
+                        thickness=OUTLINE_WIDTH, thickness_units="screen", wxyz=q, position=t, visible=show_gt)))
 
     def set_visible(self, cloud: bool, gt: bool) -> None:
         for h in self.clouds:
@@ -145,9 +169,10 @@ class ObservationLayer:
 
 @dataclass
 class ParticleLayer:
-    """Every published particle as one instanced wireframe per object, coloured (and faded) by normalised weight,
-    and the most likely scene drawn solid. Wireframes: solid translucent particles piled up into a haze over the
-    objects, and filling them cost software WebGL most of a core. Clicking an instance calls ``on_pick(rank)`` (instances are in rank order)."""
+    """Every published particle as one instanced outline per object (``outline_mesh``), coloured (and faded) by
+    normalised weight, and the most likely scene drawn solid. Outlines: solid translucent particles piled up into a
+    haze over the objects, and filling them cost software WebGL most of a core; every triangle edge of a YCB scan
+    was noise. Clicking an instance calls ``on_pick(rank)`` (instances are in rank order)."""
 
     server: viser.ViserServer
     on_pick: Callable[[int], None]
@@ -180,8 +205,9 @@ class ParticleLayer:
         with self.server.atomic():
             for k, mesh in enumerate(self.meshes):
                 if len(self.batches) <= k:
+                    vertices, faces = outline_mesh(mesh)
                     handle = self.nodes.add(scene.add_batched_meshes_simple(
-                        f"/particles/{k}", mesh.vertices, mesh.faces, batched_wxyzs=wxyz[:, k],
+                        f"/particles/{k}", vertices, faces, batched_wxyzs=wxyz[:, k],
                         batched_positions=pos[:, k], batched_colors=tint, batched_opacities=opacity,
                         lod="off", wireframe=True, visible=self.show_cloud, **NO_SHADOW,
                     ))
@@ -250,6 +276,7 @@ class ChosenLayer:
         ]
 
     def update(self, chosen: Chosen | None, mode: str) -> None:
+        """Show ``chosen`` (None: the one shown last, if any) in ``mode``."""
         self.last = chosen if chosen is not None else self.last
         c = self.last
         self.extras.clear()
@@ -280,6 +307,12 @@ class ChosenLayer:
                 self.extras.add(self.server.scene.add_line_segments(
                     "/chosen/moves", segments, colors=colors.MOVE_COLOR, thickness=3.0, thickness_units="screen"
                 ))
+
+
+    def clear(self) -> None:
+        """Nothing chosen (a reset run): hide both scenes and the lines."""
+        self.last = None
+        self.update(None, "hidden")
 
 
 @dataclass
