@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
@@ -53,30 +53,36 @@ def working_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return _WORKING[key]
 
 
+_HEARTBEAT = """
+import sys, time
+what, first, every = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+t0 = time.monotonic()
+time.sleep(first)
+print(f"workbench: {what} ...", file=sys.stderr, flush=True)
+while True:
+    time.sleep(every)
+    print(f"workbench: still {what} ({time.monotonic() - t0:.0f} s)", file=sys.stderr, flush=True)
+"""
+
+
 @contextlib.contextmanager
-def announced(what: str, out=None, first_s: float = FIRST_S, every_s: float = EVERY_S):
-    """Run the block; if it takes over ``first_s`` seconds, say ``what`` on stderr (``out``), then that it goes on
-    every ``every_s`` seconds, and how long it took at the end. Quick blocks (a cache hit) say nothing."""
-    out = out or sys.stderr
-    done = threading.Event()
-    said = []
+def announced(what: str, first_s: float = FIRST_S, every_s: float = EVERY_S):
+    """Run the block; if it takes over ``first_s`` seconds, say ``what`` on stderr, then that it goes on every
+    ``every_s`` seconds, and how long it took at the end. Quick blocks (a cache hit) say nothing. The lines come
+    from a small process of their own: the simplifying libraries hold Python's GIL for a minute at a time, so a
+    thread here could not speak meanwhile."""
     t0 = time.perf_counter()
-
-    def speak():
-        if done.wait(first_s):
-            return
-        print(f"workbench: {what} ...", file=out, flush=True)
-        said.append(1)
-        while not done.wait(every_s):
-            print(f"workbench: still {what} ({time.perf_counter() - t0:.0f} s)", file=out, flush=True)
-
-    thread = threading.Thread(target=speak, daemon=True)
-    thread.start()
+    try:
+        speaker = subprocess.Popen([sys.executable, "-S", "-c", _HEARTBEAT, what, str(first_s), str(every_s)],
+                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+    except OSError:
+        speaker = None  # no process to spare: work in silence rather than not at all
     try:
         yield
     finally:
-        done.set()
-        thread.join()
-        if said:
-            print(f"workbench: done {what} in {time.perf_counter() - t0:.0f} s (cached for later runs)", file=out,
-                  flush=True)
+        if speaker is not None:
+            speaker.kill()
+            speaker.wait()
+        took = time.perf_counter() - t0
+        if took > first_s:
+            print(f"workbench: done {what} in {took:.0f} s (cached for later runs)", file=sys.stderr, flush=True)
