@@ -1,6 +1,10 @@
 """Chromium's CPU use with the workbench open: with the page idle, then during Run.
 
     .venv/bin/python benchmarks/browser_cpu.py [--seconds 20] [--particles 128] [--root DIR]
+                                               [--dataset DIR --scene ID --frame ID]
+
+``--dataset``: a BOP frame instead of the demo (e.g. ../shared/datasets/ycbv-real-dev --scene 1 --frame 1); the
+ground truth is shown (where an older checkout hides it by default, it is switched on), with the particles.
 
 Serves the demo (2 evaluation workers), opens it in headless Chromium (software WebGL, as in the tests) at
 1280x800, waits until the frame is drawn, then samples for ``--seconds`` each: with nothing happening, while the
@@ -116,6 +120,9 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--particles", type=int, default=128)
     ap.add_argument("--root", type=Path, default=HERE)
+    ap.add_argument("--dataset", type=Path, default=None)
+    ap.add_argument("--scene", type=int, default=None)
+    ap.add_argument("--frame", type=int, default=None)
     args = ap.parse_args()
     probes = load_probes()
     sys.path.insert(0, str(args.root.resolve()))
@@ -126,13 +133,19 @@ def main() -> int:
     from workbench.inference.config import EstimatorConfig
 
     print(f"workbench from {Path(workbench.__file__).parent}", flush=True)
-    handle = serve(demo=True, block=False, port=free_port(), workers=2,
-                   config=EstimatorConfig(particles=args.particles, iterations=100_000))
+    where = {"demo": True} if args.dataset is None else {"dataset": args.dataset, "scene_id": args.scene,
+                                                          "im_id": args.frame}
+    handle = serve(block=False, port=free_port(), workers=2,
+                   config=EstimatorConfig(particles=args.particles, iterations=100_000), **where)
     app = handle.app
     try:
         if not app.wait_for(lambda s: s.view is not None or s.failures, 180) or app.state.view is None:
-            print(f"the demo did not load: {app.state.failures}", file=sys.stderr)
+            print(f"the frame did not load: {app.state.failures}", file=sys.stderr)
             return 1
+        if hasattr(app.panel, "show_gt"):  # an older checkout: the ground truth was hidden by default
+            app.panel.show_gt.value = True
+        print(f"{app.state.view.title}: ground truth "
+              f"{'shown' if app.state.view.gt_T_world_obj is not None else 'absent'}, particles shown", flush=True)
         with probes.chromium() as browser, probes.SentMessages().record() as sent:
             page = probes.open_workbench(browser, handle.url, init_script=probes.FRAME_PROBE_JS)
             probes.dismiss_notifications(page, wait_ms=10_000)

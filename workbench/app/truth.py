@@ -50,7 +50,7 @@ def truth_markdown(iteration: int, rows: list[dict], names: list[str]) -> str:
         if not np.isfinite(r["position_cm"]):
             lines.append(f"| {name} | — | — | — | no estimate |")
             continue
-        verdict = "✅ right" if r["right"] else "❌ wrong"
+        verdict = "right" if r["right"] else "**wrong**"
         lines.append(f"| {name} | {r['position_cm']:.2f} | {r['rotation_deg']:.1f} | {r['add_s_mm']:.1f} | {verdict} |")
     n_right = sum(r["right"] for r in rows)
     return (f"**Estimate vs ground truth** · iteration {iteration} · {n_right}/{len(rows)} right\n\n"

@@ -262,9 +262,12 @@ class ChosenLayer:
         reach = float(np.hypot(x1 - x0, y1 - y0)) + 0.05
         self.shifts = {"before": -reach * right, "after": reach * right}
         scene = self.server.scene
+        # "Before" as an outline (as ground truth and labels): the resting scene shows through it, and a YCB scan's
+        # every triangle edge was a red haze.
         self.before = [
-            self.nodes.add(scene.add_mesh_simple(f"/chosen/before/{k}", m.vertices, m.faces, color=colors.BEFORE_COLOR,
-                                                 visible=False, **NO_SHADOW))
+            self.nodes.add(scene.add_line_segments(f"/chosen/before/{k}", outline_segments(m),
+                                                   colors=colors.BEFORE_COLOR, thickness=OUTLINE_WIDTH,
+                                                   thickness_units="screen", visible=False))
             for k, m in enumerate(view.meshes)
         ]
         # "After" wears the objects' own colours, like the most likely scene: when the chosen particle is the most
@@ -294,8 +297,6 @@ class ChosenLayer:
                         continue
                     q, t = split_pose(getattr(c, which)[k])
                     h.wxyz, h.position = q, t + shift
-                    # Overlaid, "before" is a wireframe so the resting scene shows through it.
-                    h.wireframe = mode == "before + after" and which == "before"
                 if side and show[which]:
                     poses = getattr(c, which)
                     top = poses[:, :3, 3].mean(axis=0) * np.array([1.0, 1.0, 0.0]) + [0.0, 0.0, poses[:, 2, 3].max() + 0.08]
