@@ -34,10 +34,22 @@ def test_the_truth_scores_right_and_a_moved_object_does_not(touching_dataset):
 
 def test_a_missing_estimate_is_wrong_and_an_extra_row_is_counted(touching_dataset):
     frame, rows = _truth_rows(touching_dataset)
-    extra = bop.ResultRow(0, 0, frame.object_ids[0], 0.5, rows[0].T_cam_obj.copy(), 1.0)
-    [scored] = score_results(touching_dataset, [rows[0], extra])
+    stranger = bop.ResultRow(0, 0, 99, 0.5, rows[0].T_cam_obj.copy(), 1.0)  # an object the frame does not hold
+    [scored] = score_results(touching_dataset, [rows[0], stranger])
     assert scored.unmatched_rows == 1
     assert scored.objects[0].right and not scored.objects[1].estimated and not scored.objects[1].right
+
+
+def test_only_each_objects_top_row_is_its_estimate_the_others_are_modes(touching_dataset):
+    frame, rows = _truth_rows(touching_dataset)
+    away = rows[0].T_cam_obj.copy()
+    away[:3, 3] += [0.1, 0.0, 0.0]
+    mode = bop.ResultRow(0, 0, frame.object_ids[0], 0.2, away, 1.0)  # a less likely mode 10 cm off: not matched
+    [scored] = score_results(touching_dataset, [mode, *rows])
+    assert scored.unmatched_rows == 0 and scored.objects[0].right
+    top = bop.ResultRow(0, 0, frame.object_ids[0], 2.0, away, 1.0)  # scored above the truth's row: the estimate
+    [scored] = score_results(touching_dataset, [top, *rows])
+    assert not scored.objects[0].right and scored.objects[1].right
 
 
 def test_instances_of_one_object_are_matched_nearest_first():

@@ -86,7 +86,7 @@ def problem_config(args: argparse.Namespace) -> ProblemConfig:
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
-    from workbench.runner import ResultsFile
+    from workbench.runner import PosteriorFile, ResultsFile
 
     if args.dataset is None:
         raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
@@ -97,14 +97,17 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     check_workers(args.workers)
     check_count(args.max_retries, "--max-retries", low=0)
     ray = ray_config(args)
+    posterior = (None if args.posterior is None else
+                 PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
     results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
     try:
-        return _estimate_into(results, args, config, problem, ray)
+        return _estimate_into(results, args, config, problem, ray, posterior)
     finally:
         results.close()
 
 
-def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, problem: ProblemConfig, ray) -> int:
+def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, problem: ProblemConfig, ray,
+                   posterior=None) -> int:
     """``estimate``'s frames, once its settings are checked and its results file is open."""
     from workbench.io import bop
     from workbench.runner import check_resumed, estimate_frames
@@ -127,7 +130,8 @@ def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, p
     failures = []
     rows = estimate_frames(
         args.dataset, todo, config, problem, args.workers,
-        split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop, on_frame=results.add,
+        split=args.split, object_ids=args.objects, early_stop=not args.no_early_stop,
+        on_frame=results.add if posterior is None else lambda rows: (results.add(rows), posterior.add(rows)),
         ray=ray, on_failure=failures.append, max_retries=args.max_retries,
     )
     print(f"wrote {len(rows)} result rows for {len(todo) - len(failures)} frame(s) to {args.out}", file=sys.stderr)
@@ -152,9 +156,19 @@ def _cmd_score(args: argparse.Namespace) -> int:
         if args.json.resolve() == args.results.resolve():
             raise InputError(args.json, "is the results CSV being scored: --json names another file")
         check_output_file(args.json, ours=_is_score_json, force=args.force, what="a score JSON", flag="--json")
+    if args.reliability is not None:
+        from workbench.outputs import check_output_file
+
+        check_output_file(args.reliability, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n",
+                          force=args.force, what="a reliability diagram", flag="--reliability")
     frames = score_results(args.dataset, bop.read_results_csv(args.results), split=args.split,
                            results_path=args.results)
     print("\n".join(report(frames)))
+    if args.reliability is not None:
+        from workbench.bench.calibration import reliability_png
+
+        reliability_png([m for f in frames for m in f.modes], args.reliability, f"{args.results.name}")
+        print(f"# reliability diagram of the top mode: {args.reliability}")
     if args.json is not None:
         objects = [o.to_dict() for f in frames for o in f.objects]
         # NaN is not JSON: an object without an estimate has null errors
@@ -311,6 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="results CSV, written after every frame (default results.csv)")
     p.add_argument("--force", action="store_true", help="replace --out even if it is not a results CSV of ours")
     p.add_argument("--resume", action="store_true", help="keep the frames already in --out and estimate the rest")
+    p.add_argument("--posterior", type=Path, default=None, metavar="FILE.json",
+                   help="also write each object's modes (pose, probability, log-likelihood gap), position spread and "
+                        "open rotation range per frame as JSON")
     _add_estimator_args(p)
     _add_engine_args(p, "frames one after another")
     p.add_argument("--max-retries", type=int, default=3,
@@ -324,6 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default=None, help="split folder (default: test, or the only one)")
     p.add_argument("--json", type=Path, default=None, help="also write every object's errors to this JSON file")
     p.add_argument("--force", action="store_true", help="replace --json even if it is not a score JSON of ours")
+    p.add_argument("--reliability", type=Path, default=None, metavar="PNG",
+                   help="draw the reliability diagram of each object's top mode (results with several rows per "
+                        "object, scored by probability: estimate's posterior)")
     p.set_defaults(func=_cmd_score)
 
     p = sub.add_parser("serve", help="the browser workbench")

@@ -18,6 +18,7 @@ from workbench.inference.default_search import DefaultSearch
 from workbench.inference.filter import IterationReport, ParticleFilter, Search
 from workbench.inference.moves import MoveKind
 from workbench.inference.paper_search import PaperSearch
+from workbench.inference.posterior import Posterior
 from workbench.inference.settle import Tie
 from workbench.problem import Problem
 
@@ -41,6 +42,7 @@ class Estimator:
         self.settled: np.ndarray | None = None  # the estimate fitted to the depth (``settle``), once asked for
         self.settled_loglik = float("-inf")  # its log-likelihood as given (no physics)
         self.ties: list[Tie] = []  # the settled estimate's near ties, found with it
+        self.posterior: Posterior | None = None  # per object, the modes the view leaves open, found with it
         self._settled_from: np.ndarray | None = None  # the estimate it was settled from
 
     @property
@@ -104,13 +106,14 @@ class Estimator:
     def settle(self) -> np.ndarray:
         """The search's answer from the estimate (``Search.finish``; the default search fits it to the observed
         depth without physics) -> (K, 4, 4); also kept in ``settled``, with its log-likelihood as given in
-        ``settled_loglik`` and its near ties in ``ties``. Computed once per estimate: stepping on and settling
-        again starts from the new estimate."""
+        ``settled_loglik``, its near ties in ``ties`` and the posterior per object in ``posterior``. Computed once
+        per estimate: stepping on and settling again starts from the new estimate."""
         estimate = self.filter.map
         if self._settled_from is not None and estimate is not None and np.array_equal(self._settled_from, estimate):
             return self.settled
         answer = self.search.finish(self.filter)
         self.settled, self.settled_loglik, self.ties = answer.scene, answer.loglik, answer.ties
+        self.posterior = answer.posterior
         self.settle_scenes += answer.scored
         self._settled_from = None if estimate is None else estimate.copy()
         return self.settled

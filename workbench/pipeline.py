@@ -3,10 +3,12 @@ benchmark and the app share."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from workbench.inference.posterior import Posterior
 from workbench.io import bop
 from workbench.io.bop import ResultRow
 from workbench.problem import Problem, ProblemConfig, build_problem
@@ -42,3 +44,46 @@ def result_rows(frame: Frame, problem: Problem, best: np.ndarray, scores: np.nda
         ResultRow(frame.scene_id, frame.im_id, m.obj_id, float(s), T, seconds)
         for m, s, T in zip(problem.models, scores, T_cam_obj)
     ]
+
+
+@dataclass
+class ModeRow(ResultRow):
+    """A result row that is one mode of an object's posterior (``score`` its probability). The object's first row
+    also carries the whole posterior of the object as ``posterior_record`` writes it (JSON-able), else None."""
+
+    posterior: dict | None = None
+
+
+def posterior_rows(frame: Frame, problem: Problem, posterior: Posterior, seconds: float) -> list[ModeRow]:
+    """Each object's modes as BOP result rows, best first, ``score`` = the mode's probability (camera frame): a
+    reader that takes each object's top row gets the estimate."""
+    rows = []
+    for o, record in zip(posterior.objects, posterior_record(problem, posterior)):
+        for i, mode in enumerate(o.modes):
+            rows.append(ModeRow(frame.scene_id, frame.im_id, problem.models[o.obj].obj_id, mode.probability,
+                                problem.camera.T_cam_world @ mode.T, seconds, record if i == 0 else None))
+    return rows
+
+
+def posterior_record(problem: Problem, posterior: Posterior) -> list[dict]:
+    """Per object, its posterior in BOP's units and frame: each mode's pose in the camera frame (``R`` row-major,
+    ``t`` mm), probability, log-likelihood and gap to the estimate (log-units) and what it is; the spread of its
+    position (mm); the range of headings about the table's vertical (``vertical_cam``, a unit vector in the camera
+    frame) that the view leaves open (degrees about the estimate's, or null)."""
+    T_cam_world = problem.camera.T_cam_world
+    out = []
+    for o in posterior.objects:
+        model = problem.models[o.obj]
+        modes = []
+        for m in o.modes:
+            T = T_cam_world @ m.T
+            modes.append({"R": [round(float(v), 12) for v in T[:3, :3].ravel()],
+                          "t": [round(1000.0 * float(v), 9) for v in T[:3, 3]],
+                          "probability": round(m.probability, 6), "loglik": round(m.loglik, 3),
+                          "gap": round(m.gap, 3), "what": m.what})
+        out.append({"obj_id": model.obj_id, "name": model.name, "modes": modes,
+                    "position_spread_mm": round(1000.0 * o.position_spread_m, 3),
+                    "yaw_range_deg": None if o.yaw_range_deg is None else list(o.yaw_range_deg),
+                    "vertical_cam": [round(float(v), 12) for v in T_cam_world[:3, 2]],
+                    "temperature": posterior.temperature})
+    return out

@@ -9,6 +9,7 @@ never inside a dataset's scene or models folder, never over a file that is not a
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -27,7 +28,7 @@ from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.io.bop import ResultRow
 from workbench.outputs import OutputLock, check_output_file, dataset_folder_of, write_file  # noqa: F401 (dataset_folder_of: for callers)
-from workbench.pipeline import load_bop_problem, result_rows
+from workbench.pipeline import load_bop_problem, posterior_rows, result_rows
 from workbench.problem import Problem, ProblemConfig
 
 
@@ -44,7 +45,9 @@ def estimate_frame(
     show_progress: bool = False,
 ) -> list[ResultRow]:
     """Estimate one frame with the evaluator ``evaluator_for(problem)`` (closed afterwards) -> its BOP result rows,
-    ``time`` the frame's wall seconds. The estimate's near ties (``Estimator.ties``) are named on stderr.
+    ``time`` the frame's wall seconds: each object's modes, best first, with their probabilities
+    (``pipeline.posterior_rows``; one row per object, scored by ``object_confidence``, where the search gives no
+    posterior). What the view leaves open is said in one line on stderr (``Posterior.summary``).
     ``show_progress``: a progress bar of its iterations on stderr when stderr is a terminal, opened once the frame
     has loaded (a bad frame fails before any bar)."""
     t0 = time.perf_counter()
@@ -62,9 +65,9 @@ def estimate_frame(
             best = estimator.run(stop_on_convergence=early_stop, callback=progress)
     finally:
         evaluator.close()
-    if estimator.ties:
-        print(f"scene {scene_id} frame {im_id}: the depth hardly decides between the estimate and "
-              + "; ".join(t.describe(problem) for t in estimator.ties), file=sys.stderr)
+    if estimator.posterior is not None:  # one line per frame: what the view leaves open
+        print(f"scene {scene_id} frame {im_id}: {estimator.posterior.summary(problem)}", file=sys.stderr)
+        return posterior_rows(frame, problem, estimator.posterior, time.perf_counter() - t0)
     scores = object_confidence(problem, estimator.particles.projected, estimator.weights(), best)
     return result_rows(frame, problem, best, scores, time.perf_counter() - t0)
 
@@ -224,3 +227,49 @@ class ResultsFile:
         lines = sorted(self.lines + bop.results_csv_lines(rows), key=self._frame)
         write_file(self.path, "".join(f"{line}\n" for line in [",".join(bop.RESULTS_HEADER), *lines]))
         self.lines = lines
+
+
+POSTERIOR_KIND = "workbench-posterior"
+
+
+class PosteriorFile:
+    """``estimate --posterior``: per frame and object, the posterior (``pipeline.posterior_record``) as JSON,
+    rewritten whole after every frame like the results CSV, frames in order. Written only over a posterior file of
+    ours (or with ``--force``); ``--resume`` keeps the frames already in it."""
+
+    def __init__(self, path: Path, frames: dict[tuple[int, int], list[dict]] | None = None):
+        self.path = Path(path)
+        self.frames = dict(frames or {})
+
+    @classmethod
+    def open(cls, path: Path, force: bool = False, resume: bool = False) -> "PosteriorFile":
+        """Checked before any work (``outputs.check_output_file``): InputError naming ``path`` where it may not be
+        written, or, with ``resume``, where it is not a posterior file of ours."""
+        exists = check_output_file(path, ours=_is_posterior_file, force=force or resume,
+                                   what="a posterior JSON written by `workbench estimate`", flag="--posterior")
+        if not (exists and resume):
+            return cls(path)
+        if not _is_posterior_file(Path(path)):
+            raise InputError(path, "is not a posterior JSON written by `workbench estimate`: there is nothing to "
+                                   "resume; choose another --posterior")
+        document = json.loads(Path(path).read_text(encoding="utf-8"))
+        return cls(path, {(f["scene_id"], f["im_id"]): f["objects"] for f in document["frames"]})
+
+    def add(self, rows: list[ResultRow]) -> None:
+        """The posteriors the frame's rows carry (``pipeline.ModeRow``); nothing for rows without one."""
+        records = [r.posterior for r in rows if getattr(r, "posterior", None) is not None]
+        if not records:
+            return
+        self.frames[(rows[0].scene_id, rows[0].im_id)] = records
+        document = {"kind": POSTERIOR_KIND, "format_version": 1,
+                    "frames": [{"scene_id": s, "im_id": i, "objects": objects}
+                               for (s, i), objects in sorted(self.frames.items())]}
+        write_file(self.path, json.dumps(document, indent=1) + "\n")
+
+
+def _is_posterior_file(path: Path) -> bool:
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+        return document.get("kind") == POSTERIOR_KIND and isinstance(document.get("frames"), list)
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return False

@@ -10,11 +10,13 @@ camera frame (OpenCV, metres): both errors are the same in any frame both poses 
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from workbench.bench import calibration
+from workbench.bench.calibration import ObjectModes
 from workbench.errors import InputError
 from workbench.io import bop
 from workbench.metrics import RIGHT_CM, RIGHT_DEG, add_s, is_right, model_points, position_error, rotation_error
@@ -46,6 +48,8 @@ class FrameScore:
     im_id: int
     objects: list[ObjectScore]
     unmatched_rows: int  # estimate rows of objects the ground truth does not hold (or holds fewer of)
+    # Per object held once in the frame: its rows as the modes of its posterior (``calibration``)
+    modes: list[ObjectModes] = field(default_factory=list)
 
     @property
     def right(self) -> bool:
@@ -103,10 +107,17 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
             raise InputError(dataset, f"scene {scene_id} image {im_id} has no scene_gt.json: nothing to score against")
         for obj_id, m in _load_shapes(dataset, sorted(set(frame.object_ids) - set(models))).items():
             models[obj_id] = (m.symmetries, model_points(m.mesh, 500))
-        objects, matched = [], 0
+        objects, matched, extra, modes = [], 0, 0, []
         for obj_id in dict.fromkeys(frame.object_ids):
             gi = [k for k, o in enumerate(frame.object_ids) if o == obj_id]
-            est = [r.T_cam_obj for r in mine if r.obj_id == obj_id]
+            # The top rows by score, one per instance: further rows are other modes of the posterior (the same
+            # object's less likely poses), which must not be matched to the truth in the estimate's place.
+            ranked = sorted((r for r in mine if r.obj_id == obj_id), key=lambda r: -r.score)
+            est = [r.T_cam_obj for r in ranked[: len(gi)]]
+            extra += len(ranked) - len(est)
+            if len(gi) == 1 and ranked:
+                modes.append(calibration.object_modes(frame.gt_T_cam_obj[gi[0]],
+                                                      [(r.score, r.T_cam_obj) for r in ranked], models[obj_id][0]))
             sym, points = models[obj_id]
             pairs = dict(match(frame.gt_T_cam_obj[gi], np.array(est).reshape(-1, 4, 4), sym))
             matched += len(pairs)
@@ -119,7 +130,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
                 objects.append(ObjectScore(scene_id, im_id, obj_id, 100 * position_error(T_gt, T_est, sym),
                                            rotation_error(T_gt, T_est, sym), 1000 * add_s(T_gt, T_est, points),
                                            is_right(T_gt, T_est, sym)))
-        out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched))
+        out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched - extra, modes))
     return out
 
 
@@ -142,6 +153,11 @@ def report(frames: list[FrameScore]) -> list[str]:
         lines.append(f"# median position error {np.median([o.position_cm for o in estimated]):.2f} cm, median "
                      f"rotation error {np.median([o.rotation_deg for o in estimated]):.1f} deg, median ADD-S "
                      f"{np.median([o.add_s_mm for o in estimated]):.1f} mm")
+    modes = [m for f in frames for m in f.modes]
+    if any(len(m.probabilities) > 1 for m in modes):  # a posterior: several rows per object, scored by probability
+        lines.append(f"# posterior ({len(modes)} objects): top-1 {calibration.top1(modes):.3f}, the truth among the "
+                     f"modes holding 95 % {calibration.coverage(modes):.3f}, expected calibration error of the top "
+                     f"mode {calibration.expected_calibration_error(modes):.3f}")
     missing = len(objects) - len(estimated)
     extra = sum(f.unmatched_rows for f in frames)
     if missing or extra:

@@ -21,7 +21,7 @@ from functools import partial
 import numpy as np
 
 from workbench.evaluation import Evaluation, run_here
-from workbench.inference import assemble, datadriven, gaussian, polish, settle
+from workbench.inference import assemble, datadriven, gaussian, polish, posterior, settle
 from workbench.inference.context import MoveContext, SearchGeometry
 from workbench.inference.filter import ParticleFilter, Proposed, Settled
 from workbench.inference.moves import REGISTRY, MoveKind
@@ -120,7 +120,8 @@ class DefaultSearch:
     def finish(self, filt: ParticleFilter) -> Settled:
         """The estimate fitted to the observed depth without physics (``settle.pattern_search``), each object
         within ``settle_shift`` and ``settle_turn`` of its pose in the estimate, then each object's half turns
-        (``settle.turn_over``). The estimate itself when settling is off."""
+        (``settle.turn_over``), and the posterior of what it settled on (``posterior.sweep``). The estimate itself,
+        with no posterior, when settling is off."""
         cfg = filt.config
         if filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return Settled(filt.best.copy(), filt.map_loglik)
@@ -128,10 +129,20 @@ class DefaultSearch:
         scene, loglik, scored = settle.pattern_search(
             filt.map, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
             max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
-        scene, loglik, turned, ties = settle.turn_over(self.problem, scene, loglik, score,
-                                                       lambda scenes: filt.evaluate(scenes).projected,
-                                                       cfg.settle_shift, cfg.settle_turn)
-        return Settled(scene, loglik, ties, scored + turned)
+        rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
+        before = scene
+        scene, loglik, turned, ties, half_turns = settle.turn_over(self.problem, scene, loglik, score, rest,
+                                                                   cfg.settle_shift, cfg.settle_turn)
+        if filt.particles is None:  # settled before any step (a label fitted, a test): no particles to spread
+            projected, weights = np.zeros((0, *scene.shape)), np.zeros(0)
+        else:
+            projected, weights = filt.particles.projected, filt.weights()
+        found, swept, final, loglik = posterior.sweep(self.problem, scene, loglik, score, rest,
+                                                      half_turns if scene is before else None,
+                                                      self.geometry(filt).samples, projected, weights,
+                                                      cfg.settle_shift, cfg.settle_turn)
+        ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
+        return Settled(final, loglik, ties, scored + turned + swept, found)
 
     # -------------------------------------------------------------------------------------------------- parts
     @staticmethod

@@ -24,6 +24,7 @@ from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
 from workbench.geometry import rotation_angle
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.moves import MoveKind
+from workbench.inference.posterior import Posterior
 from workbench.inference.particleset import ParticleSet
 from workbench.inference.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 from workbench.inference.settle import Tie
@@ -69,12 +70,14 @@ class Proposed:
 @dataclass
 class Settled:
     """What a run returns: the ``scene`` (K, 4, 4) table frame, its log-likelihood as given (no physics), the
-    near ties left (``settle.Tie``), and how many scenes finishing scored (a render each, no physics)."""
+    near ties left (``settle.Tie``), how many scenes finishing scored (a render each, no physics), and the
+    posterior per object (``posterior.Posterior``) where the search computes one."""
 
     scene: np.ndarray
     loglik: float
     ties: list[Tie] = field(default_factory=list)
     scored: int = 0
+    posterior: Posterior | None = None
 
 
 class Search(Protocol):

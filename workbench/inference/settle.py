@@ -213,15 +213,19 @@ def pattern_search(T: np.ndarray, score: Score, step_m: float = 0.01, step_deg: 
     return run([search(T, step_m, step_deg, min_step_m, max_rounds, max_shift_m, max_turn_deg, objects)], score)[0]
 
 
+Turn = tuple[int, str, np.ndarray, float]  # an object, the name of its turn, the settled scene, its log-likelihood
+
+
 def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: Rest, max_shift_m: float,
-              max_turn_deg: float) -> tuple[np.ndarray, float, int, list[Tie]]:
+              max_turn_deg: float) -> tuple[np.ndarray, float, int, list[Tie], list[Turn]]:
     """Each object of the settled ``scene`` (K, 4, 4) turned over (``half_turns``) and settled alone, the others
     kept: the depth's near ties, which the search compares only after physics, where our models' few millimetres
     of mismatch can decide them. Every object's turns are searched together, in lockstep (``run``). An object's
     best turn is kept when the scene as given gains more than TURN_MARGIN over ``loglik`` and physics (``rest``),
     resting that scene, keeps the object within the settling region; when several objects turn, their turns are
     kept together if that scene scores at least as well as the best one alone -> (scene, log-likelihood, scenes
-    scored, the ties left)."""
+    scored, the ties left, every settled turn as (object, name, scene, log-likelihood): the posterior's half
+    turns when no turn was kept)."""
     owners, names, searches = [], [], []
     for k, model in enumerate(problem.models):
         names += half_turn_names(scene[k])
@@ -245,16 +249,8 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
         held = [k for i, k in enumerate(turned)
                 if within(rested[i, k], best[k][0][k], max_shift_m, np.radians(max_turn_deg))]
         if held:
-            first = max(held, key=lambda k: best[k][1])
-            kept, result = {first: best[first][1]}, best[first][:2]
-            if len(held) > 1:
-                together = scene.copy()
-                for k in held:
-                    together[k] = best[k][0][k]
-                together_ll = float(score(together[None])[0])
-                scored += 1
-                if together_ll >= best[first][1]:
-                    kept, result = {k: best[k][1] for k in held}, (together, together_ll)
+            kept, result, n = adopt(scene, {k: best[k] for k in held}, score)
+            scored += n
     final = result[0]
     ties = []
     for k, name, (T, ll, _) in zip(owners, names, found):
@@ -262,4 +258,24 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
         # a turn that lands within the benchmarks' "right" tolerances of the result is the same pose
         if gap > -TURN_MARGIN and not is_right(final[k], T[k], problem.models[k].symmetries):
             ties.append(Tie(k, name, T[k].copy(), float(gap)))
-    return final, float(result[1]), scored, ties
+    turns = [(k, name, T, ll) for k, name, (T, ll, _) in zip(owners, names, found)]
+    return final, float(result[1]), scored, ties, turns
+
+
+def adopt(scene: np.ndarray, better: dict[int, tuple[np.ndarray, float]], score: Score
+          ) -> tuple[dict[int, float], tuple[np.ndarray, float], int]:
+    """``scene`` (K, 4, 4) with the objects of ``better`` (object -> a scene (K, 4, 4) where only that object
+    changed, and its log-likelihood; each already beats ``scene`` clearly and physics holds it) in their new poses:
+    the best one alone, or all of them together when that scene scores at least as well -> (object -> the
+    log-likelihood of its new pose alone, for those kept; (the scene, its log-likelihood); scenes scored)."""
+    first = max(better, key=lambda k: better[k][1])
+    kept, result, scored = {first: better[first][1]}, better[first][:2], 0
+    if len(better) > 1:
+        together = scene.copy()
+        for k in better:
+            together[k] = better[k][0][k]
+        together_ll = float(score(together[None])[0])
+        scored += 1
+        if together_ll >= better[first][1]:
+            kept, result = {k: better[k][1] for k in better}, (together, together_ll)
+    return kept, result, scored

@@ -1,0 +1,105 @@
+"""Fit the posterior's temperature (inference.posterior.TEMPERATURE) on frames with ground truth.
+
+usage: calibrate_posterior.py DATASET POSTERIOR.json [DATASET POSTERIOR.json ...] [--data OUT.json] [--png OUT.png]
+
+Each POSTERIOR.json is what `workbench estimate DATASET --posterior POSTERIOR.json` wrote (default settings). For
+every object it reads the modes' log-likelihood gaps to the estimate, and marks each mode right or not against the
+dataset's scene_gt.json (metrics.is_right: 2 cm, 10 degrees, up to the model's symmetries). Then, for temperatures
+on a grid, it recomputes the probabilities (posterior.probabilities, with the estimator's turn margin) and reports
+the negative log-likelihood of the right modes, the expected calibration error of the top mode, coverage (the
+truth among the modes holding 95 %) and top-1 accuracy; the temperature of least negative log-likelihood is the
+fit. --data keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without
+estimating again; --png draws the reliability diagram at the fitted temperature.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from workbench.bench.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
+from workbench.inference.posterior import probabilities
+from workbench.io import bop
+from workbench.metrics import is_right
+
+GRID = np.geomspace(2.0, 400.0, 60)
+
+
+def collect(dataset: Path, posterior: Path) -> list[dict]:
+    """Per object of every frame in ``posterior``: its modes' gaps, which is the estimate's, which are right."""
+    document = json.loads(posterior.read_text())
+    out = []
+    models: dict = {}
+    for f in document["frames"]:
+        frame = bop.load_frame(dataset, f["scene_id"], f["im_id"])
+        for o in f["objects"]:
+            if o["obj_id"] not in models:
+                models[o["obj_id"]] = bop.load_models(dataset, [o["obj_id"]])[o["obj_id"]]
+            truths = [T for i, T in zip(frame.object_ids, frame.gt_T_cam_obj) if i == o["obj_id"]]
+            modes = o["modes"]
+            poses = [np.vstack([np.hstack([np.reshape(m["R"], (3, 3)), np.reshape(m["t"], (3, 1)) / 1000.0]),
+                                [0, 0, 0, 1]]) for m in modes]
+            # With several instances of a model, the instance nearest the estimate is this object's truth.
+            truth = min(truths, key=lambda T: np.linalg.norm(T[:3, 3] - poses[0][:3, 3]))
+            out.append({"dataset": dataset.name, "scene_id": f["scene_id"], "im_id": f["im_id"], "obj_id": o["obj_id"],
+                        "gaps": [m["gap"] for m in modes], "estimate": [m["what"] == "the estimate" for m in modes],
+                        "right": [bool(is_right(truth, T, models[o["obj_id"]].symmetries)) for T in poses],
+                        "yaw_range_deg": o["yaw_range_deg"]})
+    return out
+
+
+def modes_at(records: list[dict], temperature: float) -> list[ObjectModes]:
+    out = []
+    for r in records:
+        p = probabilities(np.array(r["gaps"]), np.array(r["estimate"]), temperature)
+        order = np.argsort(-p, kind="stable")
+        out.append(ObjectModes(p[order], np.array(r["right"])[order]))
+    return out
+
+
+def nll(objects: list[ObjectModes]) -> float:
+    """Mean negative log probability of the right modes, over the objects that have one among their modes."""
+    held = [float(o.probabilities[o.right].sum()) for o in objects if o.right.any()]
+    return float(-np.mean(np.log(np.maximum(held, 1e-12)))) if held else float("nan")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("pairs", nargs="*", help="DATASET POSTERIOR.json, repeated")
+    ap.add_argument("--data", type=Path, help="write the gaps and right flags here (JSON)")
+    ap.add_argument("--from-data", type=Path, nargs="*", default=[], help="add records saved by --data before")
+    ap.add_argument("--png", type=Path, help="the reliability diagram at the fitted temperature")
+    a = ap.parse_args(argv)
+    if len(a.pairs) % 2:
+        ap.error("give DATASET POSTERIOR.json pairs")
+    records = [r for p in a.from_data for r in json.loads(p.read_text())]
+    for dataset, posterior in zip(a.pairs[::2], a.pairs[1::2]):
+        records += collect(Path(dataset), Path(posterior))
+    if a.data:
+        a.data.parent.mkdir(parents=True, exist_ok=True)
+        a.data.write_text(json.dumps(records, indent=0) + "\n")
+    print(f"{len(records)} objects; {sum(any(r['right']) for r in records)} with the truth among their modes; "
+          f"{sum(len(r['gaps']) > 1 for r in records)} with more than one mode")
+    print("temperature  nll     ECE    coverage95  top-1")
+    fits = []
+    for T in GRID:
+        objects = modes_at(records, T)
+        fits.append((nll(objects), T))
+        if np.isclose(T, GRID[::6]).any():
+            print(f"{T:11.1f}  {nll(objects):.4f}  {expected_calibration_error(objects):.3f}  "
+                  f"{coverage(objects):10.3f}  {top1(objects):.3f}")
+    best = min(fits)[1]
+    objects = modes_at(records, best)
+    print(f"fit: temperature {best:.1f}: nll {nll(objects):.4f}, ECE {expected_calibration_error(objects):.3f}, "
+          f"coverage {coverage(objects):.3f}, top-1 {top1(objects):.3f}")
+    if a.png:
+        reliability_png(objects, a.png, f"temperature {best:.0f}, {len(objects)} objects")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
