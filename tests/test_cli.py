@@ -23,7 +23,12 @@ def test_estimate_writes_a_bop_results_csv(touching_dataset, tmp_path):
     header = out.read_text().splitlines()[0]
     assert header == "scene_id,im_id,obj_id,score,R,t,time"
     rows = read_results_csv(out)
-    assert sorted(r.obj_id for r in rows) == sorted(int(i) for i in _gt_ids(touching_dataset))
+    # Each object's posterior modes as rows, the most likely first, their probabilities summing to 1.
+    objects = sorted({r.obj_id for r in rows})
+    assert objects == sorted(int(i) for i in _gt_ids(touching_dataset))
+    for obj_id in objects:
+        scores = [r.score for r in rows if r.obj_id == obj_id]
+        assert np.isclose(sum(scores), 1.0, atol=1e-5) and scores == sorted(scores, reverse=True)
     for r in rows:
         R = r.T_cam_obj[:3, :3]
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-5)

@@ -278,5 +278,5 @@ def test_estimate_runs_on_a_frame_without_the_table_pose(dataset, tmp_path):
     assert main(["estimate", str(out), "--scene", str(m["scene_id"]), "--frame", "0", "--particles", "16",
                  "--iterations", "2", "--out", str(csv)]) == 0
     rows = bop.read_results_csv(csv)
-    assert sorted(r.obj_id for r in rows) == sorted(m["obj_ids"])
+    assert sorted({r.obj_id for r in rows}) == sorted(m["obj_ids"])  # each object's modes, one row or more
     assert all(np.all(np.isfinite(r.T_cam_obj)) and 0.2 < r.T_cam_obj[2, 3] < 3.0 for r in rows)
