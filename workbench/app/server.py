@@ -26,12 +26,14 @@ from workbench.app.camera import FRAME_OBJECTS, TabCameras
 from workbench.app.engine import DEMO_DIR
 from workbench.app.engine_process import EngineClient
 from workbench.app.labelling import Labelling
-from workbench.app.panel import Panel, build_panel, pending_markdown, visibility_item
+from workbench.app.panel import Panel, build_panel, visibility_item
 from workbench.app.quiet import Quiet
 from workbench.app.reporting import Reporter
 from workbench.app.run_display import RunDisplay
 from workbench.app.sessions_panel import Sessions
+from workbench.app.settings_form import SettingsForm
 from workbench.app.status import RunView, status_markdown, timings_markdown
+from workbench.app.step_button import StepButton
 from workbench.app.truth import truth_markdown
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
@@ -41,7 +43,6 @@ log = logging.getLogger(__name__)
 # Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
 SESSIONS_DIR = Path("sessions")
-REVERT_S = 1.5  # a refused typed value is put back this long after the last keystroke
 
 
 
@@ -55,7 +56,6 @@ class App:
         self.server = server
         self.lock = threading.RLock()
         self.quiet = Quiet()  # set while the server itself writes controls: their callbacks must not echo
-        self.config = config
         self.source: p.Source | None = None  # the last frame the engine loaded
         self.state = RunView()
         self.changed = threading.Condition(self.lock)  # notified on every engine message (tests wait on it)
@@ -65,11 +65,10 @@ class App:
                                    on_heatmap_mode=lambda: self.display.label_heatmap_mode_changed())
         self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.lock, self.quiet,
                                  unsaved=self.unsaved)
-        self.likelihood = likelihood  # the likelihood model of the run (the panel's applies at Reset)
         self.saved_iteration: int | None = None  # the run's iteration last saved to or loaded from a session
-        self.stepping_since: float | None = None  # monotonic time the pending Step was sent
-        self.revert_timer: threading.Timer | None = None
         self.reporter = Reporter(server, self.panel, self.lock, lambda: self.state, self.labelling, self.sessions)
+        self.settings = SettingsForm(self.panel, self.lock, self.quiet, self.reporter, self.send, config, likelihood)
+        self.stepper = StepButton(self.panel, self.lock, self.send, lambda: self.state.running, self.settings.revert)
         self.display = RunDisplay(server, self.panel, self.lock, self.labelling, on_pick=self.pick,
                                   on_error=self.reporter.drawing_failed)
         self._wire()
@@ -85,13 +84,13 @@ class App:
 
     def _wire(self) -> None:
         P, display = self.panel, self.display
-        P.step.on_click(lambda _: self.step())
+        P.step.on_click(lambda _: self.stepper.press())
         P.run.on_click(lambda _: self.run())
         P.pause.on_click(lambda _: self.pause())
         P.reset.on_click(lambda _: self.reset())
         for h in (P.method, P.particles, P.iterations, P.sigma_xy, P.sigma_z, P.sigma_angles, P.seed):
-            h.on_update(lambda _: self.config_changed())
-        P.likelihood.on_update(lambda _: self.show_pending())
+            h.on_update(lambda _: self.settings.changed())
+        P.likelihood.on_update(lambda _: self.settings.show_pending())
         P.rank.on_update(lambda _: self.send(p.Select(int(P.rank.value))))
         P.best.on_click(lambda _: self.pick(0))
         P.scene_mode.on_update(lambda _: display.redraw_chosen())
@@ -106,98 +105,19 @@ class App:
     def send(self, cmd) -> None:
         self.engine.send(cmd)
 
-    def config_changed(self) -> None:
-        """A setting was typed: the valid ones go to the engine at once (the seed waits for Reset); refused ones
-        are outlined and listed now, and put back to the value in use once the typing pauses (REVERT_S: reverting
-        mid-word would fight the user) or at Step, Run or Reset."""
-        if self.quiet.active:
-            return  # a restored session's settings being shown, not a user's edit
-        with self.lock:
-            try:
-                config, errors = self.panel.read_config(self.config)
-            except InputError as err:
-                self.reporter.report(p.Failure("Input error", err.problem, err.path))
-                return
-            self.reporter.field_errors(errors)
-            if self.revert_timer is not None:
-                self.revert_timer.cancel()
-                self.revert_timer = None
-            if errors:
-                self.revert_timer = threading.Timer(REVERT_S, self.revert_fields)
-                self.revert_timer.daemon = True
-                self.revert_timer.start()
-            config = replace(config, seed=self.config.seed)  # the seed applies at Reset
-            if config != self.config:
-                self.config = config
-                self.send(p.SetConfig(self.config))
-            self.show_pending()
-
-    def revert_fields(self) -> bool:
-        """Put the values in use back into the fields that hold refused ones (they stay outlined and listed)
-        -> whether any was refused."""
-        with self.lock:
-            if self.revert_timer is not None:
-                self.revert_timer.cancel()
-                self.revert_timer = None
-            _, errors = self.panel.read_config(self.config)
-            if errors:
-                with self.quiet:
-                    self.panel.revert(tuple(errors), self.config)
-            return bool(errors)
-
-    def show_pending(self) -> None:
-        """Say which settings wait for Reset (likelihood, seed), and which apply at once."""
-        if self.quiet.active:
-            return
-        with self.lock:
-            try:
-                seed = int(str(self.panel.seed.value).strip())
-            except ValueError:
-                seed = self.config.seed
-            content = pending_markdown((self.likelihood, self.config.seed), (self.panel.likelihood.value, seed))
-            if self.panel.pending.content != content:
-                self.panel.pending.content = content
+    @property
+    def config(self) -> EstimatorConfig:
+        """The settings the run uses."""
+        return self.settings.config
 
     def toggle(self, option: str) -> None:
         """A click on the visibility bar."""
         with self.lock:
             self.display.toggle(visibility_item(option))
 
-    def step(self) -> None:
-        """One iteration: Step is disabled and a spinner counts the seconds until the engine answers."""
-        with self.lock:
-            self.revert_fields()
-            if self.stepping_since is not None or self.state.running:
-                return
-            self.stepping_since = started = time.monotonic()
-            P = self.panel
-            P.step.disabled = True
-            P.busy.content = "⏳ **Step running** · 0 s"
-            P.busy.visible = P.busy_bar.visible = True
-            self.send(p.Step())
-        threading.Thread(target=self._count_step, args=(started,), daemon=True, name="step-timer").start()
-
-    def _count_step(self, started: float) -> None:
-        while True:
-            time.sleep(1.0)
-            with self.lock:
-                if self.stepping_since != started:
-                    return
-                self.panel.busy.content = f"⏳ **Step running** · {time.monotonic() - started:.0f} s"
-
-    def step_done(self) -> None:
-        """The engine answered the Step (or the run started, stopped or failed): Step is back."""
-        with self.lock:
-            if self.stepping_since is None:
-                return
-            self.stepping_since = None
-            P = self.panel
-            P.busy.visible = P.busy_bar.visible = False
-            P.step.disabled = self.state.running
-
     def run(self) -> None:
         with self.lock:
-            self.revert_fields()
+            self.settings.revert()
         self.send(p.Run(self.panel.stop_on_convergence.value))
 
     def unsaved(self) -> str | None:
@@ -219,7 +139,7 @@ class App:
 
     def on_failure(self, failure: p.Failure) -> None:
         if failure.topic not in ("labels", "session"):
-            self.step_done()
+            self.stepper.done()
         self.reporter.report(failure)
 
     def pause(self) -> None:
@@ -231,19 +151,20 @@ class App:
 
     def reset(self) -> None:
         def apply():
-            self.revert_fields()
-            self.config = self.panel.estimator_config(self.config)
-            self.likelihood = self.panel.likelihood.value
-            self.send(p.Reset(self.config, self.likelihood))
-            self.show_pending()
+            self.settings.revert()
+            settings = self.settings
+            settings.config = self.panel.estimator_config(settings.config)
+            settings.likelihood = self.panel.likelihood.value
+            self.send(p.Reset(settings.config, settings.likelihood))
+            self.settings.show_pending()
 
         self.reporter.guarded(apply)
 
     def load(self, source: p.Source) -> None:
         self.panel.title.content = f"**workbench** · loading {source.describe()} …"
-        self.likelihood = self.panel.likelihood.value
-        self.send(p.Load(source, self.config, self.likelihood))
-        self.show_pending()
+        self.settings.likelihood = self.panel.likelihood.value
+        self.send(p.Load(source, self.config, self.settings.likelihood))
+        self.settings.show_pending()
 
     def load_typed(self) -> None:
         def apply():
@@ -329,7 +250,7 @@ class App:
     def on_run_state(self, msg: p.RunState) -> None:
         s, P = self.state, self.panel
         s.last_state, s.running = msg, msg.running
-        self.step_done()
+        self.stepper.done()
         if msg.reason == "reset":
             s.reports, s.cloud, s.chosen, s.iteration, s.truth = [], None, None, -1, None
             self.display.reset()
@@ -343,20 +264,20 @@ class App:
     def on_session_restored(self, msg: p.SessionRestored) -> None:
         """Show the restored run's settings and history (its frame came in ``Loaded`` just before)."""
         s, P = self.state, self.panel
-        self.config, self.likelihood = msg.config, msg.likelihood
+        self.settings.config, self.settings.likelihood = msg.config, msg.likelihood
         with self.quiet:  # the engine has these settings already; showing them must not send them back
             P.show_config(msg.config, msg.likelihood)
         s.reports = list(msg.reports)
         s.iteration = msg.reports[-1]["iteration"] if msg.reports else -1
         self.saved_iteration = s.iteration
-        self.show_pending()
+        self.settings.show_pending()
         P.plots.set_history(msg.reports, msg.config.particles, msg.config.converge_position,
                             msg.config.converge_degrees)
         self.sessions.on_restored(msg)
         P.status.content = status_markdown(self.state, self.config)
 
     def on_engine_died(self, exitcode: int | None, gave_up: bool) -> None:
-        self.step_done()
+        self.stepper.done()
         with self.lock:
             self.state.restarts += 1
             source = self.source
@@ -380,8 +301,7 @@ class App:
     # -- lifetime
 
     def stop(self) -> None:
-        if self.revert_timer is not None:
-            self.revert_timer.cancel()
+        self.settings.cancel()
         self.display.throttle.cancel()
         self.engine.stop()
 
