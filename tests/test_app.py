@@ -306,9 +306,9 @@ def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
     import shutil
 
     from workbench.app.engine import demo_dataset
-    from workbench.app.observation import display_names
     from workbench.errors import InputError
     from workbench.io import bop
+    from workbench.scene import display_names
 
     src = demo_dataset()
     data = tmp_path / "named"

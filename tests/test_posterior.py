@@ -2,6 +2,8 @@
 open heading of a mug whose handle is hidden. The pure parts are in the fast tier; the mug runs real physics and
 the real renderer."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -82,15 +84,15 @@ def test_the_summary_names_only_what_is_uncertain(touching_models):
                                    (-75.0, 45.0))
     assert Posterior([sure, sure]).summary(problem).startswith("all 2 objects certain")
     line = Posterior([sure, open_heading]).summary(problem)
-    assert line.startswith("1 of 2 objects uncertain: ") and "[-75, +45] degrees" in line
+    assert line.startswith("1 of 2 objects uncertain: box b (about the vertical anywhere in [-75, +45] degrees)")
+    twice = SimpleNamespace(models=[problem.models[1], problem.models[1]])  # one model, two instances
+    assert "box b #2 (about the vertical" in Posterior([sure, open_heading]).summary(twice)
 
 
 @pytest.fixture
 def touching_models():
     """Something with two named models, without loading anything heavy."""
-    from types import SimpleNamespace
-
-    return SimpleNamespace(models=[SimpleNamespace(name="box a"), SimpleNamespace(name="box b")])
+    return SimpleNamespace(models=[SimpleNamespace(name="box a", obj_id=1), SimpleNamespace(name="box b", obj_id=2)])
 
 
 # ------------------------------------------------------------------------------ the mug, real physics and renderer

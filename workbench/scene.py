@@ -103,3 +103,15 @@ class Table:
     y_max: float
     region_min: tuple[float, float] = (-0.15, -0.15)
     region_max: tuple[float, float] = (0.15, 0.15)
+
+
+def display_names(models) -> list[str]:
+    """One name per object of the scene, as the workbench and the command line show it: the model's name, with
+    " #2", " #3", ... on further instances of the same model."""
+    seen: dict[str, int] = {}
+    out = []
+    for m in models:
+        base = m.name or f"obj_{m.obj_id:06d}"
+        seen[base] = seen.get(base, 0) + 1
+        out.append(base if seen[base] == 1 else f"{base} #{seen[base]}")
+    return out

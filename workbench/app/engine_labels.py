@@ -137,7 +137,7 @@ class FrameLabels:
         self.dirty = True
 
     def names(self) -> list[str]:
-        from workbench.app.observation import display_names
+        from workbench.scene import display_names
 
         return display_names(self.engine.problem.models)
 

@@ -112,7 +112,7 @@ class LabelEditor:
         scene = self.server.scene
         K = len(view.meshes)
         self.labels, self.estimate = [None] * K, None
-        self.names = [m.name for m in view.meshes]  # unique per scene (observation.display_names)
+        self.names = [m.name for m in view.meshes]  # unique per scene (scene.display_names)
         self.vertices = [np.asarray(m.vertices, dtype=np.float64) for m in view.meshes]
         x0, x1, y0, y1 = view.region
         self.homes = np.stack([

@@ -10,7 +10,7 @@ from workbench.app.colors import apply_map, robust_range
 from workbench.app.protocol import MeshData, ObservationView, PointSet
 from workbench.geometry import invert_pose, transform_points
 from workbench.problem import Problem
-from workbench.scene import Camera, Frame
+from workbench.scene import Camera, Frame, display_names
 
 # Software WebGL pays for every pixel a point covers. Near the objects the cloud keeps enough points to read their
 # shape; the rest of the table and the background only give context, drawn four times coarser per axis.
@@ -44,18 +44,6 @@ def backproject(camera: Camera, depth: np.ndarray, stride: int = 1) -> tuple[np.
     x = (u * stride - K[0, 2]) / K[0, 0] * z
     y = (v * stride - K[1, 2]) / K[1, 1] * z
     return np.stack([x, y, z], axis=-1), v * d.shape[1] + u
-
-
-def display_names(models) -> list[str]:
-    """One name per object of the scene, as every part of the workbench shows it: the model's name, with
-    " #2", " #3", ... on further instances of the same model."""
-    seen: dict[str, int] = {}
-    out = []
-    for m in models:
-        base = m.name or f"obj_{m.obj_id:06d}"
-        seen[base] = seen.get(base, 0) + 1
-        out.append(base if seen[base] == 1 else f"{base} #{seen[base]}")
-    return out
 
 
 def height_top(z: np.ndarray) -> float:

@@ -35,6 +35,7 @@ from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference import settle
 from workbench.metrics import is_right
 from workbench.problem import Problem
+from workbench.scene import display_names
 
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on the 50 objects of ycbv-real-dev, default estimate, seed 0 (benchmarks/calibration/): 95.
@@ -91,9 +92,9 @@ class Posterior:
         unsure = [o for o in self.objects if o.confidence < threshold or o.yaw_range_deg is not None]
         if not unsure:
             return f"all {len(self.objects)} objects certain (p >= {threshold:g})"
-        parts = []
+        parts, names = [], display_names(problem.models)
         for o in unsure:
-            name = problem.models[o.obj].name
+            name = names[o.obj]
             if o.yaw_range_deg is not None:
                 lo, hi = o.yaw_range_deg
                 parts.append(f"{name} (about the vertical anywhere in [{lo:+.0f}, {hi:+.0f}] degrees)")
