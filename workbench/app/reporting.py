@@ -101,6 +101,20 @@ class Reporter:
             self.panel.title.content = f"**workbench** · {view.title if view else 'nothing loaded'}"
         self.notify(failure.title, f"{failure.path + ': ' if failure.path else ''}{failure.problem}", color="red")
 
+    def engine_died(self, exitcode: int | None, gave_up: bool, reloading: bool) -> None:
+        """The estimator process died: restarted (and the frame ``reloading``), or, dying again, given up."""
+        if gave_up:
+            log.error("the estimator process died again (exit code %s) and was not restarted: restart the server",
+                      exitcode)
+            self.report(p.Failure("Estimator process keeps dying", f"it exited with code {exitcode} again and was "
+                                  "not restarted; see the server's log, then restart the server", fatal=True))
+            return
+        log.warning("the estimator process died (exit code %s); restarted it%s", exitcode,
+                    " and reloading the frame" if reloading else "")
+        self.notify("Estimator process restarted", f"The estimator process died (exit code {exitcode}); it was "
+                    "restarted" + (" and the frame reloaded: the run starts again." if reloading else "."),
+                    color="yellow")
+
     def notify(self, title: str, body: str, color: str) -> None:
         for client in self.server.get_clients().values():
             client.add_notification(title, body, color=color, auto_close_seconds=15.0)

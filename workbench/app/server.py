@@ -11,7 +11,6 @@ thread and GUI callbacks on viser's threads: ``App`` serialises both with one lo
 from __future__ import annotations
 
 import errno
-import logging
 import socket
 import threading
 import time
@@ -38,12 +37,10 @@ from workbench.app.truth import truth_markdown
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 
-log = logging.getLogger(__name__)
 
 # Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
 SESSIONS_DIR = Path("sessions")
-
 
 
 class App:
@@ -150,15 +147,7 @@ class App:
             self.send(p.Pause())
 
     def reset(self) -> None:
-        def apply():
-            self.settings.revert()
-            settings = self.settings
-            settings.config = self.panel.estimator_config(settings.config)
-            settings.likelihood = self.panel.likelihood.value
-            self.send(p.Reset(settings.config, settings.likelihood))
-            self.settings.show_pending()
-
-        self.reporter.guarded(apply)
+        self.reporter.guarded(lambda: self.send(self.settings.for_reset()))
 
     def load(self, source: p.Source) -> None:
         self.panel.title.content = f"**workbench** · loading {source.describe()} …"
@@ -281,21 +270,8 @@ class App:
         with self.lock:
             self.state.restarts += 1
             source = self.source
-        if gave_up:
-            log.error("the estimator process died again (exit code %s) and was not restarted: restart the server",
-                      exitcode)
-        else:
-            log.warning("the estimator process died (exit code %s); restarted it%s", exitcode,
-                        " and reloading the frame" if source else "")
-        if gave_up:
-            self.reporter.report(p.Failure("Estimator process keeps dying", f"it exited with code {exitcode} again "
-                                           "and was not restarted; see the server's log, then restart the server",
-                                           fatal=True))
-            return
-        self.reporter.notify("Estimator process restarted",
-                             f"The estimator process died (exit code {exitcode}); it was restarted"
-                             + (" and the frame reloaded: the run starts again." if source else "."), color="yellow")
-        if source is not None:
+        self.reporter.engine_died(exitcode, gave_up, reloading=source is not None)
+        if source is not None and not gave_up:
             self.send(p.Load(source, self.config, self.panel.likelihood.value))
 
     # -- lifetime

@@ -74,6 +74,14 @@ class SettingsForm:
             if self.panel.pending.content != content:
                 self.panel.pending.content = content
 
+    def for_reset(self) -> p.Reset:
+        """Every typed setting, the seed and the likelihood included, taken for the run -> the Reset to send."""
+        self.revert()
+        self.config = self.panel.estimator_config(self.config)
+        self.likelihood = self.panel.likelihood.value
+        self.show_pending()
+        return p.Reset(self.config, self.likelihood)
+
     def cancel(self) -> None:
         """No refused value is put back later (one is now, or the app stops)."""
         if self.revert_timer is not None:
