@@ -297,8 +297,8 @@ def _check_bench_out(out: Path, methods: list[str]) -> None:
     """``bench --out`` is a folder of our tables and CSVs: never a file, never inside a dataset's folders, and the
     files it writes there replace only those an earlier bench wrote (the guards of every output file)."""
     from workbench.bench.tables import is_report_json, is_report_md
-    from workbench.outputs import check_output_file
-    from workbench.runner import _is_results_csv, dataset_folder_of
+    from workbench.outputs import check_output_file, dataset_folder_of
+    from workbench.runner import is_results_csv
 
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file: --out names the folder the tables are written to")
@@ -306,7 +306,7 @@ def _check_bench_out(out: Path, methods: list[str]) -> None:
     if inside is not None:
         raise InputError(out, f"lies in the dataset folder {inside}: choose an --out outside the dataset")
     for name, ours in [("report.md", is_report_md), ("report.json", is_report_json),
-                       *((f"results_{m}.csv", _is_results_csv) for m in methods)]:
+                       *((f"results_{m}.csv", is_results_csv) for m in methods)]:
         check_output_file(out / name, ours=ours, what="a file `workbench bench` wrote", flag="--out", can_force=False)
 
 

@@ -27,7 +27,7 @@ from workbench.frames import Frame, FrameFailure, run_frames
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.io.bop import ResultRow
-from workbench.outputs import OutputLock, check_output_file, dataset_folder_of, write_file  # noqa: F401 (dataset_folder_of: for callers)
+from workbench.outputs import OutputLock, check_output_file, write_file
 from workbench.pipeline import load_bop_problem, posterior_rows, result_rows
 from workbench.problem import Problem, ProblemConfig
 
@@ -141,7 +141,7 @@ def check_results_out(out: Path, force: bool = False, resume: bool = False) -> l
     out = Path(out)
     if force and resume:
         raise InputError("--resume", "--resume keeps the results in --out and --force replaces the file: pass one")
-    exists = check_output_file(out, ours=_is_results_csv, force=force or resume, what="a results CSV written by `workbench estimate`",
+    exists = check_output_file(out, ours=is_results_csv, force=force or resume, what="a results CSV written by `workbench estimate`",
                                flag="--out")
     if not exists:
         return []
@@ -182,7 +182,8 @@ def check_resumed(results: "ResultsFile", dataset: Path, split: str | None = Non
                                            "left as it is)")
 
 
-def _is_results_csv(path: Path) -> bool:
+def is_results_csv(path: Path) -> bool:
+    """Whether ``path`` reads as a results CSV (InputError otherwise): the files `estimate` and `bench` may replace."""
     bop.read_results_csv(path)
     return True
 
