@@ -70,13 +70,7 @@ def check_output_file(path: Path, ours: Callable[[Path], bool] | None = None, fo
                                f"scenes or models; choose a {flag} outside them")
     if target.is_dir():
         raise InputError(path, f"is a folder: {flag} names a file")
-    folder = target.parent
-    while not folder.exists():
-        folder = folder.parent
-    if not folder.is_dir():
-        raise InputError(path, f"{folder} is a file, not a folder: nothing can be written below it")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(path, f"no permission to write in {folder}")
+    check_creatable(path, target.parent, "nothing can be written below it")
     if not target.exists():
         return False
     if not stat.S_ISREG(target.stat().st_mode):
@@ -93,6 +87,17 @@ def check_output_file(path: Path, ours: Callable[[Path], bool] | None = None, fo
     return True
 
 
+def check_creatable(path: Path, folder: Path, below: str) -> None:
+    """``folder`` (made if missing) can be made and written in: the nearest existing folder at or above it is a
+    folder this user may write in. InputError naming ``path`` otherwise, ``below`` saying what cannot be done."""
+    while not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(path, f"{folder} is a file, not a folder: {below}")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(path, f"no permission to write in {folder}")
+
+
 def _safely(ours: Callable[[Path], bool], path: Path) -> bool:
     try:
         return bool(ours(path))
@@ -100,19 +105,21 @@ def _safely(ours: Callable[[Path], bool], path: Path) -> bool:
         return False
 
 
-def write_file(path: Path, data: bytes | str) -> None:
-    """``data`` into ``path``, whole or not at all (see the module doc); InputError naming ``path`` when the write
-    fails (a full disk, a read-only file system): the file as it was stays."""
+def replace_file(path: Path, data: bytes, sync: bool = False) -> None:
+    """``data`` into ``path`` through a temporary file in its folder and ``os.replace``, so that readers never see
+    a half-written file (``sync``: on the disk before it replaces the old one). A replaced file keeps its
+    permissions; a new one gets those a plain open() would give it. A symbolic link stays one: its target is
+    written. Raises OSError; the temporary file is removed whatever happens."""
     path = Path(path)
     target = path.resolve() if path.is_symlink() else path
-    tmp = None
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-            f.flush()
-            os.fsync(f.fileno())
+            f.write(data)
+            if sync:
+                f.flush()
+                os.fsync(f.fileno())
         try:
             mode = target.stat().st_mode & 0o7777
         except FileNotFoundError:
@@ -121,13 +128,21 @@ def write_file(path: Path, data: bytes | str) -> None:
             mode = 0o666 & ~umask
         os.chmod(tmp, mode)
         os.replace(tmp, target)
-        tmp = None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_file(path: Path, data: bytes | str) -> None:
+    """``data`` into ``path``, whole or not at all (``replace_file``, synced); InputError naming ``path`` when the
+    write fails (a full disk, a read-only file system): the file as it was stays."""
+    path = Path(path)
+    try:
+        replace_file(path, data.encode() if isinstance(data, str) else data, sync=True)
     except OSError as err:
+        target = path.resolve() if path.is_symlink() else path
         kept = "the file as it was is kept" if target.exists() else "nothing was written"
         raise InputError(path, f"could not be written ({err.strerror or err}); {kept}") from err
-    finally:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
 
 
 class OutputLock:

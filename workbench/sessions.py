@@ -36,7 +36,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import re
 import typing
 import zipfile
@@ -55,7 +54,7 @@ from workbench.inference.filter import IterationReport
 from workbench.inference.moves import MoveKind, MoveMix
 from workbench.inference.particleset import ParticleSet
 from workbench.io import bop
-from workbench.outputs import check_output_file, dataset_folder_of, write_file
+from workbench.outputs import check_creatable, check_output_file, dataset_folder_of, write_file
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
@@ -316,13 +315,7 @@ def check_sessions_dir(directory: Path) -> None:
     if inside is not None:
         raise InputError(directory, f"lies in the dataset folder {inside}: sessions are never saved among a "
                                     "dataset's scenes or models")
-    folder = directory
-    while not folder.exists():
-        folder = folder.parent
-    if not folder.is_dir():
-        raise InputError(directory, f"{folder} is a file, not a folder: sessions cannot be saved below it")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(directory, f"no permission to write in {folder}")
+    check_creatable(directory, directory, "sessions cannot be saved below it")
 
 
 def _own_arrays_file(json_path: Path, name: str) -> str | None:

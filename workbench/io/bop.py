@@ -23,8 +23,6 @@ import csv
 import io
 import json
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -35,6 +33,7 @@ from PIL import Image, UnidentifiedImageError
 
 from workbench.errors import InputError
 from workbench.geometry import make_pose
+from workbench.outputs import replace_file
 from workbench.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
@@ -66,32 +65,8 @@ def read_json(path: Path) -> dict | list:
         raise InputError(path, f"corrupt JSON ({e}); re-export or re-download the file") from e
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write through a temporary file in the same folder so readers never see a half-written file. A replaced
-    file keeps its permissions; a new one gets those a plain open() would give it. A symbolic link stays one: its
-    target is written."""
-    if path.is_symlink():
-        path = path.resolve()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        try:
-            mode = path.stat().st_mode & 0o7777
-        except FileNotFoundError:
-            umask = os.umask(0)  # mkstemp makes owner-only files
-            os.umask(umask)
-            mode = 0o666 & ~umask
-        os.chmod(tmp, mode)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write_json(path: Path, content: dict) -> None:
-    _atomic_write(path, (json.dumps(content, indent=2) + "\n").encode())
+    replace_file(path, (json.dumps(content, indent=2) + "\n").encode())
 
 
 def _merge_json(path: Path, im_id: int, value) -> None:
@@ -497,7 +472,7 @@ def save_models(
     for obj_id, mesh in meshes.items():
         mm = mesh.copy()
         mm.apply_scale(1.0 / MM)
-        _atomic_write(models_dir / f"obj_{obj_id:06d}.ply", mm.export(file_type="ply"))
+        replace_file(models_dir / f"obj_{obj_id:06d}.ply", mm.export(file_type="ply"))
         hull = mm.convex_hull.vertices
         diameter = float(np.max(np.linalg.norm(hull[:, None] - hull[None], axis=-1)))
         lo, size = mm.bounds[0], mm.extents
@@ -713,9 +688,9 @@ def save_frame(
             scene_dir, f"depth up to {depth.max():.2f} m does not fit 16 bits at depth_scale {depth_scale}; "
             f"use depth_scale >= {depth.max() / MM / 65535:.3g}"
         )
-    _atomic_write(scene_dir / "depth" / f"{im_id:06d}.png", _png_bytes(units.astype(np.uint16)))
+    replace_file(scene_dir / "depth" / f"{im_id:06d}.png", _png_bytes(units.astype(np.uint16)))
     if rgb is not None:
-        _atomic_write(scene_dir / "rgb" / f"{im_id:06d}.png", _png_bytes(np.asarray(rgb, dtype=np.uint8)))
+        replace_file(scene_dir / "rgb" / f"{im_id:06d}.png", _png_bytes(np.asarray(rgb, dtype=np.uint8)))
     cam = {"cam_K": np.asarray(K, dtype=np.float64).ravel().tolist(), "depth_scale": float(depth_scale)}
     if T_cam_world is not None:
         cam["cam_R_w2c"], cam["cam_t_w2c"] = _R_t_mm(T_cam_world)
@@ -771,7 +746,7 @@ def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
 
 def write_results_lines(path: Path, lines: list[str]) -> None:
     """The header and ``lines`` (from ``results_csv_lines``), atomically."""
-    _atomic_write(Path(path), "".join(f"{line}\n" for line in [",".join(RESULTS_HEADER), *lines]).encode())
+    replace_file(Path(path), "".join(f"{line}\n" for line in [",".join(RESULTS_HEADER), *lines]).encode())
 
 
 def read_results_csv(path: Path) -> list[ResultRow]:
