@@ -337,3 +337,116 @@ def test_changed_or_missing_dataset_files_are_reported(touching_dataset, tmp_pat
     mesh.write_bytes((touching_dataset / "models" / mesh.name).read_bytes())
     _, rebuilt = session_problem(state)
     assert check_dataset(state, rebuilt)[-1].startswith("the rebuilt problem differs")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The settled answer and its posterior (issue 30): saved with the run, shown again on load without settling
+
+
+@pytest.fixture(scope="module")
+def settled(loaded, tmp_path_factory):
+    """A session saved right after settling (its posterior current): folder, JSON file, the estimator saved."""
+    _, problem, ref = loaded
+    folder = tmp_path_factory.mktemp("settled")
+    evaluator = LocalEvaluator(problem)
+    try:
+        estimator = Estimator(problem, CONFIG, evaluator)
+        estimator.step(), estimator.step()
+        estimator.settle()
+    finally:
+        evaluator.close()
+    assert estimator.current_posterior is not None
+    return folder, save_session(folder, "settled", session_state_from(estimator, ref, _labels(problem))), estimator
+
+
+def test_a_settled_session_restores_its_posterior_exactly(settled, loaded):
+    _, path, saved_run = settled
+    _, problem, _ = loaded
+    state = load_session(path)
+    evaluator = LocalEvaluator(problem)
+    try:
+        restored = restore_estimator(state, problem, evaluator)
+        before = restored.settle_scenes
+        assert restored.answer_current and np.array_equal(restored.settle(), saved_run.settled)
+        assert restored.settle_scenes == before  # the saved answer is the current one: nothing settled again
+    finally:
+        evaluator.close()
+    assert restored.settled_loglik == saved_run.settled_loglik
+    assert [(t.obj, t.turn, t.gap) for t in restored.ties] == [(t.obj, t.turn, t.gap) for t in saved_run.ties]
+    a, b = saved_run.posterior, restored.current_posterior
+    assert a.temperature == b.temperature and len(a.objects) == len(b.objects) == problem.n_objects
+    for x, y in zip(a.objects, b.objects):
+        assert (x.obj, x.position_spread_m, x.yaw_range_deg) == (y.obj, y.position_spread_m, y.yaw_range_deg)
+        assert len(x.modes) == len(y.modes)
+        for m, n in zip(x.modes, y.modes):
+            assert np.array_equal(m.T, n.T) and (m.loglik, m.gap, m.probability, m.what) == \
+                (n.loglik, n.gap, n.probability, n.what)
+
+
+def test_a_stale_or_missing_answer_loads_as_no_posterior(saved, settled, loaded, tmp_path):
+    """A run stepped on after settling saves no answer (its posterior was of an older estimate); a session saved
+    before answers were kept (no ``answer`` entry) loads with none."""
+    _, problem, ref = loaded
+    run = settled[2]
+    evaluator = LocalEvaluator(problem)
+    try:
+        stepped = restore_estimator(load_session(settled[1]), problem, evaluator)
+        stepped.step()
+        assert stepped.current_posterior is None
+        path = save_session(tmp_path, "stepped", session_state_from(stepped, ref, _labels(problem)))
+        assert json.loads(path.read_text())["estimator"]["answer"] is None
+        assert load_session(path).estimator["answer"] is None
+        work = tmp_path / "old"
+        shutil.copytree(saved[0], work)
+        json_path = work / saved[1].name
+        doc = json.loads(json_path.read_text())
+        del doc["estimator"]["answer"]
+        json_path.write_text(json.dumps(doc))
+        old = restore_estimator(load_session(json_path), problem, evaluator)
+        assert old.current_posterior is None and old.posterior is None and not old.answer_current
+    finally:
+        evaluator.close()
+    assert run.current_posterior is not None
+
+
+def _answer_edit(edit):
+    return _edit_json(lambda doc: edit(doc["estimator"]["answer"]))
+
+
+BAD_ANSWERS = {
+    "not an object": (_set(["estimator", "answer"], [1, 2]), r"estimator\.answer must be an object"),
+    "probability over 1": (_answer_edit(lambda a: a["posterior"]["objects"][0]["modes"][0].update(probability=1.5)),
+                           r"answer\.posterior\.objects\[0\]\.modes\[0\]\.probability"),
+    "probabilities do not sum to 1": (
+        _answer_edit(lambda a: a["posterior"]["objects"][0]["modes"].append(
+            {**a["posterior"]["objects"][0]["modes"][0], "probability": 0.5})),
+        r"answer\.posterior\.objects\[0\]\.modes must be probabilities"),
+    "mode pose a reflection": (
+        _answer_edit(lambda a: a["posterior"]["objects"][1]["modes"][0]["T"].__setitem__(0, [-1.0, 0.0, 0.0, 0.0])),
+        r"answer\.posterior\.objects\[1\]\.modes\[0\]\.T"),
+    "object missing": (_answer_edit(lambda a: a["posterior"]["objects"].pop()),
+                       r"answer\.posterior\.objects must list the 2 objects"),
+    "what not text": (_answer_edit(lambda a: a["posterior"]["objects"][0]["modes"][0].update(what=3)),
+                      r"modes\[0\]\.what must be a short text"),
+    "yaw range": (_answer_edit(lambda a: a["posterior"]["objects"][0].update(yaw_range_deg=[10.0, 5.0])),
+                  r"yaw_range_deg"),
+    "temperature": (_answer_edit(lambda a: a["posterior"].update(temperature=-1.0)), r"temperature must be > 0"),
+    "spread NaN": (_answer_edit(lambda a: a["posterior"]["objects"][0].update(position_spread_m=float("nan"))),
+                   r"position_spread_m must be a finite number"),
+    "no estimate": (_set(["estimator", "search", "map"], None), r"answer.*without an estimate"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_ANSWERS))
+def test_a_damaged_posterior_is_refused_naming_the_file(settled, tmp_path, case):
+    folder, original, _ = settled
+    work = tmp_path / "sessions"
+    shutil.copytree(folder, work)
+    json_path = work / original.name
+    npz_path = work / json.loads(json_path.read_text())["arrays"]["file"]
+    mutate, message = BAD_ANSWERS[case]
+    mutate(json_path, npz_path)
+    with pytest.raises(InputError) as err:
+        load_session(json_path)
+    assert err.value.path == str(json_path)
+    assert re.search(message, err.value.problem), err.value.problem

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from workbench.answer_json import Answer, answer_json, parse_answer
 from workbench.evaluation import Evaluator
 from workbench.inference import datadriven
 from workbench.inference.config import EstimatorConfig
@@ -109,7 +110,7 @@ class Estimator:
         ``settled_loglik``, its near ties in ``ties`` and the posterior per object in ``posterior``. Computed once
         per estimate: stepping on and settling again starts from the new estimate."""
         estimate = self.filter.map
-        if self._settled_from is not None and estimate is not None and np.array_equal(self._settled_from, estimate):
+        if self.answer_current:
             return self.settled
         answer = self.search.finish(self.filter)
         self.settled, self.settled_loglik, self.ties = answer.scene, answer.loglik, answer.ties
@@ -118,13 +119,27 @@ class Estimator:
         self._settled_from = None if estimate is None else estimate.copy()
         return self.settled
 
+    @property
+    def answer_current(self) -> bool:
+        """Whether ``settled`` (with ``ties`` and ``posterior``) is the answer for the current estimate: settled
+        since the estimate last changed, and since the settings last changed."""
+        m = self.filter.map
+        return self._settled_from is not None and m is not None and np.array_equal(self._settled_from, m)
+
+    @property
+    def current_posterior(self) -> Posterior | None:
+        """The posterior of the current estimate, or None (not settled since it changed, or the paper's search)."""
+        return self.posterior if self.answer_current else None
+
     # ------------------------------------------------------------------------------------------------ sessions
     def state_dict(self) -> dict:
         """Everything ``step`` continues from besides the problem, config and evaluator, as copies: loaded with
         ``load_state`` into a new Estimator of the same problem and config, the next steps equal this one's bit
         for bit. ``rng`` is numpy's ``bit_generator.state`` (plain strings and ints, JSON-serialisable);
         ``particles`` the ``ParticleSet``, None before the first step. ``search``: the estimate and the
-        data-driven candidates, as plain lists (JSON-serialisable)."""
+        data-driven candidates, as plain lists (JSON-serialisable). ``answer``: the settled answer of the current
+        estimate (``answer_json``: scene, log-likelihood, ties, posterior) as plain lists, None when not settled,
+        so that a restored estimator shows the same posterior without settling again."""
         f = self.filter
         lib = getattr(self.search, "library", None)
         return {
@@ -145,6 +160,8 @@ class Estimator:
                 "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
                                                      "weights": [w.tolist() for w in lib.weights]},
             },
+            "answer": answer_json(Answer(self.settled, self.settled_loglik, self.ties, self.posterior))
+            if self.answer_current else None,
         }
 
     def load_state(self, state: dict) -> None:
@@ -163,6 +180,14 @@ class Estimator:
         f.sink, f.evaluations = search["sink"], search["evaluations"]
         if isinstance(self.search, DefaultSearch):
             self.search.library = search["library"]
+        answer = parse_answer(state.get("answer"), self.problem.n_objects)
+        if answer is not None and f.map is None:
+            raise ValueError("answer: a settled answer without an estimate to belong to")
+        self.settled = None if answer is None else answer.scene
+        self.settled_loglik = float("-inf") if answer is None else answer.loglik
+        self.ties = [] if answer is None else list(answer.ties)
+        self.posterior = None if answer is None else answer.posterior
+        self._settled_from = None if answer is None else f.map.copy()
 
 
 def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:

@@ -6,7 +6,9 @@ A session named NAME is two files in one folder (the app's ``sessions/``):
   ids, objects, and the SHA-256 of every dataset file the problem was built from), the support surface the run
   used (``T_cam_world`` and the table, so that loading never re-estimates them), every setting (estimator,
   problem, physics, likelihood, render), the RNG state, the tempering and convergence state, the iteration
-  history, the labels (T_world_obj per object, or null), and the name, size and SHA-256 of the arrays file.
+  history, the labels (T_world_obj per object, or null), the settled answer of the current estimate with its
+  posterior per object (``estimator.answer``, ``answer_json``; null when not settled, or saved before it was
+  kept), and the name, size and SHA-256 of the arrays file.
 - ``NAME.<first 16 hex digits of its SHA-256>.npz``: the particle set (``ParticleSet.arrays()``: ``hypotheses``,
   ``projected``, ``loglik``, ``status``, ``kinds``; absent before the first step) and ``best_history``, written
   with ``np.savez`` and read with ``allow_pickle=False``. (Format 2 kept ``kinds`` in the JSON, as
@@ -45,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workbench.answer_json import parse_answer
 from workbench.checks import check_estimator_config, check_problem_config, check_rigid
 from workbench.errors import InputError
 from workbench.estimators import Estimator, parse_search
@@ -374,6 +377,7 @@ def _document(state: SessionState, arrays: dict[str, np.ndarray], arrays_entry: 
             "calm": est["calm"],
             "history": [r.as_dict() for r in est["history"]],
             "search": est.get("search"),
+            "answer": est.get("answer"),
         },
         "labels": [None if T is None else np.asarray(T, dtype=np.float64).tolist() for T in state.labels],
         "arrays": arrays_entry,
@@ -393,8 +397,11 @@ def load_session(path: Path) -> SessionState:
     if "kinds_in_json" in arrays_entry:
         _kinds_from_json(path, arrays, arrays_entry)
     _check_arrays(path, state, arrays, arrays_entry["shapes"])
+    K = len(state.frame.object_ids)
     try:
-        parse_search(state.estimator["search"], len(state.frame.object_ids))
+        search = parse_search(state.estimator["search"], K)
+        if parse_answer(state.estimator["answer"], K) is not None and search["map"] is None:
+            raise ValueError("answer: a settled answer without an estimate (search.map) to belong to")
     except ValueError as e:
         raise InputError(path, f"estimator.{e}") from e
     state.estimator["particles"] = ParticleSet.from_arrays(arrays) if "loglik" in arrays else None
@@ -520,6 +527,7 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
             "calm": _int(e["calm"], "estimator.calm"),
             "history": [_report(r) for r in e["history"]],
             "search": _search(e.get("search")),
+            "answer": e.get("answer"),  # checked with the search, once the arrays are read
         },
         labels=[None if T is None else _pose(T, "labels") for T in labels],
         problem_sha256=_str(d["problem_sha256"], "problem_sha256"),
