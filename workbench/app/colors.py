@@ -77,6 +77,14 @@ def object_color(k: int) -> tuple[int, int, int]:
     return OBJECT_COLORS[k % len(OBJECT_COLORS)]
 
 
+GHOST_WHITE = 0.5  # the share of white in another mode's colour: pale, told apart from the solid estimate
+
+
+def ghost_color(k: int) -> tuple[int, int, int]:
+    """Object ``k``'s colour paled towards white: its other modes' outlines."""
+    return tuple(int(round(c + (255 - c) * GHOST_WHITE)) for c in object_color(k))
+
+
 def _swatch(rgb, style: str = "solid") -> str:
     """A small square of colour for a legend row: solid fill, an outline ("wire") or a line ("line")."""
     r, g, b = (int(c) for c in rgb)
@@ -90,17 +98,23 @@ def _swatch(rgb, style: str = "solid") -> str:
     return f'<span style="display:inline-block;width:12px;height:12px;{css};vertical-align:middle"></span>'
 
 
-def view_legend_html(names: list[str], observation: str, heatmap: str = "") -> str:
+def view_legend_html(names: list[str], observation: str, heatmap: str = "",
+                     confidences: list[str] | None = None) -> str:
     """The one legend of the 3D view: every colour and glyph it can show, with the objects by name, as a compact
     two-column grid. ``observation``: what the observed points' colours mean; ``heatmap``: a note while a heatmap
-    replaces them."""
+    replaces them; ``confidences``: per object what the posterior says of its estimate ("p = 0.84, heading open
+    ..."; "" or None: nothing known yet)."""
     weight = ", ".join(f"rgb({int(r)},{int(g)},{int(b)})" for r, g, b in WEIGHT)
     gradient = (f'<span style="display:inline-block;width:12px;height:12px;vertical-align:middle;'
                 f'background:linear-gradient(to right, {weight})"></span>')
-    objects = ", ".join(f'<b style="color:rgb{object_color(k)}">{n}</b>' for k, n in enumerate(names)) or "—"
+    notes = list(confidences or []) + [""] * len(names)
+    objects = ", ".join(f'<b style="color:rgb{object_color(k)}">{n}</b>'
+                        + (f' <span data-confidence="{k}">({notes[k]})</span>' if notes[k] else "")
+                        for k, n in enumerate(names)) or "—"
     solid = " ".join(_swatch(object_color(k)) for k in range(len(names))) or _swatch(OBJECT_COLORS[0])
     wide = [(solid, f"most likely scene (and the inspected particle after physics): {objects}")]
     cells = [
+        (_swatch(ghost_color(0), "wire"), "another mode of the estimate, with its probability"),
         (gradient, "particles: unlikely → likely"),
         (_swatch(BEFORE_COLOR, "wire"), "inspected, before physics"),
         (_swatch(MOVE_COLOR, "line"), "physics moved it"),

@@ -173,7 +173,7 @@ class Engine:
         elif isinstance(cmd, p.FitLabels):
             self.aside("labels", self.labels.fit)
         elif isinstance(cmd, p.UseBestAsLabel):
-            self.aside("labels", self.labels.use_best)
+            self.aside("labels", lambda: self.labels.use_best(cmd.modes, cmd.iteration))
         elif isinstance(cmd, p.SaveLabels):
             self.aside("labels", lambda: self.labels.save(cmd.overwrite_original))
         elif isinstance(cmd, p.SaveSession):
@@ -275,6 +275,10 @@ class Engine:
             report = self.estimator.step()  # a second crash in a row is a Failure for the user
         if self.running and self.finished():
             self.running = False
+        if self.finished():
+            # The run's answer, as `workbench estimate` gives it: the estimate settled, with its posterior, which
+            # the snapshot carries. Computed once per estimate (a Step past the end settles only a new one).
+            self.estimator.settle()
         self.publish(report)
         if not self.running:
             self.send_state("converged" if report.converged else "done" if self.finished() else "paused")

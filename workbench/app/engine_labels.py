@@ -166,21 +166,33 @@ class FrameLabels:
                 + movement_table(self.names(), which, moved, turned(scene, fitted)))
         self.adopt(fitted, which, "fit", note)
 
-    def use_best(self) -> None:
+    def use_best(self, modes: tuple[int, ...] = (), iteration: int = -1) -> None:
+        """Label every object with the settled estimate, or with the mode ``modes`` names for it (indices into the
+        modes of the posterior shown with the snapshot of ``iteration``)."""
+        from workbench.app.modes import scene_with_modes
+
         est = self.engine.estimator
         if est is None or est.particles is None:
             raise InputError("labels", "there is no estimate yet: take a step first")
+        shown = est.answer_current  # the server has this posterior already
         # Settled (Estimator.settle), as `workbench estimate` writes it: the search's scene fitted to the depth.
-        best = est.settle().copy()
-        moved = np.linalg.norm(best[:, :3, 3] - est.best[:, :3, 3], axis=-1)
+        settled = est.settle().copy()
+        moved = np.linalg.norm(settled[:, :3, 3] - est.best[:, :3, 3], axis=-1)
         note = f"Labels set to the most likely scene of iteration {est.iteration}"
         if moved.any():
             note += f", settled to the depth (objects moved up to {moved.max() * 1e3:.1f} mm)"
+        # Modes chosen among those of another estimate would be other poses: only the shown posterior's count.
+        best, chosen = scene_with_modes(settled, est.posterior, modes if shown and iteration == est.iteration
+                                        else (), self.names())
+        if chosen:
+            note += "\n\nOther modes chosen:\n" + "\n".join(f"- {line}" for line in chosen)
         if est.ties:
             # The turns the depth scores about as well: a labeller checks these against the image or another view.
             note += ("\n\nThe depth hardly decides between these and the labels (check them; **Turn** or **Lay on "
                      "face** sets one):\n" + "\n".join(f"- {t.describe(self.engine.problem)}" for t in est.ties))
         self.adopt(best, list(range(len(best))), "best", note)
+        if not shown and est.posterior is not None:
+            self.engine.publish()  # the snapshot again, now with the posterior: its modes to show and choose from
 
     def save(self, overwrite_original: bool) -> None:
         from workbench import labels as labelling

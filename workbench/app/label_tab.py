@@ -28,6 +28,7 @@ class LabelTab:
     lay: viser.GuiButtonGroupHandle
     show_gizmo: viser.GuiCheckboxHandle
     clear: viser.GuiButtonHandle
+    modes: viser.GuiFolderHandle  # per object with other modes, which one "Use best estimate" takes (mode_choice)
     use_best: viser.GuiButtonHandle
     snap: viser.GuiButtonHandle
     fit: viser.GuiButtonHandle
@@ -56,7 +57,10 @@ def build_label_tab(gui: viser.GuiApi) -> LabelTab:
     show_gizmo = gui.add_checkbox("Gizmo", False, hint="drag the selected object in the 3D view; turns on when you "
                                   "choose an object or edit its pose")
     clear = gui.add_button("Clear label", icon=viser.Icon.ERASER, color="gray", hint="the selected object's")
-    use_best = gui.add_button("Use best estimate as label", icon=viser.Icon.STAR, hint="every object")
+    # Filled per object once the run has a posterior; hidden while no object has another mode.
+    modes = gui.add_folder("Modes to label with", expand_by_default=True, visible=False)
+    use_best = gui.add_button("Use best estimate as label", icon=viser.Icon.STAR,
+                              hint="every object: the settled estimate, or the mode chosen above")
     snap = gui.add_button("Snap to plausible", icon=viser.Icon.ARROW_BAR_TO_DOWN,
                           hint="physics puts the labelled scene at rest (unlabelled objects: the best estimate)")
     fit = gui.add_button("Fit to depth", icon=viser.Icon.TARGET,
@@ -72,6 +76,6 @@ def build_label_tab(gui: viser.GuiApi) -> LabelTab:
     save = gui.add_button("Save labels", icon=viser.Icon.DEVICE_FLOPPY)
     saved = gui.add_markdown("")
     return LabelTab(object=obj, state=state, position=position, angles=angles, turns=turns, lay=lay,
-                    show_gizmo=show_gizmo, clear=clear,
+                    show_gizmo=show_gizmo, clear=clear, modes=modes,
                     use_best=use_best, snap=snap, fit=fit, result=result, heatmap=heatmap, legend=legend,
                     errors=errors, overwrite_original=overwrite_original, save=save, saved=saved)

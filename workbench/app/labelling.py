@@ -16,6 +16,7 @@ import viser
 from workbench.app import protocol as p
 from workbench.app.label_editor import LabelEditor
 from workbench.app.label_tab import LabelTab
+from workbench.app.mode_choice import ModeChoice
 from workbench.app.quiet import Quiet
 from workbench.app.views import HeatmapLayer
 
@@ -50,13 +51,15 @@ class Labelling:
     on_heatmap_mode: Callable[[], None] = lambda: None
     editor: LabelEditor = field(init=False)
     heatmap: HeatmapLayer = field(init=False)
+    modes: ModeChoice = field(init=False)
 
     def __post_init__(self) -> None:
         self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
         self.editor = LabelEditor(self.server, self.tab, self.send, self.lock, self.quiet,
                                   on_unlabelled=self.clear_heatmap)
+        self.modes = ModeChoice(self.server.gui, self.tab.modes)
         t = self.tab
-        t.use_best.on_click(lambda _: self.act(p.UseBestAsLabel(), "Taking the best estimate …"))
+        t.use_best.on_click(lambda _: self.act(p.UseBestAsLabel(*self.modes.chosen()), "Taking the best estimate …"))
         t.snap.on_click(lambda _: self.act(p.SnapLabels(), "Snapping …"))
         t.fit.on_click(lambda _: self.act(p.FitLabels(), "Fitting …"))
         t.heatmap.on_update(lambda _: self.editor.guarded(self.heatmap_mode_changed))
@@ -69,6 +72,7 @@ class Labelling:
         with self.lock:
             self.heatmap.set_frame(view)
             self.editor.set_frame(view)
+            self.modes.set_frame(self.editor.names)
             with self.quiet:
                 self.tab.result.content = ""
                 self.tab.errors.content = ""

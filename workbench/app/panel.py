@@ -10,6 +10,7 @@ import viser
 
 from workbench.app.camera import FRAME_OBJECTS, FROM_SENSOR
 from workbench.app.label_tab import LabelTab, build_label_tab
+from workbench.app.modes import NO_POSTERIOR
 from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.plots import Plots
 from workbench.app.sessions_panel import SessionsTab, build_sessions_tab
@@ -53,6 +54,7 @@ class Panel:
     stop_on_convergence: viser.GuiCheckboxHandle
     timings: viser.GuiMarkdownHandle
     # Inspect
+    posterior: viser.GuiMarkdownHandle  # the settled estimate's confidence and other modes, per object
     rank: viser.GuiSliderHandle
     best: viser.GuiButtonHandle
     scene_mode: viser.GuiDropdownHandle
@@ -211,9 +213,9 @@ def shown_numbers(*values: float) -> str:
 SIGMA_XY, SIGMA_Z, SIGMA_ANGLES = "σ x, y (cm)", "σ elevation (cm)", "σ roll, pitch, yaw (°)"
 FIELD_LABELS: dict[int, str] = {}  # id(handle) -> its label, for the typed fields
 # The visibility bar: one toggle per layer of the 3D view, and what is shown at first.
-SHOW_ITEMS = ("points", "particles", "estimate", "truth", "labels", "heatmap")
-SHOWN_BY_DEFAULT = {"points": True, "particles": True, "estimate": True, "truth": True, "labels": True,
-                    "heatmap": False}
+SHOW_ITEMS = ("points", "particles", "estimate", "modes", "truth", "labels", "heatmap")
+SHOWN_BY_DEFAULT = {"points": True, "particles": True, "estimate": True, "modes": True, "truth": True,
+                    "labels": True, "heatmap": False}
 ON, OFF = "●", "○"
 
 
@@ -273,6 +275,7 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         FIELD_LABELS[id(handle)] = label
 
     with tabs.add_tab("Inspect", viser.Icon.ZOOM_IN):
+        posterior = gui.add_markdown(NO_POSTERIOR)
         rank = gui.add_slider("Particle rank", 0, max(1, config.particles - 1), 1, 0,
                               hint="0 = most likely; or click a particle in the 3D view")
         best = gui.add_button("Most likely", icon=viser.Icon.STAR)
@@ -315,7 +318,7 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         view_legend=view_legend, camera=camera, visibility=visibility, truth=truth, step=step, run=run,
         pause=pause, reset=reset, method=method, particles=particles, iterations=iterations, sigma_xy=sigma_xy,
         sigma_z=sigma_z, sigma_angles=sigma_angles, likelihood=like, seed=seed, pending=pending,
-        stop_on_convergence=stop, timings=timings, rank=rank, best=best, scene_mode=scene_mode,
+        stop_on_convergence=stop, timings=timings, posterior=posterior, rank=rank, best=best, scene_mode=scene_mode,
         physics_change=physics_change, heatmap_mode=heatmap_mode, legend=legend, heat_image=heat_image,
         max_particles=max_particles, plots=plots, dataset=dataset, scene_id=scene_id, im_id=im_id, load=load,
         demo=demo, depth_image=depth_image, depth_legend=depth_legend, rgb_image=rgb_image, workers=workers,

@@ -54,7 +54,7 @@ class ParticleDisplay:
         row = report.as_dict()
         row["distinct_after_resampling"] = expected_distinct(weights, particles)
         row.update(reference)
-        return p.Snapshot(row, cloud, running, particles)
+        return p.Snapshot(row, cloud, running, particles, est.current_posterior)
 
     def chosen(self, est, explain: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> p.Chosen | None:
         """The particle at the chosen rank of the last snapshot (None before the first), explained by ``explain``

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.posterior import Posterior
 
 
 @dataclass(frozen=True)
@@ -132,7 +133,12 @@ class FitLabels:
 
 @dataclass(frozen=True)
 class UseBestAsLabel:
-    """Label every object with the most likely scene."""
+    """Label every object with the most likely scene, settled. ``modes``: per object the index of the mode to use
+    instead (0: the estimate), of the posterior the server showed with the snapshot of ``iteration``; ignored when
+    the engine's posterior is of another iteration."""
+
+    modes: tuple[int, ...] = ()
+    iteration: int = -1
 
 
 @dataclass(frozen=True)
@@ -235,6 +241,10 @@ class Snapshot:
     cloud: ParticleCloud
     running: bool
     n_particles: int  # the config's N for the next step
+    # The settled estimate's modes per object (a few poses and numbers each), where the run's answer was computed
+    # for this iteration's estimate (the run finished, the best estimate was taken as label, a session was
+    # restored); else None: it is not drawn.
+    posterior: Posterior | None = None
 
 
 @dataclass

@@ -1,5 +1,5 @@
-"""The run as drawn: the observation, the particle cloud, the chosen particle and its heatmap in the 3D view, and
-the panel's images and legends beside them.
+"""The run as drawn: the observation, the particle cloud, the chosen particle and its heatmap, the estimate's other
+modes (the posterior) in the 3D view, and the panel's images, legends and tables beside them.
 
 While the estimator runs, the 3D view is redrawn at most once per ``SCENE_INTERVAL_S`` (``SceneThrottle``); the
 panel's text and plots follow every iteration (``server.App``).
@@ -15,10 +15,13 @@ import viser
 from workbench.app import protocol as p
 from workbench.app.colors import VIRIDIS, legend_html, view_legend_html
 from workbench.app.labelling import Labelling
+from workbench.app.modes import confidences, posterior_markdown
+from workbench.app.modes_display import ModesLayer
 from workbench.app.panel import Panel
 from workbench.app.scene_throttle import SceneThrottle
 from workbench.app.status import physics_markdown
 from workbench.app.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
+from workbench.inference.posterior import Posterior
 
 # While the estimator runs, the 3D view is redrawn at most once per this many seconds. Every batch of scene messages
 # makes viser's client draw frames for 250 ms, and a software-rendered frame costs ~0.2 s of CPU, so each redraw
@@ -41,7 +44,9 @@ class RunDisplay:
         self.particles = ParticleLayer(server, on_pick=on_pick)
         self.chosen = ChosenLayer(server)
         self.heatmap = HeatmapLayer(server)
+        self.modes = ModesLayer(server)
         self.view: p.ObservationView | None = None  # the frame drawn
+        self.posterior: Posterior | None = None  # the settled estimate's, shown (None: none for this estimate)
         self.names: list[str] = []  # the loaded objects' display names, as every part of the panel shows them
         self.choice: p.Chosen | None = None  # the chosen particle drawn
         self.last_heat_mode = "log-likelihood"  # what the visibility bar's heatmap toggle turns on
@@ -55,6 +60,9 @@ class RunDisplay:
         self.particles.set_frame(view.meshes)
         self.chosen.set_frame(view)
         self.heatmap.set_frame(view)
+        self.modes.set_frame(view.meshes)
+        self.posterior = None
+        P.posterior.content = posterior_markdown(None, [], -1)
         P.depth_image.image = view.depth_image
         P.depth_image.visible = True
         lo, hi = view.depth_range
@@ -81,7 +89,7 @@ class RunDisplay:
             return
         heat = self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
         note = "observed points replaced by a heatmap: its colours are explained beside it" if heat else ""
-        content = view_legend_html(self.names, view.color_legend, note)
+        content = view_legend_html(self.names, view.color_legend, note, confidences(self.posterior, len(self.names)))
         if self.panel.view_legend.content != content:
             self.panel.view_legend.content = content
 
@@ -94,6 +102,18 @@ class RunDisplay:
         self.particles.update(cloud)
         if len(cloud.poses):
             self.labelling.editor.show_estimate(cloud.poses[0])
+
+    def show_posterior(self, posterior: Posterior | None, iteration: int, defer: bool) -> None:
+        """The settled estimate's ``posterior`` of the snapshot of ``iteration`` (None: none for its estimate): its
+        other modes as ghosts (now, or with the next throttled redraw), the confidences in the legend and the
+        Inspect tab, the modes to label with in the Label tab."""
+        if posterior is None and self.posterior is None:
+            return  # most snapshots: nothing to show, nothing shown
+        self.posterior = posterior
+        self.panel.posterior.content = posterior_markdown(posterior, self.names, iteration)
+        self.show_view_legend()
+        self.labelling.modes.show(posterior, iteration)
+        self.throttle.submit("modes", lambda: self.modes.update(posterior), defer=defer)
 
     def show_chosen(self, chosen: p.Chosen, defer: bool) -> None:
         """Draw ``chosen``: now, or (``defer``: while running) with the next throttled redraw."""
@@ -130,6 +150,7 @@ class RunDisplay:
         with self.server.atomic():
             self.observation.set_visible(self.points_visible(), P.show("truth"))
             self.particles.set_visible(P.show("particles"), P.show("estimate"))
+            self.modes.set_visible(P.show("modes"))
             self.labelling.editor.set_shown(P.show("labels"))
         self.show_view_legend()
 
@@ -172,6 +193,7 @@ class RunDisplay:
         self.choice = None
         self.chosen.clear()
         self.heatmap.nodes.clear()
+        self.show_posterior(None, -1, defer=False)
         P.legend.content = ""
         P.heat_image.visible = False
         P.physics_change.content = ""

@@ -226,6 +226,7 @@ class App:
         s.cloud, s.iteration, s.running = msg.cloud, msg.report["iteration"], msg.running
         self.send(p.Shown(s.iteration))  # the engine may start the next iteration (see protocol.Shown)
         self.display.show_cloud(msg.cloud, defer=msg.running)
+        self.display.show_posterior(msg.posterior, s.iteration, defer=msg.running)
         P.rank.max = max(1, msg.cloud.n_total - 1)
         self.reporter.clear_error()  # an iteration went through: whatever failed before was dealt with
         P.plots.add(msg.report, msg.cloud.n_total, self.config.converge_position, self.config.converge_degrees)

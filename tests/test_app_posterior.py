@@ -1,0 +1,183 @@
+"""The posterior in the workbench, without a browser (issue 30, item 3): the engine settles a finished run and its
+snapshot carries the posterior; the server draws the other modes as ghosts with their probabilities, shows each
+object's confidence in the legend and the Inspect tab, and offers the modes in the Label tab; a session brings the
+same posterior back."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+
+from workbench.app import protocol as p
+from workbench.app.colors import view_legend_html
+from workbench.app.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.posterior import Mode, ObjectPosterior, Posterior
+
+pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
+
+CONFIG = EstimatorConfig(particles=16, iterations=2)  # three steps: the demo then has a second mode (seed 0)
+
+
+class Inbox(list):
+    """Stands in for the engine's results pipe: every message, in order."""
+
+    def put(self, msg) -> None:
+        self.append(msg)
+
+    def of(self, kind) -> list:
+        return [m for m in self if isinstance(m, kind)]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def posterior_by_hand() -> Posterior:
+    turned = np.diag([1.0, -1.0, -1.0, 1.0])
+    turned[:3, 3] = (0.1, 0.0, 0.05)
+    return Posterior([
+        ObjectPosterior(0, [Mode(np.eye(4), -10.0, 0.0, 0.62, "the estimate"),
+                            Mode(turned, -20.0, -10.0, 0.38, "turned over its x axis")], 0.004),
+        ObjectPosterior(1, [Mode(np.eye(4), -10.0, 0.0, 1.0, "the estimate")], 0.001, (-60.0, 90.0)),
+    ], 95.0)
+
+
+def test_the_posterior_in_words():
+    post = posterior_by_hand()
+    a, b = post.objects
+    assert mode_label(a.modes[1]) == "p = 0.38 turned over its x axis"
+    assert confidence_text(a) == "p = 0.62"
+    assert confidence_text(b) == "p = 1.00, heading open −60° … +90°"
+    assert mode_option(1, a.modes[1]) == "mode 2 · p = 0.38 · turned over its x axis"
+    table = posterior_markdown(post, ["can", "mug"], 7)
+    assert "iteration 7" in table and "| can | 0.62 | 4.0 | — | p = 0.38 turned over its x axis |" in table
+    assert "| mug | 1.00 | 1.0 | −60° … +90° | — |" in table
+    legend = view_legend_html(["can", "mug"], "height", confidences=[confidence_text(a), ""])
+    assert '<span data-confidence="0">(p = 0.62)</span>' in legend and 'data-confidence="1"' not in legend
+    scene = np.stack([np.eye(4), np.eye(4)])
+    chosen, notes = scene_with_modes(scene, post, (1, 0), ["can", "mug"])
+    assert np.array_equal(chosen[0], a.modes[1].T) and np.array_equal(chosen[1], np.eye(4))
+    assert notes == ["can: mode 2 (p = 0.38, turned over its x axis)"]
+    assert np.array_equal(scene_with_modes(scene, post, (5, 3), ["can", "mug"])[0], scene)  # no such mode
+    assert np.array_equal(scene_with_modes(scene, None, (1, 0), ["can", "mug"])[0], scene)
+
+
+def test_a_finished_run_carries_its_posterior_and_labels_take_the_chosen_mode(tmp_path):
+    """Snapshots carry no posterior until the run finishes; then the settled estimate's. "Use best estimate as
+    label" takes the mode chosen for each object (of the posterior shown: a choice made on another iteration's
+    is ignored), and settles a run that has not finished, sending the snapshot again with its posterior. A
+    session saved then gives the same posterior to a new engine."""
+    from workbench.app.engine import Engine
+
+    inbox, other = Inbox(), Inbox()
+    engine = Engine(inbox, workers=1)
+    restored = None
+    try:
+        engine.handle(p.Load(p.Source(demo=True), CONFIG, "robust"))
+        engine.step(), engine.step()
+        assert [s.posterior for s in inbox.of(p.Snapshot)] == [None, None]
+        engine.step()  # iteration 2 of 2: finished, settled
+        last = inbox.of(p.Snapshot)[-1]
+        post, it = last.posterior, last.report["iteration"]
+        assert post is not None and post is engine.estimator.posterior and len(post.objects) == 2
+        several = [o for o in post.objects if len(o.modes) > 1]
+        assert several, "the demo at this seed has an object with a second mode"
+        k = several[0].obj
+        modes = tuple(1 if j == k else 0 for j in range(2))
+
+        engine.handle(p.UseBestAsLabel(modes, it))
+        labels = inbox.of(p.Labels)[-1]
+        assert np.array_equal(labels.labels[k], several[0].modes[1].T) and "mode 2" in labels.note
+        assert np.array_equal(labels.labels[1 - k], engine.estimator.settled[1 - k])
+        engine.handle(p.UseBestAsLabel(modes, it - 1))  # chosen on another iteration's modes: the estimate
+        assert np.array_equal(inbox.of(p.Labels)[-1].labels[k], engine.estimator.settled[k])
+
+        engine.handle(p.SaveSession(tmp_path, "settled"))
+        assert inbox.of(p.Saved)[-1].kind == "session", inbox.of(p.Failure)
+
+        engine.handle(p.Reset(EstimatorConfig(particles=16, iterations=50), "robust"))
+        engine.step()
+        assert inbox.of(p.Snapshot)[-1].posterior is None  # paused mid-run: not settled
+        n = len(inbox.of(p.Snapshot))
+        engine.handle(p.UseBestAsLabel())
+        again = inbox.of(p.Snapshot)[n:]
+        assert len(again) == 1 and again[0].posterior is engine.estimator.posterior is not None
+
+        restored = Engine(other, workers=1)
+        restored.handle(p.LoadSession(tmp_path / "settled.json"))
+        assert not other.of(p.Failure)
+        back = other.of(p.Snapshot)[-1].posterior
+        assert back is not None and back.temperature == post.temperature
+        for a, b in zip(post.objects, back.objects):
+            assert [(m.probability, m.what, m.gap, m.loglik) for m in a.modes] == \
+                [(m.probability, m.what, m.gap, m.loglik) for m in b.modes]
+            assert all(np.array_equal(m.T, n.T) for m, n in zip(a.modes, b.modes))
+            assert (a.position_spread_m, a.yaw_range_deg) == (b.position_spread_m, b.yaw_range_deg)
+    finally:
+        engine.close()
+        if restored is not None:
+            restored.close()
+
+
+def test_the_server_draws_the_modes_and_shows_the_confidences():
+    """Ghosts (an instance per other mode) with their probabilities as labels, hidden by the visibility bar's
+    "modes"; the confidences in the legend and the Inspect tab; a dropdown of modes in the Label tab for the
+    objects that have several; all gone after Reset."""
+    from workbench.app.panel import visibility_item
+    from workbench.app.server import serve
+
+    handle = serve(demo=True, block=False, port=free_port(), workers=1, config=CONFIG)
+    app = handle.app
+    try:
+        assert app.wait_for(lambda s: s.view is not None, 180), app.state.failures
+        for i in range(3):
+            app.send(p.Step())
+            assert app.wait_for(lambda s: s.iteration == i, 120), app.state.failures
+        assert app.wait_for(lambda s: app.display.posterior is not None, 60)
+        d, post = app.display, app.display.posterior
+        several = [o for o in post.objects if len(o.modes) > 1]
+        assert several
+        with app.lock:
+            d.throttle.flush()
+        assert sorted(d.modes.ghosts) == [o.obj for o in several]
+        for o in several:
+            ghost = d.modes.ghosts[o.obj]
+            assert len(ghost.batched_positions) == len(o.modes) - 1
+            assert np.allclose(ghost.batched_positions, [m.T[:3, 3] for m in o.modes[1:]])
+        assert d.modes.texts == [mode_label(m) for o in several for m in o.modes[1:]]
+        assert len(d.modes.labels) == len(d.modes.texts) and all(h.visible for h in d.modes.labels)
+        names = d.names
+        for o in post.objects:
+            assert f'<span data-confidence="{o.obj}">({confidence_text(o)})</span>' in app.panel.view_legend.content
+        assert app.panel.posterior.content == posterior_markdown(post, names, 2)
+        choice = app.labelling.modes
+        for k, dropdown in enumerate(choice.dropdowns):
+            modes = post.objects[k].modes
+            assert dropdown.visible == (len(modes) > 1)
+            if len(modes) > 1:
+                assert tuple(dropdown.options) == tuple(mode_option(j, m) for j, m in enumerate(modes))
+                dropdown.value = dropdown.options[1]
+        assert app.panel.label.modes.visible
+        assert choice.chosen() == (tuple(int(len(o.modes) > 1) for o in post.objects), 2)
+
+        app.toggle(next(o for o in app.panel.visibility.options if visibility_item(o) == "modes"))
+        assert not app.panel.show("modes")
+        assert not any(h.visible for h in (*d.modes.ghosts.values(), *d.modes.labels))
+        app.toggle("○ modes")
+        assert all(h.visible for h in (*d.modes.ghosts.values(), *d.modes.labels))
+
+        app.reset()
+        assert app.wait_for(lambda s: s.iteration == -1 and s.last_state.reason == "reset", 60)
+        with app.lock:
+            assert d.posterior is None and not d.modes.ghosts and not d.modes.labels
+            assert "No posterior yet" in app.panel.posterior.content and "data-confidence" not in \
+                app.panel.view_legend.content
+            assert not app.panel.label.modes.visible and choice.chosen() == ((0, 0), -1)
+        assert not app.state.display_errors
+    finally:
+        handle.stop()
