@@ -8,7 +8,8 @@ dataset's scene_gt.json (metrics.is_right: 2 cm, 10 degrees, up to the model's s
 on a grid, it recomputes the probabilities (posterior.probabilities, with the estimator's turn margin) and reports
 the negative log-likelihood of the right modes, the expected calibration error of the top mode, coverage (the
 truth among the modes holding 95 %) and top-1 accuracy; the temperature of least negative log-likelihood is the
-fit. --data keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without
+fit. It also counts how often the truth's heading lies inside a reported range of headings, and the posterior
+sweep's share of the frames' wall time. --data keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without
 estimating again; --png draws the reliability diagram at the fitted temperature.
 """
 
@@ -24,7 +25,7 @@ import numpy as np
 from workbench.bench.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
 from workbench.inference.posterior import probabilities
 from workbench.io import bop
-from workbench.metrics import is_right
+from workbench.metrics import heading_offset_deg, is_right
 
 GRID = np.geomspace(2.0, 400.0, 60)
 
@@ -45,10 +46,14 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
                                 [0, 0, 0, 1]]) for m in modes]
             # With several instances of a model, the instance nearest the estimate is this object's truth.
             truth = min(truths, key=lambda T: np.linalg.norm(T[:3, 3] - poses[0][:3, 3]))
+            symmetries = models[o["obj_id"]].symmetries
             out.append({"dataset": dataset.name, "scene_id": f["scene_id"], "im_id": f["im_id"], "obj_id": o["obj_id"],
                         "gaps": [m["gap"] for m in modes], "estimate": [m["what"] == "the estimate" for m in modes],
-                        "right": [bool(is_right(truth, T, models[o["obj_id"]].symmetries)) for T in poses],
-                        "yaw_range_deg": o["yaw_range_deg"]})
+                        "right": [bool(is_right(truth, T, symmetries)) for T in poses],
+                        "yaw_range_deg": o["yaw_range_deg"],
+                        "truth_heading_deg": heading_offset_deg(truth, poses[0], np.array(o["vertical_cam"]),
+                                                                symmetries),
+                        "frame_seconds": f.get("seconds"), "posterior_seconds": f.get("posterior_seconds")})
     return out
 
 
@@ -92,6 +97,15 @@ def main(argv: list[str] | None = None) -> int:
         if np.isclose(T, GRID[::6]).any():
             print(f"{T:11.1f}  {nll(objects):.4f}  {expected_calibration_error(objects):.3f}  "
                   f"{coverage(objects):10.3f}  {top1(objects):.3f}")
+    ranged = [r for r in records if r.get("yaw_range_deg") and r.get("truth_heading_deg") is not None]
+    inside = sum(r["yaw_range_deg"][0] <= r["truth_heading_deg"] <= r["yaw_range_deg"][1] for r in ranged)
+    print(f"{len(ranged)} objects with a range of headings; the truth's heading inside it for {inside}")
+    frames = {(r["dataset"], r["scene_id"], r["im_id"]): (r["frame_seconds"], r["posterior_seconds"])
+              for r in records if r.get("frame_seconds")}
+    if frames:
+        total, sweep = np.array(list(frames.values()), dtype=np.float64).T
+        print(f"posterior sweep: {sweep.sum():.0f} s of {total.sum():.0f} s over {len(frames)} frames "
+              f"({100 * sweep.sum() / total.sum():.1f} %; at most {100 * np.max(sweep / total):.1f} % of a frame)")
     best = min(fits)[1]
     objects = modes_at(records, best)
     print(f"fit: temperature {best:.1f}: nll {nll(objects):.4f}, ECE {expected_calibration_error(objects):.3f}, "

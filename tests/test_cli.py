@@ -17,9 +17,11 @@ def _workbench(*args, cwd=None):
 
 
 def test_estimate_writes_a_bop_results_csv(touching_dataset, tmp_path):
-    out = tmp_path / "results.csv"
-    run = _workbench("estimate", touching_dataset, "--particles", 32, "--iterations", 2, "--out", out)
+    out, posterior = tmp_path / "results.csv", tmp_path / "posterior.json"
+    run = _workbench("estimate", touching_dataset, "--particles", 32, "--iterations", 2, "--out", out,
+                     "--posterior", posterior)
     assert run.returncode == 0, run.stderr
+    assert "[posterior " in run.stderr  # the frame's line says what the posterior cost
     header = out.read_text().splitlines()[0]
     assert header == "scene_id,im_id,obj_id,score,R,t,time"
     rows = read_results_csv(out)
@@ -34,6 +36,14 @@ def test_estimate_writes_a_bop_results_csv(touching_dataset, tmp_path):
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-5)
         assert 0.2 < r.T_cam_obj[2, 3] < 3.0  # in front of the camera, metres after reading mm
         assert 0.0 <= r.score <= 1.0 and r.time > 0
+    # The posterior file: per frame its wall time and the sweep's share, per object the same modes as the rows.
+    import json
+
+    (frame,) = json.loads(posterior.read_text())["frames"]
+    assert 0 < frame["posterior_seconds"] < frame["seconds"] == pytest.approx(rows[0].time, abs=2e-3)
+    for o in frame["objects"]:
+        scores = [r.score for r in rows if r.obj_id == o["obj_id"]]
+        assert [m["probability"] for m in o["modes"]] == pytest.approx(scores, abs=1e-5)
 
 
 def _gt_ids(dataset):

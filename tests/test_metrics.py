@@ -120,3 +120,20 @@ def test_is_right_within_two_cm_and_ten_degrees_up_to_symmetry():
     half = T @ make_pose(rot_z(np.pi), np.zeros(3))
     assert not metrics.is_right(T, half)
     assert metrics.is_right(T, half, np.stack([np.eye(4), make_pose(rot_z(np.pi), np.zeros(3))]))
+
+
+def test_heading_offset_is_the_signed_turn_about_the_vertical_from_the_estimate_to_the_truth():
+    vertical = np.array([0.0, 0.6, 0.8])  # a camera frame's view of the table's z
+    # An object lying on its side in the table frame (its z axis horizontal), then seen from the camera.
+    R_table = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) @ np.array(
+        [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    frame_R = np.column_stack([[1.0, 0.0, 0.0], np.cross(vertical, [1.0, 0.0, 0.0]), vertical])  # table -> camera
+    est = make_pose(frame_R @ R_table, [0.1, 0.0, 0.7])
+    for turn in (-170.0, -35.0, 0.0, 60.0, 179.0):
+        about = frame_R @ rot_z(np.radians(turn)) @ frame_R.T
+        truth = make_pose(about @ est[:3, :3], [0.1, 0.0, 0.7])
+        assert metrics.heading_offset_deg(truth, est, vertical) == pytest.approx(turn, abs=1e-6)
+    # A symmetry of the model (its half turn about its own z) is no turn at all.
+    half = make_pose(rot_z(np.pi), np.zeros(3))
+    truth = make_pose(frame_R @ rot_z(np.radians(20.0)) @ frame_R.T @ est[:3, :3], [0.1, 0.0, 0.7]) @ half
+    assert metrics.heading_offset_deg(truth, est, vertical, np.stack([np.eye(4), half])) == pytest.approx(20.0)

@@ -12,7 +12,6 @@ import trimesh
 
 from workbench import cache
 
-
 # ----------------------------------------------------------------------------------------------------------------
 # Caches: verified on read, rebuilt with a warning naming the file
 
@@ -161,8 +160,8 @@ def test_a_second_run_on_the_same_out_is_refused_naming_the_first_runs_pid(demo,
 
 
 def test_a_lock_is_released_and_taken_again_in_one_process(tmp_path):
-    from workbench.outputs import OutputLock
     from workbench.errors import InputError
+    from workbench.outputs import OutputLock
 
     out = tmp_path / "r.csv"
     with OutputLock(out):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from PIL import Image
 
 from workbench import metrics
@@ -16,7 +17,7 @@ from workbench.geometry import invert_pose, make_pose, rot_z
 from workbench.io import bop
 from workbench.support import estimate_support
 from workbench.synth import CATEGORIES, load_distractors, make_demo, make_scenes, true_table_pose, visible_masks
-from workbench.synth.config import PAPER_CATEGORIES, SynthConfig
+from workbench.synth.config import DESKS, PAPER_CATEGORIES, SynthConfig
 from workbench.synth.objects import BOX_BY_ID, BOXES, OBJECT_BY_ID, OBJECTS, ROUND, item_mesh, tilt_deg
 from workbench.synth.scenes import generate_scene
 from workbench.synth.sensor import SensorModel, apply_sensor, axial_sigma
@@ -58,9 +59,15 @@ def test_every_category_written_once_with_its_relations(dataset):
         elif m["category"] == "clutter":
             assert 4 <= len(m["obj_ids"]) <= 6 and {"touch", "stack"} <= set(rels) <= {"touch", "stack", "free"}
             assert "box" in kinds and set(kinds) - {"box"} and 2 <= len(m["distractors"]) <= 4, m
+        elif m["category"] in ("handle_hidden", "handle_shown"):  # the mug first, boxes standing free
+            assert kinds[0] == "mug" and set(kinds[1:]) <= {"box"} and set(rels) <= {"free"} and len(kinds) <= 3
+        elif m["category"] == "lying":
+            assert 2 <= len(m["obj_ids"]) <= 4 and {r for r, _ in m["relations"]} == {"lie"}, m
         else:  # mixed
             assert 2 <= len(m["obj_ids"]) <= 3 and "box" in kinds and set(kinds) - {"box"}, m
             assert 1 <= len(m["distractors"]) <= 3 and m["table_pose"] is False, m
+        if m["category"] not in DESKS:  # the paper's desk: the table pose given, no distractors
+            assert "distractors" not in m and "table_pose" not in m
         if m["category"] in PAPER_CATEGORIES:
             assert set(kinds) == {"box"} and "distractors" not in m and "table_pose" not in m
         assert len(set(m["obj_ids"])) == len(m["obj_ids"])
@@ -76,6 +83,9 @@ def test_relations_hold_in_the_reloaded_poses(dataset):
         table = len(T)
         for child, (rel, parent) in enumerate(m["relations"]):
             tilt = tilt_deg(T[child, :3, :3])
+            if rel == "lie":  # on the table in any pose
+                assert d[child, table] < TOUCH, (m, d)
+                continue
             if rel in ("base", "free"):
                 assert d[child, table] < TOUCH and tilt < 3, m
                 if rel == "free":  # clear of every other object
@@ -255,6 +265,56 @@ def test_can_and_mug_models_are_watertight_with_their_dimensions(dataset):
     turned = make_pose(rot_z(np.radians(37.0)), np.zeros(3))
     assert metrics.rotation_error(np.eye(4), turned, models[can.obj_id].symmetries) < 5.01
     assert metrics.rotation_error(np.eye(4), turned, models[mug.obj_id].symmetries) == pytest.approx(37.0)
+
+
+def _handle_pixels(frame, mask_visib: np.ndarray) -> int:
+    """The mug's (object 0's) visible pixels that a handle-less body in its place would not cover: ray-cast here
+    against a closed cylinder of the mug's body, independently of the generator's own count."""
+    s = ROUND[1].shape
+    body = trimesh.creation.cylinder(radius=s.radius, height=s.height, sections=64)
+    axis_x = -(s.handle_reach + s.handle_thickness / 2) / 2  # the body's axis in the centred model frame
+    body.apply_transform(frame.gt_T_cam_obj[0] @ make_pose(np.eye(3), [axis_x, 0.0, 0.0]))
+    _, idx = raycast([body], pixel_rays(frame.camera.K, W, H))
+    return int(np.count_nonzero(mask_visib & (idx != 0)))
+
+
+def test_handle_categories_hide_the_mugs_handle_behind_its_body_or_show_it(dataset):
+    out, meta = dataset
+    for category in ("handle_hidden", "handle_shown"):
+        m = next(m for m in meta if m["category"] == category)
+        frame = bop.load_frame(out, m["scene_id"], 0)
+        mask = np.asarray(Image.open(out / "test" / f"{m['scene_id']:06d}" / "mask_visib" / "000000_000000.png")) > 0
+        T = frame.gt_T_cam_obj[0]
+        away = T[:3, 3] / np.linalg.norm(T[:3, 3])  # from the camera to the mug
+        handle = T[:3, 0]  # the handle sticks out along the mug's +x
+        n = _handle_pixels(frame, mask)
+        if category == "handle_hidden":
+            assert n <= 6 and handle @ away > 0.5, (n, handle @ away)  # it points away, behind the body
+        else:
+            assert n >= 10, n
+
+
+def test_lying_scenes_draw_from_given_models_and_copy_them(tmp_path):
+    """--models: scenes of any BOP models, here two made-up ones (a long box and a can), in their stable poses,
+    written with the source's models and symmetries."""
+    src = tmp_path / "src"
+    flip = make_pose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
+    bop.save_models(src, {3: trimesh.creation.box(extents=[0.04, 0.06, 0.2]),
+                          9: trimesh.creation.cylinder(radius=0.03, height=0.1, sections=32)}, {9: flip[None]})
+    meta = make_scenes(tmp_path / "out", ["lying"], 2, seed=0, width=W, height=H, models=src)
+    assert all(set(m["obj_ids"]) <= {3, 9} and m["category"] == "lying" for m in meta)
+    copied, given = tmp_path / "out" / "models", src / "models"
+    assert (copied / "obj_000003.ply").read_bytes() == (given / "obj_000003.ply").read_bytes()
+    assert json.loads((copied / "models_info.json").read_text()) == json.loads((given / "models_info.json").read_text())
+    for m in meta:
+        frame = bop.load_frame(tmp_path / "out", m["scene_id"], 0)
+        T = _world(frame)
+        for obj_id, T_obj in zip(frame.object_ids, T):  # resting on the table: its lowest point on it
+            lowest = (trimesh.creation.box(extents=[0.04, 0.06, 0.2]) if obj_id == 3 else
+                      trimesh.creation.cylinder(radius=0.03, height=0.1, sections=32)).apply_transform(T_obj)
+            assert abs(lowest.bounds[0, 2]) < 2e-3, (m, lowest.bounds)
+    with pytest.raises(InputError, match="with --models"):
+        make_scenes(tmp_path / "bad", ["touching"], 1, seed=0, models=src)
 
 
 def test_desk_options_override_the_category(tmp_path):

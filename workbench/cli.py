@@ -258,7 +258,8 @@ def _cmd_make_scenes(args: argparse.Namespace) -> int:
         print(f"wrote the demo scene to {args.out}", file=sys.stderr)
         return 0
     scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed,
-                         distractors=args.distractors, table_pose=args.table_pose, force=args.force)
+                         distractors=args.distractors, table_pose=args.table_pose, force=args.force,
+                         models=args.models)
     print(f"wrote {len(scenes)} scenes to {args.out} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0
 
@@ -367,8 +368,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("make-scenes", help="generate a BOP dataset of scene categories")
     p.add_argument("out", type=Path)
     p.add_argument("--categories", default="touching,stacked,slant,occluded,three,four",
-                   help="comma-separated, of touching,stacked,slant,occluded,three,four (the paper's) and clutter, "
-                   "mixed (larger desks, round objects, distractors, frames without the table pose)")
+                   help="comma-separated, of touching,stacked,slant,occluded,three,four (the paper's); clutter, "
+                   "mixed (larger desks, round objects, distractors, frames without the table pose); handle_hidden, "
+                   "handle_shown (a mug whose handle the body hides from the camera, or that shows it); lying "
+                   "(2-4 objects free, each in any stable pose: a can on its side, a bottle lying down)")
+    p.add_argument("--models", type=Path, default=None, metavar="DIR",
+                   help="draw the objects from this BOP dataset's (or models folder's) models, e.g. the YCB-Video "
+                   "models, instead of the built-in ones (category lying); they are copied into OUT")
     p.add_argument("--distractors", type=int, default=None,
                    help="objects the estimator is not told about, per scene (default: clutter 2-4, mixed 1-3, else 0)")
     p.add_argument("--table-pose", type=float, default=None, metavar="P",

@@ -69,6 +69,19 @@ def is_right(T_gt: np.ndarray, T_est: np.ndarray, symmetries: np.ndarray | None 
             and rotation_error(T_gt, T_est, symmetries) < RIGHT_DEG)
 
 
+def heading_offset_deg(T_gt: np.ndarray, T_est: np.ndarray, vertical: np.ndarray,
+                       symmetries: np.ndarray | None = None) -> float:
+    """How far (degrees, in (-180, 180]) the ground truth is turned about ``vertical`` (3,), unit, in the poses'
+    frame, from the estimate: the signed angle between the two poses' model axis that is most nearly horizontal in
+    the estimate, both projected on the plane normal to ``vertical`` (the truth's symmetric equivalent nearest the
+    estimate). What a reported range of headings (``posterior.ObjectPosterior.yaw_range_deg``) is checked by."""
+    v = np.asarray(vertical, dtype=np.float64) / np.linalg.norm(vertical)
+    T_gt = closest_symmetric(T_gt, T_est, symmetries)
+    axis = int(np.argmin(np.abs(v @ np.asarray(T_est)[:3, :3])))
+    a, b = (np.asarray(T)[:3, axis] - v * (v @ np.asarray(T)[:3, axis]) for T in (T_est, T_gt))
+    return float(np.degrees(np.arctan2(v @ np.cross(a, b), a @ b)))
+
+
 def rpy_errors(T_gt: np.ndarray, T_est: np.ndarray, symmetries: np.ndarray | None = None) -> np.ndarray:
     """|roll|, |pitch|, |yaw| errors (deg) about the x, y, z axes of the frame the poses are in (the table frame).
 

@@ -37,7 +37,8 @@ def load_bop_problem(
     return frame, problem_for_frame(frame, models, config)
 
 
-def result_rows(frame: Frame, problem: Problem, best: np.ndarray, scores: np.ndarray, seconds: float) -> list[ResultRow]:
+def result_rows(frame: Frame, problem: Problem, best: np.ndarray, scores: np.ndarray, seconds: float
+                ) -> list[ResultRow]:
     """The best scene (K, 4, 4) in the table frame -> one BOP result row per object (camera frame)."""
     T_cam_obj = problem.camera.T_cam_world[None] @ best
     return [
@@ -49,9 +50,11 @@ def result_rows(frame: Frame, problem: Problem, best: np.ndarray, scores: np.nda
 @dataclass
 class ModeRow(ResultRow):
     """A result row that is one mode of an object's posterior (``score`` its probability). The object's first row
-    also carries the whole posterior of the object as ``posterior_record`` writes it (JSON-able), else None."""
+    also carries the whole posterior of the object as ``posterior_record`` writes it (JSON-able), else None;
+    ``posterior_seconds``: what the frame's posterior sweep took of its ``time``."""
 
     posterior: dict | None = None
+    posterior_seconds: float = 0.0
 
 
 def posterior_rows(frame: Frame, problem: Problem, posterior: Posterior, seconds: float) -> list[ModeRow]:
@@ -61,7 +64,8 @@ def posterior_rows(frame: Frame, problem: Problem, posterior: Posterior, seconds
     for o, record in zip(posterior.objects, posterior_record(problem, posterior)):
         for i, mode in enumerate(o.modes):
             rows.append(ModeRow(frame.scene_id, frame.im_id, problem.models[o.obj].obj_id, mode.probability,
-                                problem.camera.T_cam_world @ mode.T, seconds, record if i == 0 else None))
+                                problem.camera.T_cam_world @ mode.T, seconds, record if i == 0 else None,
+                                posterior.seconds))
     return rows
 
 

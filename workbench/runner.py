@@ -66,7 +66,8 @@ def estimate_frame(
     finally:
         evaluator.close()
     if estimator.posterior is not None:  # one line per frame: what the view leaves open
-        print(f"scene {scene_id} frame {im_id}: {estimator.posterior.summary(problem)}", file=sys.stderr)
+        print(f"scene {scene_id} frame {im_id}: {estimator.posterior.summary(problem)} "
+              f"[posterior {estimator.posterior.seconds:.1f} s]", file=sys.stderr)
         return posterior_rows(frame, problem, estimator.posterior, time.perf_counter() - t0)
     scores = object_confidence(problem, estimator.particles.projected, estimator.weights(), best)
     return result_rows(frame, problem, best, scores, time.perf_counter() - t0)
@@ -135,14 +136,14 @@ def estimate_frames(
 
 def check_results_out(out: Path, force: bool = False, resume: bool = False) -> list[str]:
     """Check, before any work, that ``estimate`` may write its results CSV at ``out`` -> the data lines already
-    there to keep as they are (``resume``; else none). Refused with InputError: a folder, a path below a file, an unwritable place,
-    anything inside a dataset's scene or models folder (even with ``force``), and an existing file that is not a
-    results CSV of ours unless ``force``."""
+    there to keep as they are (``resume``; else none). Refused with InputError: a folder, a path below a file, an
+    unwritable place, anything inside a dataset's scene or models folder (even with ``force``), and an existing
+    file that is not a results CSV of ours unless ``force``."""
     out = Path(out)
     if force and resume:
         raise InputError("--resume", "--resume keeps the results in --out and --force replaces the file: pass one")
-    exists = check_output_file(out, ours=is_results_csv, force=force or resume, what="a results CSV written by `workbench estimate`",
-                               flag="--out")
+    exists = check_output_file(out, ours=is_results_csv, force=force or resume,
+                               what="a results CSV written by `workbench estimate`", flag="--out")
     if not exists:
         return []
     target = out.resolve()
@@ -238,7 +239,7 @@ class PosteriorFile:
     rewritten whole after every frame like the results CSV, frames in order. Written only over a posterior file of
     ours (or with ``--force``); ``--resume`` keeps the frames already in it."""
 
-    def __init__(self, path: Path, frames: dict[tuple[int, int], list[dict]] | None = None):
+    def __init__(self, path: Path, frames: dict[tuple[int, int], dict] | None = None):
         self.path = Path(path)
         self.frames = dict(frames or {})
 
@@ -254,17 +255,20 @@ class PosteriorFile:
             raise InputError(path, "is not a posterior JSON written by `workbench estimate`: there is nothing to "
                                    "resume; choose another --posterior")
         document = json.loads(Path(path).read_text(encoding="utf-8"))
-        return cls(path, {(f["scene_id"], f["im_id"]): f["objects"] for f in document["frames"]})
+        return cls(path, {(f["scene_id"], f["im_id"]): f for f in document["frames"]})
 
     def add(self, rows: list[ResultRow]) -> None:
-        """The posteriors the frame's rows carry (``pipeline.ModeRow``); nothing for rows without one."""
+        """The posteriors the frame's rows carry (``pipeline.ModeRow``), with the frame's wall seconds and the
+        posterior sweep's share of them; nothing for rows without one."""
         records = [r.posterior for r in rows if getattr(r, "posterior", None) is not None]
         if not records:
             return
-        self.frames[(rows[0].scene_id, rows[0].im_id)] = records
+        scene_id, im_id = rows[0].scene_id, rows[0].im_id
+        self.frames[(scene_id, im_id)] = {"scene_id": scene_id, "im_id": im_id, "seconds": round(rows[0].time, 3),
+                                          "posterior_seconds": round(rows[0].posterior_seconds, 3),
+                                          "objects": records}
         document = {"kind": POSTERIOR_KIND, "format_version": 1,
-                    "frames": [{"scene_id": s, "im_id": i, "objects": objects}
-                               for (s, i), objects in sorted(self.frames.items())]}
+                    "frames": [frame for _, frame in sorted(self.frames.items())]}
         write_file(self.path, json.dumps(document, indent=1) + "\n")
 
 

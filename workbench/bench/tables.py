@@ -31,7 +31,6 @@ from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.io.bop import ResultRow
-from workbench.outputs import write_file
 from workbench.metrics import (
     add_s,
     closest_symmetric,
@@ -42,6 +41,7 @@ from workbench.metrics import (
     rotation_error,
     rpy_errors,
 )
+from workbench.outputs import write_file
 from workbench.pipeline import load_bop_problem
 from workbench.problem import Problem
 from workbench.scene import Frame, ObjectModel
@@ -360,7 +360,7 @@ def render_report(report: dict) -> str:
         f"Shared overhead (loading frames, finding the table, starting worker pools): "
         f"{report['overhead_seconds']:.0f} s. Whole run: {report['wall_seconds']:.0f} s.",
         "",
-        *([f"**Failed frames** (left out of the tables): "
+        *(["**Failed frames** (left out of the tables): "
            + "; ".join(f"scene {s} frame {i}: {problem}" for s, i, problem in report["failed_frames"]), ""]
           if report.get("failed_frames") else []),
         "## Per object",

@@ -15,7 +15,6 @@ from workbench.evaluation.base import Evaluation, WorkerCrashed, joined, split_b
 from workbench.evaluation.local import LocalEvaluator, prepare_meshes
 from workbench.problem import Problem
 
-
 log = logging.getLogger(__name__)
 
 

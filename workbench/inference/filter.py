@@ -24,8 +24,8 @@ from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
 from workbench.geometry import rotation_angle
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.moves import MoveKind
-from workbench.inference.posterior import Posterior
 from workbench.inference.particleset import ParticleSet
+from workbench.inference.posterior import Posterior
 from workbench.inference.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
 from workbench.inference.settle import Tie
 from workbench.problem import Problem

@@ -27,6 +27,7 @@ temperatures of the estimate's, when they form one arc of at least three steps.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -82,8 +83,12 @@ class ObjectPosterior:
 
 @dataclass(frozen=True)
 class Posterior:
+    """Per object its modes; the ``temperature`` that made their probabilities; the wall ``seconds`` the sweep
+    took (its extra cost over settling)."""
+
     objects: list[ObjectPosterior] = field(default_factory=list)
     temperature: float = TEMPERATURE
+    seconds: float = 0.0
 
     def summary(self, problem: Problem, threshold: float = 0.9) -> str:
         """One line: e.g. "2 of 6 objects uncertain: potted meat can (turned over its x axis, p = 0.45), mug
@@ -228,6 +233,7 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
     where they start. A candidate that beats the estimate by more than the turn margin, physics holding it,
     replaces it (``settle.adopt``) -> (the posterior, scenes scored, the scene, its log-likelihood)."""
+    t0 = time.perf_counter()
     K, loglik_before = problem.n_objects, loglik
     # A heading is open when its odds against the estimate's are better than 1 : exp(RANGE_GAP) (``probabilities``).
     open_gap = RANGE_GAP * temperature - settle.TURN_MARGIN
@@ -302,4 +308,4 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
             position_spread_m=position_spread(projected, weights, scene[k], k),
             yaw_range_deg=yaw_range(angles, given_ll[at:at + len(angles)] - loglik, distinct, YAW_STEP_DEG,
                                     open_gap)))
-    return Posterior(objects, temperature), scored, scene, loglik
+    return Posterior(objects, temperature, time.perf_counter() - t0), scored, scene, loglik

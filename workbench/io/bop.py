@@ -499,6 +499,23 @@ def save_models(
     _write_json(info_path, {k: info[k] for k in sorted(info, key=int)})
 
 
+def copy_models(source: Path, dataset: Path, obj_ids: list[int]) -> None:
+    """Copy models ``obj_ids`` of the BOP dataset (or models folder) ``source`` into DATASET/models as they are:
+    their files and models_info.json entries (symmetries as ``source`` declares them), added to any already
+    there."""
+    src = _models_dir(Path(source))
+    src_info = read_json(src / "models_info.json")
+    models_dir = Path(dataset) / "models"
+    info_path = models_dir / "models_info.json"
+    info = read_json(info_path) if info_path.exists() else {}
+    _object_ids(info, info_path)  # a malformed file is refused, not rewritten
+    for obj_id in obj_ids:
+        name = f"obj_{obj_id:06d}.ply"
+        replace_file(models_dir / name, (src / name).read_bytes())
+        info[str(obj_id)] = src_info[str(obj_id)]
+    _write_json(info_path, {k: info[k] for k in sorted(info, key=int)})
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Frames
 

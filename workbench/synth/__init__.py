@@ -16,6 +16,10 @@ A frame without the table pose has no cam_R_w2c / cam_t_w2c in scene_camera.json
 table itself; the true pose is kept in scene_table.json. The can and the mug are meshes built here, watertight,
 written with the boxes as BOP models (mm); the can is symmetric about its axis.
 
+Categories for the posterior: ``handle_hidden`` and ``handle_shown`` (the mug and 0-2 boxes standing free, the
+camera drawn about the mug's handle so that its body hides it, or so that it shows) and ``lying`` (2-4 objects
+free, each in one of its stable poses). ``lying`` can draw from any BOP models (``make_scenes(models=...)``).
+
 Every scene is laid out from *relations* (touch / stack / slant / hide / free), each new object moved along one
 degree of freedom by bisection until it just touches its partner, then settled by physics in the generator's own
 pybullet world (independent of ``workbench.physics``) and kept only when the settled scene still is what its

@@ -10,7 +10,10 @@ import numpy as np
 from workbench.synth.sensor import SensorModel
 
 PAPER_CATEGORIES = ("touching", "stacked", "slant", "occluded", "three", "four")
-CATEGORIES = PAPER_CATEGORIES + ("clutter", "mixed")  # new ones go last: a category's index seeds its scenes
+CATEGORIES = PAPER_CATEGORIES + ("clutter", "mixed", "handle_hidden", "handle_shown", "lying")  # new ones go last:
+# a category's index seeds its scenes
+MODEL_CATEGORIES = ("lying",)  # those that can draw from any models (``make-scenes --models``)
+HANDLE_CATEGORIES = ("handle_hidden", "handle_shown")  # the mug, its handle hidden behind its body or in view
 
 
 @dataclass(frozen=True)
@@ -37,11 +40,16 @@ class SynthConfig:
     flat_tol: float = 3.0  # a box resting on a face tilts less than this
     slant_range: tuple[float, float] = (10.0, 80.0)
     hidden_max_visib: float = 0.1
+    handle_hidden_elevation: tuple[float, float] = (15.0, 35.0)  # low enough that the body hides the handle
+    handle_hidden_jitter: float = 25.0  # camera azimuth spread around "the handle points straight away"
+    handle_max_hidden_px: int = 3  # handle pixels a "hidden" view may show (a stray edge pixel)
+    handle_min_shown_px: int = 60  # handle pixels a "shown" view must show (at 640 pixels wide)
     shown_min_visib: float = 0.15
     max_layout_tries: int = 300
     max_camera_tries: int = 40
     distractor_clearance: float = 0.03  # seen from above, between a distractor and any object of interest
     sensor: SensorModel = field(default_factory=SensorModel)
+    objects: tuple = ()  # the objects (``objects.Item``) ``lying`` scenes draw from; empty: the built-in ones
 
     def K(self) -> np.ndarray:
         """Kinect-like intrinsics; principal point at the image centre (pixel centres at integer u, v)."""

@@ -16,9 +16,9 @@ from workbench.errors import InputError
 from workbench.geometry import make_pose
 from workbench.io import bop
 from workbench.metrics import box_symmetries
-from workbench.synth.config import CATEGORIES, DESKS, DeskSpec, SynthConfig
+from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.distractors import Distractor, distractor_mesh
-from workbench.synth.objects import BOXES, ROUND, box_mesh, item_mesh
+from workbench.synth.objects import BOXES, ROUND, MeshItem, box_mesh, item_mesh
 from workbench.synth.scenes import SceneSample, generate_scene
 from workbench.synth.sim import Sim
 
@@ -156,9 +156,14 @@ def check_out_folder(out: Path, force: bool) -> None:
                               "replaced. Choose a new or empty folder, or pass --force to write into it")
 
 
+def model_items(models: Path) -> tuple[MeshItem, ...]:
+    """Every model of the BOP dataset (or models folder) ``models`` as an object scenes can draw from (metres)."""
+    return tuple(MeshItem(obj_id, m.name, m.mesh) for obj_id, m in bop.load_models(models).items())
+
+
 def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, width: int = 640,
                 height: int = 480, distractors: int | None = None, table_pose: float | None = None,
-                force: bool = False) -> list[dict]:
+                force: bool = False, models: Path | None = None) -> list[dict]:
     """Write ``per_category`` scenes of each category as a BOP dataset in ``out`` (split "test", one image each).
 
     Scene ids run over ``categories`` in order; each scene's random draw depends only on (seed, category,
@@ -167,19 +172,28 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     gives the table pose) override every category's ``DESKS`` entry.
     -> per scene {"scene_id", "category", "obj_ids", "relations", "visib_fract", "tries"} and, where they differ
     from the paper's set-up, "table_size", "table_pose", "distractors" (also in scenes.json).
+    ``models``: a BOP dataset (or models folder) whose models the scenes draw from instead of the built-in
+    objects (only ``MODEL_CATEGORIES``); copied into ``out`` with their symmetries.
     ``out`` must be new or empty unless ``force``.
     """
     unknown = [c for c in categories if c not in CATEGORIES]
     if unknown:
         raise InputError("categories", f"unknown {unknown}; choose from {list(CATEGORIES)}")
+    if models is not None and any(c not in MODEL_CATEGORIES for c in categories):
+        raise InputError("categories", f"with --models, choose from {list(MODEL_CATEGORIES)}: the others are "
+                                       "built from the built-in boxes, can and mug")
     if distractors is not None and distractors < 0:
         raise InputError("distractors", f"must be >= 0, got {distractors}")
     if table_pose is not None and not 0.0 <= table_pose <= 1.0:
         raise InputError("table pose", f"the share of frames that give it must be in [0, 1], got {table_pose}")
     out = Path(out)
     check_out_folder(out, force)
-    cfg = SynthConfig(width=width, height=height)
-    save_object_models(out)
+    pool = model_items(models) if models is not None else ()
+    cfg = SynthConfig(width=width, height=height, objects=pool)
+    if models is not None:
+        bop.copy_models(models, out, [o.obj_id for o in pool])
+    else:
+        save_object_models(out)
     _write_camera_json(out, cfg)
     meta = []
     sim = Sim(cfg)

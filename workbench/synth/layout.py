@@ -11,10 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.geometry import make_pose, rot_z
+from workbench.synth.config import HANDLE_CATEGORIES
 from workbench.synth.objects import (
     BOX_BY_ID,
     BOXES,
     EZ,
+    MUG,
     OBJECT_BY_ID,
     OBJECTS,
     SMALL,
@@ -22,6 +24,7 @@ from workbench.synth.objects import (
     Box,
     Item,
     horizontal_faces,
+    lying_rotation,
     reach,
     resting_rotation,
     support_half_extent,
@@ -37,7 +40,7 @@ class Placed:
 
     item: Item
     T: np.ndarray  # (4, 4) T_world_obj
-    relation: str = "base"  # base | touch | stack | slant | hide | free
+    relation: str = "base"  # base | touch | stack | slant | hide | free | lie (free, in any stable pose)
     parent: int = -1
     body: int = -1
 
@@ -160,6 +163,10 @@ def _draw_relations(category: str, rng) -> list[str]:
             rel = [str(r) for r in rng.choice(["touch", "stack", "free"], size=n)]
             if "touch" in rel and "stack" in rel:
                 return rel
+    if category == "lying":  # 2-4 objects, each lying free in one of its stable poses
+        return ["lie"] * int(rng.integers(1, 4))
+    if category in HANDLE_CATEGORIES:  # the mug and 0-2 boxes standing free around it
+        return ["free"] * int(rng.integers(0, 3))
     if category == "mixed":  # 2-3 objects, boxes and round ones, in any relation
         return [str(r) for r in rng.choice(["touch", "stack", "free"], size=int(rng.integers(1, 3)))]
     n = {"three": 2, "four": 3}[category]
@@ -185,9 +192,15 @@ def _draw_boxes(relations: list[str], rng) -> list[Box]:
     raise RuntimeError(f"no boxes fit the relations {relations}")
 
 
-def _draw_items(category: str, relations: list[str], rng) -> list[Item]:
-    """Distinct objects for the relations. ``clutter`` and ``mixed`` draw from the boxes and the round objects,
-    at least one of each, with a box as the base; the paper's categories use boxes only (:func:`_draw_boxes`)."""
+def _draw_items(category: str, relations: list[str], rng, pool: tuple[Item, ...] = ()) -> list[Item]:
+    """Distinct objects for the relations. ``lying`` draws from ``pool`` (default: every built-in object);
+    ``clutter`` and ``mixed`` from the boxes and the round objects, at least one of each, with a box as the base;
+    the paper's categories use boxes only (:func:`_draw_boxes`)."""
+    if category == "lying":
+        pool = pool or OBJECTS
+        return [pool[int(i)] for i in rng.permutation(len(pool))[: len(relations) + 1]]
+    if category in HANDLE_CATEGORIES:  # the mug first: the camera is drawn about its handle
+        return [MUG] + [BOX_BY_ID[int(i)] for i in rng.permutation([b.obj_id for b in BOXES])[: len(relations)]]
     if category not in ("clutter", "mixed"):
         return _draw_boxes(relations, rng)
     while True:
@@ -211,9 +224,14 @@ def _parent_ok(rel: str, parent: Placed, child: Item) -> bool:
     return True
 
 
-def _base_pose(box: Box, relations: list[str], rng, lift: float) -> np.ndarray:
-    """The first box: upright when a box is to hide behind it, on its largest face when one is stacked on it
-    first (a broad support), else on a random face."""
+def _base_pose(box: Item, relations: list[str], rng, lift: float) -> np.ndarray:
+    """The first object: in a stable pose when the others lie (``lie``); a round one upright; a box upright when a
+    box is to hide behind it, on its largest face when one is stacked on it first (a broad support), else on a
+    random face."""
+    if "lie" in relations or box.kind != "box":
+        R = lying_rotation(box, rng) if "lie" in relations else rot_z(rng.uniform(-np.pi, np.pi))
+        xy = rng.uniform(-0.05, 0.05, size=2)
+        return make_pose(R, np.array([xy[0], xy[1], reach(box, R, -EZ) + lift]))
     if "hide" in relations:
         up = int(np.argmax(box.extents))
     elif relations[0] == "stack":
@@ -225,13 +243,18 @@ def _base_pose(box: Box, relations: list[str], rng, lift: float) -> np.ndarray:
     return make_pose(R, np.array([xy[0], xy[1], support_half_extent(R, box.extents, EZ) + lift]))
 
 
-def place_free(sim: Sim, rng, layout: list[Placed], item: Item, body: int, clearance: float = 0.02):
+def place_free(sim: Sim, rng, layout: list[Placed], item: Item, body: int, clearance: float = 0.02,
+               lying: bool = False):
     """``item`` standing on the table 10-25 cm from the layout's centre, at least ``clearance`` from everything
-    (a box on a random face, a round object upright). -> T_world_obj or None."""
+    (a box on a random face, a round object upright; with ``lying``, any object in one of its stable poses).
+    -> T_world_obj or None."""
     centre = np.mean([p.T[:3, 3] for p in layout], axis=0)
     for _ in range(20):
         yaw = rng.uniform(-np.pi, np.pi)
-        R = resting_rotation(int(rng.integers(3)), yaw, bool(rng.integers(2))) if item.kind == "box" else rot_z(yaw)
+        if lying:
+            R = lying_rotation(item, rng)
+        else:
+            R = resting_rotation(int(rng.integers(3)), yaw, bool(rng.integers(2))) if item.kind == "box" else rot_z(yaw)
         a, r = rng.uniform(-np.pi, np.pi), rng.uniform(0.10, 0.25)
         T = make_pose(R, np.array([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a),
                                    reach(item, R, -EZ) + sim.cfg.lift]))
@@ -244,14 +267,15 @@ def place_free(sim: Sim, rng, layout: list[Placed], item: Item, body: int, clear
 def draw_layout(sim: Sim, category: str, rng) -> tuple[list[Placed], list[np.ndarray]] | None:
     """Place objects in ``sim`` by the category's relations (not yet settled). -> (layout, hide normals) or None."""
     relations = _draw_relations(category, rng)
-    items = _draw_items(category, relations, rng)
-    base = Placed(items[0], _base_pose(items[0], relations, rng, sim.cfg.lift))
+    items = _draw_items(category, relations, rng, sim.cfg.objects)
+    base = Placed(items[0], _base_pose(items[0], relations, rng, sim.cfg.lift),
+                  "lie" if "lie" in relations else "base")
     base.body = sim.add_item(base.item, base.T)
     layout, hide_normals = [base], []
     for rel, item in zip(relations, items[1:]):
         body = sim.add_item(item, make_pose(np.eye(3), [5.0, 5.0, 5.0]))  # parked far away until placed
-        if rel == "free":
-            T = place_free(sim, rng, layout, item, body)
+        if rel in ("free", "lie"):
+            T = place_free(sim, rng, layout, item, body, lying=rel == "lie")
             if T is None:
                 return None
             layout.append(Placed(item, T, rel, -1, body))
@@ -293,7 +317,9 @@ def relations_hold(sim: Sim, layout: list[Placed]) -> bool:
         if abs(x) > c.table_size[0] / 2 - 0.02 or abs(y) > c.table_size[1] / 2 - 0.02 or z < 0:
             return False
         on_table = sim.touching(p.body, sim.table)
-        if p.relation in ("base", "free"):
+        if p.relation == "lie":  # at rest (settled) on the table in whatever pose
+            ok = on_table
+        elif p.relation in ("base", "free"):
             ok = on_table and flat(p)
         else:
             parent = layout[p.parent]

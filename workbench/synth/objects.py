@@ -54,7 +54,21 @@ class Mug:
         return (2 * s.radius + s.handle_reach + s.handle_thickness / 2, 2 * s.radius, s.height)
 
 
-Item = Box | Can | Mug
+@dataclass(frozen=True, eq=False)  # compared and hashed by identity: a mesh is not a value
+class MeshItem:
+    """An object given by its mesh (metres, model frame), e.g. a BOP dataset's model (``make-scenes --models``)."""
+
+    obj_id: int
+    name: str
+    mesh: trimesh.Trimesh
+    kind: ClassVar[str] = "mesh"
+
+    @property
+    def extents(self) -> tuple[float, float, float]:
+        return tuple(float(e) for e in self.mesh.extents)
+
+
+Item = Box | Can | Mug | MeshItem
 
 # YCB-like boxes (the paper used YCB objects).
 BOXES = (
@@ -70,6 +84,7 @@ TALL = (1, 2, 5)  # long enough to lean, tall enough to hide behind
 SMALL = (3, 4, 6)
 # Round objects, generated here (YCB's tomato soup can and mug are about this size).
 ROUND = (Can(7, "soup_can", 0.033, 0.101), Mug(8, "mug"))
+MUG = ROUND[1]
 OBJECTS = BOXES + ROUND
 OBJECT_BY_ID = {o.obj_id: o for o in OBJECTS}
 
@@ -86,12 +101,31 @@ def model_mesh(item: Item) -> trimesh.Trimesh:
         return box_mesh(item.extents)
     if item.kind == "can":
         return can_mesh(item.radius, item.height)
+    if item.kind == "mesh":
+        return item.mesh
     return mug_mesh(item.shape)
 
 
 def item_mesh(item: Item) -> trimesh.Trimesh:
     """The object's model mesh (metres, model frame): a fresh copy, free to transform."""
     return model_mesh(item).copy()
+
+
+@functools.cache
+def stable_rotations(item: Item, min_probability: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """The rotations in which the object rests on a plane, each as R_world_obj with a heading of 0 (S, 3, 3), and
+    how likely each is to end up in it dropped at random (S,) summing to 1: the stable poses of its convex hull
+    (what rests on a flat table; trimesh, about the hull's centre of mass), the unlikely ones left out."""
+    transforms, probability = trimesh.poses.compute_stable_poses(model_mesh(item).convex_hull)
+    keep = probability >= min_probability
+    return np.asarray(transforms)[keep, :3, :3], probability[keep] / probability[keep].sum()
+
+
+def lying_rotation(item: Item, rng) -> np.ndarray:
+    """A stable rotation of the object (``stable_rotations``, drawn by its likelihood) turned to a random heading
+    about the vertical -> R_world_obj (3, 3)."""
+    R, p = stable_rotations(item)
+    return rot_z(rng.uniform(-np.pi, np.pi)) @ R[rng.choice(len(p), p=p)]
 
 
 def reach(item: Item, R: np.ndarray, direction: np.ndarray) -> float:

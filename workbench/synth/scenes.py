@@ -7,13 +7,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from workbench.synth.config import DESKS, DeskSpec, SynthConfig
+from workbench.synth.config import DESKS, HANDLE_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.distractors import Distractor, place_distractors
 from workbench.synth.layout import Placed, draw_layout, relations_hold, settle_layout
 from workbench.synth.objects import item_mesh
 from workbench.synth.sensor import apply_sensor
 from workbench.synth.sim import Sim
-from workbench.synth.views import draw_camera, in_view, masks_alone, render_clean
+from workbench.synth.views import (
+    draw_camera,
+    draw_handle_camera,
+    handle_pixels,
+    in_view,
+    masks_alone,
+    render_clean,
+)
 
 
 def _bbox(mask: np.ndarray) -> list[int]:
@@ -67,6 +74,17 @@ def _views_ok(cfg: SynthConfig, layout: list[Placed], visib: np.ndarray) -> bool
     return bool(np.all(visib[hidden] < cfg.hidden_max_visib) and np.all(visib[~hidden] >= cfg.shown_min_visib))
 
 
+def _handle_ok(cfg: SynthConfig, category: str, T_cam_world: np.ndarray, mug: Placed, clean: np.ndarray,
+               shows: np.ndarray) -> bool:
+    """Does the view hide the mug's handle (``handle_hidden``) or show it (``handle_shown``), as its category says?
+    Always true for other categories."""
+    if category not in HANDLE_CATEGORIES:
+        return True
+    n = handle_pixels(cfg, T_cam_world, mug, clean, shows)
+    area = (cfg.width / 640.0) ** 2  # the thresholds are for 640 pixels wide
+    return n <= cfg.handle_max_hidden_px if category == "handle_hidden" else n >= cfg.handle_min_shown_px * area
+
+
 def _draw_desk(desk: DeskSpec, cfg: SynthConfig, rng) -> SynthConfig:
     """The scene's configuration with its table size drawn (``cfg`` itself when the desk keeps the default)."""
     if desk.table_size is None:
@@ -94,7 +112,8 @@ def generate_scene(sim: Sim, category: str, rng: np.random.Generator, cfg: Synth
         lo, hi = desk.distractors
         distractors = place_distractors(rng, layout, int(rng.integers(lo, hi + 1)), cfg) if hi > 0 else []
         for _ in range(cfg.max_camera_tries):
-            T_cam_world = draw_camera(cfg, rng, layout, hide_normals)
+            T_cam_world = (draw_handle_camera(cfg, rng, layout, category == "handle_hidden")
+                           if category in HANDLE_CATEGORIES else draw_camera(cfg, rng, layout, hide_normals))
             if not in_view(cfg, T_cam_world, layout):
                 continue
             clean, idx = render_clean(cfg, T_cam_world, layout, distractors)
@@ -103,7 +122,8 @@ def generate_scene(sim: Sim, category: str, rng: np.random.Generator, cfg: Synth
             mask_all = masks_alone(K, cfg.width, cfg.height, cam_meshes)
             alone = mask_all.sum(axis=(1, 2))
             visib = mask_visib.sum(axis=(1, 2)) / np.maximum(alone, 1)
-            if not _views_ok(cfg, layout, visib):
+            if not (_views_ok(cfg, layout, visib) and _handle_ok(cfg, category, T_cam_world, layout[0], clean,
+                                                                  mask_visib[0])):
                 continue
             depth = apply_sensor(clean, rng, cfg.sensor)
             table_pose = bool(rng.random() < desk.table_pose) if 0.0 < desk.table_pose < 1.0 else desk.table_pose >= 1

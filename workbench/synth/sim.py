@@ -41,13 +41,18 @@ class Sim:
         return self._add_body(shape, float(np.prod(e)), T)
 
     def add_item(self, item: Item, T: np.ndarray) -> int:
-        """A free body of the object's shape: its box, a cylinder, or (mug) a solid cylinder and handle boxes."""
+        """A free body of the object's shape: its box, a cylinder, (mug) a solid cylinder and handle boxes, or
+        (a given mesh) its convex hull."""
         if item.kind == "box":
             return self.add_box(item.extents, T)
         if item.kind == "can":
             shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=item.radius, height=item.height,
                                             physicsClientId=self.cid)
             return self._add_body(shape, float(np.pi * item.radius**2 * item.height), T)
+        if item.kind == "mesh":  # its convex hull: all a body resting on the table, clear of the others, needs
+            hull = model_mesh(item).convex_hull
+            shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=hull.vertices.tolist(), physicsClientId=self.cid)
+            return self._add_body(shape, float(hull.volume), T)
         parts = mug_collision_parts(item.shape)
         shape = pb.createCollisionShapeArray(
             [pb.GEOM_CYLINDER if kind == "cylinder" else pb.GEOM_BOX for kind, _, _ in parts],

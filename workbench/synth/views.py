@@ -132,6 +132,38 @@ def draw_camera(cfg: SynthConfig, rng, layout: list[Placed], hide_normals: list[
     return look_at(eye, target)
 
 
+def draw_handle_camera(cfg: SynthConfig, rng, layout: list[Placed], hidden: bool) -> np.ndarray:
+    """T_cam_world for the handle categories, ``layout[0]`` being the mug: with ``hidden``, low (15-35 degrees up)
+    and on the far side from its handle, give or take 25 degrees, so that the body stands in front of it; else
+    anywhere but behind it (within 110 degrees of the handle's side), as high as ``draw_camera``'s."""
+    h = layout[0].T[:3, 0]  # the mug's handle sticks out along its model +x
+    handle_az = np.arctan2(h[1], h[0])
+    if hidden:
+        azimuth = handle_az + np.pi + np.radians(rng.uniform(-1, 1) * cfg.handle_hidden_jitter)
+        el = np.radians(rng.uniform(*cfg.handle_hidden_elevation))
+    else:
+        azimuth = handle_az + np.radians(rng.uniform(-110.0, 110.0))
+        el = np.radians(rng.uniform(*cfg.cam_elevation))
+    r = rng.uniform(*cfg.cam_distance)
+    eye = r * np.array([np.cos(el) * np.cos(azimuth), np.cos(el) * np.sin(azimuth), np.sin(el)])
+    eye[:2] += layout[0].T[:2, 3]
+    return look_at(eye, np.mean([p.T[:3, 3] for p in layout], axis=0))
+
+
+def handle_pixels(cfg: SynthConfig, T_cam_world: np.ndarray, mug: Placed, depth: np.ndarray,
+                  shows: np.ndarray) -> int:
+    """How many pixels show the mug's handle: those of ``shows`` (H, W) bool, the mug's visible pixels, whose
+    surface point (from the noise-free ``depth`` (H, W), metres) lies outside the body's radius."""
+    v, u = np.nonzero(shows)
+    K = cfg.K()
+    z = depth[v, u].astype(np.float64)
+    p_cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z, np.ones_like(z)])
+    p = (invert_pose(T_cam_world @ mug.T) @ p_cam)[:3]
+    shape = mug.item.shape
+    axis_x = item_mesh(mug.item).bounds[0, 0] + shape.radius  # the body's far side is its bounding box's -x face
+    return int(np.count_nonzero(np.hypot(p[0] - axis_x, p[1]) > shape.radius + 0.0015))
+
+
 def in_view(cfg: SynthConfig, T_cam_world: np.ndarray, layout: list[Placed]) -> bool:
     """Every object wholly inside the image (distractors may be cut by its border)."""
     K = cfg.K()
