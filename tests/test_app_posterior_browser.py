@@ -1,0 +1,170 @@
+"""The posterior in real headless Chromium (issue 30, item 3): a finished run's other modes drawn in the 3D view and
+hidden by the visibility bar, the confidences in the legend and the Inspect tab, a mode chosen in the Label tab
+taken as label, and the same posterior back from a saved session."""
+
+from __future__ import annotations
+
+import io
+import re
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from workbench.app.headless import FRAME_PROBE_JS, canvas_png, chromium_path, open_workbench
+from workbench.app.modes import confidence_text, mode_label, mode_option
+
+pytest.importorskip("playwright.sync_api")
+from playwright.sync_api import expect  # noqa: E402
+
+pytestmark = [pytest.mark.slow,  # needs Chromium, and the engine: pybullet and OpenGL
+              pytest.mark.skipif(chromium_path() is None, reason="no system Chromium (Debian package `chromium`)")]
+
+TIMEOUT_MS = 60_000
+VIEWPORT = {"width": 1000, "height": 700}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def workbench(tmp_path_factory):
+    from workbench.app.server import serve
+    from workbench.inference.config import EstimatorConfig
+
+    # Three steps finish the run; at this seed the demo then has an object with a second mode.
+    handle = serve(demo=True, block=False, port=free_port(), workers=1,
+                   config=EstimatorConfig(particles=16, iterations=2),
+                   sessions_dir=tmp_path_factory.mktemp("sessions"))
+    try:
+        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the demo did not load"
+        assert handle.app.state.view is not None, handle.app.state.failures
+        yield handle
+        assert not handle.app.state.display_errors
+    finally:
+        handle.stop()
+
+
+@pytest.fixture(scope="module")
+def page(workbench):
+    from workbench.app.headless import chromium
+
+    with chromium() as browser:
+        p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT, init_script=FRAME_PROBE_JS)
+        yield p
+        p.close()
+
+
+def settled_canvas(page, app) -> np.ndarray:
+    """The 3D view once the scene has gone quiet: (H, W, 3) int16."""
+    from PIL import Image
+
+    with app.lock:
+        app.display.throttle.flush()
+    time.sleep(1.5)  # software WebGL draws the change within a few frames
+    return np.asarray(Image.open(io.BytesIO(canvas_png(page))).convert("RGB"), dtype=np.int16)
+
+
+def changed_pixels(a: np.ndarray, b: np.ndarray) -> int:
+    return int((np.abs(a - b).max(axis=2) > 30).sum())
+
+
+def test_a_finished_run_shows_its_modes_and_confidences(page, workbench):
+    app = workbench.app
+    for i in range(3):
+        page.get_by_role("button", name="Step").click()
+        page.get_by_text(re.compile(rf"Iteration {i} of 2")).wait_for(timeout=TIMEOUT_MS)
+    assert app.wait_for(lambda s: app.display.posterior is not None, 60)
+    post = app.display.posterior
+    several = [o for o in post.objects if len(o.modes) > 1]
+    assert several
+
+    # The legend names each object's confidence.
+    page.get_by_text("Legend", exact=True).click()
+    for o in post.objects:
+        expect(page.locator(f'[data-confidence="{o.obj}"]')).to_have_text(f"({confidence_text(o)})",
+                                                                            timeout=TIMEOUT_MS)
+    page.get_by_text("Legend", exact=True).click()
+    # The Inspect tab's table: each object's top probability and its other modes.
+    page.get_by_role("tab", name="Inspect").click()
+    page.get_by_text(re.compile(r"Posterior of the settled estimate · iteration 2")).wait_for(timeout=TIMEOUT_MS)
+    for o in several:
+        for m in o.modes[1:]:
+            expect(page.get_by_role("cell", name=re.compile(re.escape(mode_label(m)))).first).to_be_visible(
+                timeout=TIMEOUT_MS)
+    page.get_by_role("tab", name="Estimator").click()
+
+    # The ghosts and their labels are drawn: hiding them with the visibility bar changes the view, showing them
+    # again brings it back. The observed points and the particles are hidden meanwhile: their squares and outlines
+    # shimmer from one software-rendered frame to the next.
+    for item in ("points", "particles", "truth"):
+        page.get_by_role("button", name=f"● {item}").click()
+        expect(page.get_by_role("button", name=f"○ {item}")).to_be_visible(timeout=TIMEOUT_MS)
+    shown = settled_canvas(page, app)
+    page.get_by_role("button", name="● modes").click()
+    expect(page.get_by_role("button", name="○ modes")).to_be_visible(timeout=TIMEOUT_MS)
+    hidden = settled_canvas(page, app)
+    page.get_by_role("button", name="○ modes").click()
+    expect(page.get_by_role("button", name="● modes")).to_be_visible(timeout=TIMEOUT_MS)
+    again = settled_canvas(page, app)
+    for item in ("points", "particles", "truth"):
+        page.get_by_role("button", name=f"○ {item}").click()
+        expect(page.get_by_role("button", name=f"● {item}")).to_be_visible(timeout=TIMEOUT_MS)
+    assert changed_pixels(shown, hidden) > 200, changed_pixels(shown, hidden)
+    assert changed_pixels(shown, again) < changed_pixels(shown, hidden) / 10, \
+        (changed_pixels(shown, again), changed_pixels(shown, hidden))
+
+
+def test_the_label_tab_takes_the_chosen_mode(page, workbench):
+    app = workbench.app
+    post = app.display.posterior
+    o = next(o for o in post.objects if len(o.modes) > 1)
+    name = app.display.names[o.obj]
+    page.get_by_role("tab", name="Label").click()
+    page.get_by_text("Modes to label with").wait_for(timeout=TIMEOUT_MS)
+    # Choose mode 2 in the object's dropdown, as a user does: open it, click the option.
+    dropdown = page.get_by_role("combobox", name=name, exact=True)
+    expect(dropdown).to_have_value(mode_option(0, o.modes[0]), timeout=TIMEOUT_MS)
+    dropdown.click()
+    page.get_by_role("option", name=mode_option(1, o.modes[1])).click()
+    assert app.wait_for(lambda s: app.labelling.modes.chosen()[0][o.obj] == 1, 30)
+    page.get_by_role("button", name="Use best estimate as label").click()
+    page.get_by_text(re.compile(rf"{re.escape(name)}: mode 2 \(p = {o.modes[1].probability:.2f}")).wait_for(
+        timeout=TIMEOUT_MS)
+    assert app.wait_for(lambda s: app.labelling.editor.labels[o.obj] is not None and np.array_equal(
+        app.labelling.editor.labels[o.obj], o.modes[1].T), 30)
+    page.get_by_role("tab", name="Estimator").click()
+
+
+def test_a_saved_session_brings_the_same_modes_back(page, workbench):
+    from workbench.app.headless import gui_input
+
+    app = workbench.app
+    texts = list(app.display.modes.texts)
+    assert texts
+    page.get_by_role("tab", name="Sessions").click()
+    field = gui_input(page, "Session name")
+    field.fill("modes")
+    field.press("Enter")
+    page.get_by_role("button", name="Save session").click()
+    page.get_by_text(re.compile(r"Saved session modes")).wait_for(timeout=TIMEOUT_MS)
+
+    page.get_by_role("tab", name="Estimator").click()
+    page.get_by_role("button", name="Reset").click()
+    assert app.wait_for(lambda s: s.iteration == -1 and s.last_state.reason == "reset", 60)
+    page.get_by_role("tab", name="Inspect").click()
+    page.get_by_text(re.compile(r"No posterior yet")).wait_for(timeout=TIMEOUT_MS)
+    assert not app.display.modes.labels
+
+    page.get_by_role("tab", name="Sessions").click()
+    page.get_by_role("button", name="Load session").click()
+    page.get_by_text(re.compile(r"Loaded session modes at iteration 2")).wait_for(timeout=TIMEOUT_MS)
+    page.get_by_role("tab", name="Inspect").click()
+    page.get_by_text(re.compile(r"Posterior of the settled estimate · iteration 2")).wait_for(timeout=TIMEOUT_MS)
+    assert app.wait_for(lambda s: app.display.modes.texts == texts, 30), (app.display.modes.texts, texts)
+    expect(page.get_by_role("cell", name=re.compile(re.escape(texts[0]))).first).to_be_visible(timeout=TIMEOUT_MS)
+    page.get_by_role("tab", name="Estimator").click()
