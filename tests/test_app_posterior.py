@@ -150,6 +150,9 @@ def test_the_server_draws_the_modes_and_shows_the_confidences():
             assert len(ghost.batched_positions) == len(o.modes) - 1
             assert np.allclose(ghost.batched_positions, [m.T[:3, 3] for m in o.modes[1:]])
         assert d.modes.texts == [mode_label(m) for o in several for m in o.modes[1:]]
+        # The solid estimate is the run's settled answer (each object's top mode), not the most likely particle.
+        for o, best in zip(post.objects, d.particles.best):
+            assert np.allclose(best.position, o.modes[0].T[:3, 3], atol=1e-6)
         assert len(d.modes.labels) == len(d.modes.texts) and all(h.visible for h in d.modes.labels)
         names = d.names
         for o in post.objects:

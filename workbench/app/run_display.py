@@ -10,6 +10,7 @@ from __future__ import annotations
 import threading
 from typing import Callable
 
+import numpy as np
 import viser
 
 from workbench.app import protocol as p
@@ -93,15 +94,19 @@ class RunDisplay:
         if self.panel.view_legend.content != content:
             self.panel.view_legend.content = content
 
-    def show_cloud(self, cloud: p.ParticleCloud, defer: bool) -> None:
-        """Draw ``cloud``: now, or (``defer``: while running) with the next throttled redraw."""
-        self.throttle.submit("particles", lambda: self.draw_particles(cloud), defer=defer)
+    def show_cloud(self, cloud: p.ParticleCloud, posterior: Posterior | None, defer: bool) -> None:
+        """Draw ``cloud`` and the estimate (the settled one where the snapshot has a ``posterior``): now, or
+        (``defer``: while running) with the next throttled redraw."""
+        self.throttle.submit("particles", lambda: self.draw_particles(cloud, posterior), defer=defer)
 
-    def draw_particles(self, cloud: p.ParticleCloud) -> None:
-        """The particle cloud and the most likely scene (which an unlabelled selected object's gizmo follows)."""
-        self.particles.update(cloud)
+    def draw_particles(self, cloud: p.ParticleCloud, posterior: Posterior | None = None) -> None:
+        """The particle cloud and the estimate (which an unlabelled selected object's gizmo follows): the run's
+        answer where it was settled (each object's top mode: settling may have turned an object over), else the
+        most likely particle."""
+        estimate = None if posterior is None else np.stack([o.modes[0].T for o in posterior.objects])
+        self.particles.update(cloud, estimate)
         if len(cloud.poses):
-            self.labelling.editor.show_estimate(cloud.poses[0])
+            self.labelling.editor.show_estimate(cloud.poses[0] if estimate is None else estimate)
 
     def show_posterior(self, posterior: Posterior | None, iteration: int, defer: bool) -> None:
         """The settled estimate's ``posterior`` of the snapshot of ``iteration`` (None: none for its estimate): its

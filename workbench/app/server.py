@@ -225,7 +225,7 @@ class App:
         s.reports.append(msg.report)
         s.cloud, s.iteration, s.running = msg.cloud, msg.report["iteration"], msg.running
         self.send(p.Shown(s.iteration))  # the engine may start the next iteration (see protocol.Shown)
-        self.display.show_cloud(msg.cloud, defer=msg.running)
+        self.display.show_cloud(msg.cloud, msg.posterior, defer=msg.running)
         self.display.show_posterior(msg.posterior, s.iteration, defer=msg.running)
         P.rank.max = max(1, msg.cloud.n_total - 1)
         self.reporter.clear_error()  # an iteration went through: whatever failed before was dealt with

@@ -187,11 +187,15 @@ class ParticleLayer:
         self.nodes.clear()
         self.meshes, self.batches, self.best = meshes, [], []
 
-    def update(self, cloud: ParticleCloud) -> None:
+    def update(self, cloud: ParticleCloud, estimate: np.ndarray | None = None) -> None:
+        """The cloud, and the estimate drawn solid: ``estimate`` (K, 4, 4) where given, else the most likely
+        particle."""
         if len(cloud.poses) == 0 or not self.meshes:
             return
         scene = self.server.scene
         wxyz, pos = split_pose(cloud.poses)  # (M, K, 4), (M, K, 3)
+        best_wxyz, best_pos = (wxyz[0], pos[0]) if estimate is None else split_pose(estimate[None].astype(np.float32))
+        best_wxyz, best_pos = best_wxyz.reshape(-1, 4), best_pos.reshape(-1, 3)
         w = np.asarray(cloud.weights, dtype=np.float64)
         rel = w / w.max() if w.max() > 0 else np.ones_like(w)
         tint = colors.apply_map(rel, 0.0, 1.0, colors.WEIGHT)
@@ -219,10 +223,10 @@ class ParticleLayer:
                     b.batched_colors, b.batched_opacities = tint, opacity
                 if len(self.best) <= k:
                     self.best.append(self.nodes.add(scene.add_mesh_simple(
-                        f"/best/{k}", mesh.vertices, mesh.faces, color=colors.object_color(k), wxyz=wxyz[0, k],
-                        position=pos[0, k], visible=self.show_best, **NO_SHADOW)))
+                        f"/best/{k}", mesh.vertices, mesh.faces, color=colors.object_color(k), wxyz=best_wxyz[k],
+                        position=best_pos[k], visible=self.show_best, **NO_SHADOW)))
                 else:
-                    self.best[k].wxyz, self.best[k].position = wxyz[0, k], pos[0, k]
+                    self.best[k].wxyz, self.best[k].position = best_wxyz[k], best_pos[k]
 
     def _clicked(self, event: viser.SceneNodePointerEvent) -> None:
         if event.instance_index is not None:
