@@ -13,6 +13,7 @@ from workbench.inference.posterior import (
     Mode,
     ObjectPosterior,
     Posterior,
+    face_turns,
     object_modes,
     probabilities,
     yaw_range,
@@ -87,6 +88,25 @@ def test_the_summary_names_only_what_is_uncertain(touching_models):
     assert line.startswith("1 of 2 objects uncertain: box b (about the vertical anywhere in [-75, +45] degrees)")
     twice = SimpleNamespace(models=[problem.models[1], problem.models[1]])  # one model, two instances
     assert "box b #2 (about the vertical" in Posterior([sure, open_heading]).summary(twice)
+
+
+def test_face_turns_lay_an_object_on_each_face_where_it_stands_on_whatever_supports_it():
+    import trimesh
+
+    from workbench.inference.resting import resting_poses
+
+    mesh = trimesh.creation.box(extents=[0.11, 0.089, 0.035])  # a pudding box
+    rest = resting_poses(mesh)
+    hull = np.asarray(mesh.convex_hull.vertices)
+    # Standing on its small end on top of something 5 cm high, turned 20 degrees.
+    T = make_pose(rot_z(np.radians(20.0)) @ np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]]), [0.3, -0.1, 0.05 + 0.055])
+    laid = face_turns(T, rest, hull, step_deg=30.0)
+    assert laid.shape == (len(rest.rotations) * 12, 4, 4)
+    world = np.einsum("nij,vj->nvi", laid[:, :3, :3], hull) + laid[:, None, :3, 3]
+    assert np.allclose(world[..., 2].min(axis=1), 0.05)  # each rests where the box's lowest point was
+    assert np.allclose(0.5 * (world.min(axis=1) + world.max(axis=1))[:, :2], [0.3, -0.1])  # over the same spot
+    flat = make_pose(rot_z(np.radians(50.0)), [0.3, -0.1, 0.05 + 0.0175])  # lying on its large face, turned 50
+    assert any(metrics.is_right(flat, L, metrics.box_symmetries(np.array([0.11, 0.089, 0.035]))) for L in laid)
 
 
 @pytest.fixture
@@ -166,3 +186,31 @@ def test_a_mug_whose_handle_is_in_view_gets_one_mode(touching_dataset, seeing):
     mug, truth, settled = _mug_posterior(touching_dataset, seeing, handle_from_view_deg=90.0, estimate_turn_deg=0.0)
     assert mug.confidence > 0.9 and mug.yaw_range_deg is None
     assert metrics.is_right(truth, mug.modes[0].T)
+
+
+@pytest.mark.slow  # the generator, pybullet and OpenGL: `make-scenes` then `estimate --posterior`, as a user runs them
+@pytest.mark.parametrize("category", ["handle_hidden", "handle_shown"])
+def test_a_generated_mug_gets_an_open_heading_when_its_handle_is_hidden_and_one_mode_when_it_shows(
+        tmp_path, category):
+    import json
+
+    from workbench.cli import main
+    from workbench.io import bop
+    from workbench.synth import make_scenes
+
+    make_scenes(tmp_path / "d", [category], 1, seed=0)  # 640 x 480, as the calibration suite
+    posterior = tmp_path / "posterior.json"
+    assert main(["estimate", str(tmp_path / "d"), "--out", str(tmp_path / "r.csv"), "--posterior",
+                 str(posterior)]) == 0
+    frame = bop.load_frame(tmp_path / "d", 0, 0)
+    mug = next(o for o in json.loads(posterior.read_text())["frames"][0]["objects"] if o["obj_id"] == 8)
+    top = mug["modes"][0]
+    estimate = make_pose(np.reshape(top["R"], (3, 3)), np.array(top["t"]) / 1000.0)
+    truth = frame.gt_T_cam_obj[frame.object_ids.index(8)]
+    if category == "handle_hidden":
+        assert top["probability"] < 0.6 and mug["yaw_range_deg"] is not None
+        lo, hi = mug["yaw_range_deg"]
+        assert lo <= metrics.heading_offset_deg(truth, estimate, np.array(mug["vertical_cam"])) <= hi
+    else:
+        assert top["probability"] > 0.9 and mug["yaw_range_deg"] is None
+        assert metrics.is_right(truth, estimate)

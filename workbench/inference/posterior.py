@@ -6,7 +6,10 @@ others kept where the estimate has them:
   ``settle.turn_over``, reused);
 - turns about the vertical through its centre, every 30 degrees (a mug whose handle is hidden), each scored as
   given, the best ``SETTLE_SWEEP`` per object settled;
-- where the final particles put it (their distinct poses, heaviest first), scored as given, the best settled.
+- where the final particles put it (their distinct poses, heaviest first), scored as given, the best settled;
+- laid on each of its resting faces (``resting.resting_poses``) at every 30 degrees of heading where it stands
+  (``face_turns``: a small box the search laid on the wrong face), scored as given, the best ``FACE_SWEEP`` distinct
+  ones settled.
 A candidate counts only if physics, resting its scene, keeps it where it was fitted (``settle.within``). Candidates
 that are the same pose up to the model's symmetries (``metrics.is_right``: within 2 cm and 10 degrees) are one mode,
 scored by its best member.
@@ -34,6 +37,8 @@ import numpy as np
 
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference import settle
+from workbench.inference.context import SearchGeometry
+from workbench.inference.resting import RestingPoses, lowest_point
 from workbench.metrics import is_right
 from workbench.problem import Problem
 from workbench.scene import display_names
@@ -45,6 +50,7 @@ TEMPERATURE = 95.0
 YAW_STEP_DEG = 30.0
 SETTLE_SWEEP = 2  # per object, the best turns about the vertical (as given) that are settled and become modes
 PARTICLE_POSES = 2  # per object, the heaviest distinct poses of the final particles tried as modes
+FACE_SWEEP = 2  # per object, the best poses on another resting face (as given) that are settled and become modes
 RANGE_GAP = np.log(20.0)  # temperatures: a heading whose odds against the estimate are better than 1 : 20 is open
 MAX_MODES = 8  # modes reported per object (the most likely)
 MIN_PROBABILITY = 1e-3  # a mode less likely than this is not reported
@@ -177,6 +183,23 @@ def yaw_turns(T: np.ndarray, centre: np.ndarray, step_deg: float = YAW_STEP_DEG)
     return out, angles
 
 
+def face_turns(T: np.ndarray, rest: RestingPoses, hull: np.ndarray, step_deg: float = YAW_STEP_DEG) -> np.ndarray:
+    """One object's pose ``T`` (4, 4) laid on each of its resting faces (``rest``) at every heading that is a
+    multiple of ``step_deg``, where it stands: its hull's (``hull`` (V, 3) object frame) bounding-box centre kept
+    above the same point of the table, its lowest point at the same height (on whatever supports it) ->
+    (F * H, 4, 4). A small box the search laid on the wrong face (a pudding box on its side) is one of these."""
+    headings = np.radians(np.arange(0.0, 360.0, step_deg))
+    R = np.einsum("hij,fjk->fhik", rot_z(headings), rest.rotations).reshape(-1, 3, 3)  # (F * H, 3, 3)
+    centre = 0.5 * (hull.min(axis=0) + hull.max(axis=0))
+    world = hull @ T[:3, :3].T + T[:3, 3]
+    at = T[:3, :3] @ centre + T[:3, 3]
+    out = np.repeat(np.eye(4)[None], len(R), axis=0)
+    out[:, :3, :3] = R
+    out[:, :2, 3] = at[:2] - (R @ centre)[:, :2]
+    out[:, 2, 3] = world[:, 2].min() - lowest_point(R, hull)
+    return out
+
+
 def yaw_range(angles: np.ndarray, gaps: np.ndarray, distinct: np.ndarray, step_deg: float, open_gap: float
               ) -> tuple[float, float] | None:
     """The arc of headings (degrees about the estimate's, ``angles`` (S,) without 0) whose scenes as given score
@@ -223,23 +246,25 @@ def distinct_poses(poses: np.ndarray, weights: np.ndarray, exclude: list[np.ndar
 
 
 def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Score, rest: settle.Rest,
-          half_turns: list[settle.Turn] | None, samples: list, projected: np.ndarray, weights: np.ndarray,
+          half_turns: list[settle.Turn] | None, geometry: SearchGeometry, projected: np.ndarray, weights: np.ndarray,
           max_shift_m: float, max_turn_deg: float, temperature: float = TEMPERATURE
           ) -> tuple[Posterior, int, np.ndarray, float]:
     """The posterior of the settled estimate ``scene`` (K, 4, 4), whose log-likelihood as given is ``loglik``.
     ``score``: scenes as given -> log-likelihoods; ``rest``: scenes -> at rest under physics. ``half_turns``:
     ``settle.turn_over``'s settled half turns of this very scene, as (object, name, scene, log-likelihood), or None
-    to search them here. ``samples``: each model's ``scenepoints.ModelSamples``. ``projected`` (N, K, 4, 4),
+    to search them here. ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
     ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
     where they start. A candidate that beats the estimate by more than the turn margin, physics holding it,
     replaces it (``settle.adopt``) -> (the posterior, scenes scored, the scene, its log-likelihood)."""
     t0 = time.perf_counter()
-    K, loglik_before = problem.n_objects, loglik
+    loglik_before = loglik
+    samples, rest_poses, hulls = geometry.samples, geometry.rest, geometry.hulls
     # A heading is open when its odds against the estimate's are better than 1 : exp(RANGE_GAP) (``probabilities``).
     open_gap = RANGE_GAP * temperature - settle.TURN_MARGIN
     hopeless = -15.0 * temperature  # as given this far below the estimate: odds under 1e-6 even if settling gained
-    # Scored as given first: every object's turns about the vertical and its particles' own poses.
-    given, given_what, yaw = [], [], {}
+    # Scored as given first: every object's turns about the vertical, its particles' own poses, and its other
+    # resting faces at every heading.
+    given, given_what, yaw, faces = [], [], {}, {}
     for k, model in enumerate(problem.models):
         vertical = scene[k, 2, :3]  # the table's z in the object's frame
         poses, angles = yaw_turns(scene[k], turn_centre(samples[k].points, vertical))
@@ -249,19 +274,32 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         for T in distinct_poses(projected[:, k], weights, [scene[k]], model.symmetries, PARTICLE_POSES):
             given.append((k, T))
             given_what.append("where particles put it")
+        laid = face_turns(scene[k], rest_poses[k], hulls[k])
+        faces[k] = (len(given), len(laid))
+        given += [(k, T) for T in laid]
+        given_what += ["laid on another face"] * len(laid)
     scenes = np.repeat(scene[None], len(given), axis=0)
     for i, (k, T) in enumerate(given):
         scenes[i, k] = T
     given_ll = score(scenes) if len(scenes) else np.zeros(0)
     scored = len(scenes)
     # Settled: each object's half turns (reused when given), its best turns about the vertical (not the half turn,
-    # which is among the half turns) and its particles' poses, unless hopeless as given.
+    # which is among the half turns), its particles' poses and its best other faces, unless hopeless as given.
     starts, owners, whats = [], [], []
-    for k in range(K):
+    for k, model in enumerate(problem.models):
         angles, at, distinct = yaw[k]
         picks = [at + i for i in np.argsort(-given_ll[at:at + len(angles)], kind="stable")
                  if angles[i] != 180.0 and distinct[i]]
-        picks = picks[:SETTLE_SWEEP] + [i for i in range(at + len(angles), len(given)) if given[i][0] == k]
+        picks = picks[:SETTLE_SWEEP] + [i for i in range(at + len(angles), faces[k][0]) if given[i][0] == k]
+        first, n = faces[k]
+        taken, laid = [scene[k]] + [given[i][1] for i in picks], 0
+        for i in first + np.argsort(-given_ll[first:first + n], kind="stable"):
+            if laid == FACE_SWEEP:
+                break
+            if not any(is_right(P, given[i][1], model.symmetries) for P in taken):
+                picks.append(i)
+                taken.append(given[i][1])
+                laid += 1
         for i in picks:
             if given_ll[i] - loglik > hopeless:
                 starts.append(scenes[i]), owners.append(k), whats.append(given_what[i])
