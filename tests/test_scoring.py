@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from test_cli import _workbench
 
-from workbench.bench.scoring import match, score_results
+from workbench.bench.scoring import instance_groups, match, score_results
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
 
@@ -59,6 +59,20 @@ def test_instances_of_one_object_are_matched_nearest_first():
     est = gt[[1, 0]].copy()
     est[:, 0, 3] = [0.11, 0.01]
     assert sorted(match(gt, est, np.eye(4)[None])) == [(0, 1), (1, 0)]
+
+
+def test_each_instance_of_an_object_is_its_own_run_of_modes():
+    def row(score, x):
+        return bop.ResultRow(0, 0, 5, score, make_pose(np.eye(3), [x, 0.0, 1.0]), 1.0)
+
+    # Two instances, as `estimate` writes them: the first's second mode outscores the second's estimate.
+    a, a2, b, b2, b3 = row(0.52, 0.0), row(0.48, 0.05), row(0.45, 0.3), row(0.3, 0.35), row(0.25, 0.4)
+    assert instance_groups([a, a2, b, b2, b3], 2) == [[a, a2], [b, b2, b3]]
+    # Another tool's rows, one per instance and any score: the best ones, each its own.
+    c, d, e = row(0.9, 0.0), row(0.3, 0.3), row(0.8, 0.6)
+    assert instance_groups([c, d, e], 2) == [[c], [e]]
+    f, g = row(1.0, 0.0), row(1.0, 0.3)  # one row each, probability 1 (one mode)
+    assert instance_groups([f, g], 2) == [[f], [g]]
 
 
 def test_score_command_prints_the_summary_and_names_a_foreign_frame(touching_dataset, tmp_path):

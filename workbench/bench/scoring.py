@@ -48,7 +48,7 @@ class FrameScore:
     im_id: int
     objects: list[ObjectScore]
     unmatched_rows: int  # estimate rows of objects the ground truth does not hold (or holds fewer of)
-    # Per object held once in the frame: its rows as the modes of its posterior (``calibration``)
+    # Per object instance with an estimate: its rows as the modes of its posterior (``calibration``)
     modes: list[ObjectModes] = field(default_factory=list)
 
     @property
@@ -81,6 +81,24 @@ def match(gt: np.ndarray, est: np.ndarray, symmetries: np.ndarray) -> list[tuple
     return out
 
 
+def instance_groups(rows: list[bop.ResultRow], n: int) -> list[list[bop.ResultRow]]:
+    """One model's rows of one frame (file order) as up to ``n`` instances, each its rows best first: runs of rows
+    whose scores sum to 1, as `estimate` writes each instance's modes (its posterior). Rows that do not fall into
+    such runs (another tool's results: one row per instance, any score) are each an instance of their own, the
+    ``n`` best by score kept (the others are taken for modes; all of them the one instance's when ``n`` is 1)."""
+    groups, run, total = [], [], 0.0
+    for r in rows:
+        run.append(r)
+        total += r.score
+        if abs(total - 1.0) < 1e-3:
+            groups.append(sorted(run, key=lambda r: -r.score))
+            run, total = [], 0.0
+    if run or len(groups) > n:
+        ranked = sorted(rows, key=lambda r: -r.score)
+        return [ranked] if n == 1 and ranked else [[r] for r in ranked[:n]]
+    return groups
+
+
 def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = None,
                   results_path: Path | None = None) -> list[FrameScore]:
     """Every frame that ``rows`` (a results CSV, ``bop.read_results_csv``) holds, scored against the dataset's
@@ -110,17 +128,18 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
         objects, matched, extra, modes = [], 0, 0, []
         for obj_id in dict.fromkeys(frame.object_ids):
             gi = [k for k, o in enumerate(frame.object_ids) if o == obj_id]
-            # The top rows by score, one per instance: further rows are other modes of the posterior (the same
-            # object's less likely poses), which must not be matched to the truth in the estimate's place.
-            ranked = sorted((r for r in mine if r.obj_id == obj_id), key=lambda r: -r.score)
-            est = [r.T_cam_obj for r in ranked[: len(gi)]]
-            extra += len(ranked) - len(est)
-            if len(gi) == 1 and ranked:
-                modes.append(calibration.object_modes(frame.gt_T_cam_obj[gi[0]],
-                                                      [(r.score, r.T_cam_obj) for r in ranked], models[obj_id][0]))
+            # One estimate per instance, its top row: further rows are other modes of the posterior (the same
+            # instance's less likely poses), which must not be matched to the truth in the estimate's place.
+            rows = [r for r in mine if r.obj_id == obj_id]
+            groups = instance_groups(rows, len(gi))
+            est = [g[0].T_cam_obj for g in groups]
+            extra += len(rows) - len(groups)
             sym, points = models[obj_id]
             pairs = dict(match(frame.gt_T_cam_obj[gi], np.array(est).reshape(-1, 4, 4), sym))
             matched += len(pairs)
+            for i, j in pairs.items():  # each instance's modes, against the truth its estimate was matched to
+                modes.append(calibration.object_modes(frame.gt_T_cam_obj[gi[i]],
+                                                      [(r.score, r.T_cam_obj) for r in groups[j]], sym))
             for i, k in enumerate(gi):
                 T_gt = frame.gt_T_cam_obj[k]
                 if i not in pairs:
