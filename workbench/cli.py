@@ -18,8 +18,10 @@ from workbench.inference.moves import PROPOSALS
 from workbench.inference.particles import STATES, Sigma
 from workbench.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
+from workbench.track.config import TrackConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
+TRACK_DEFAULTS = TrackConfig()
 
 
 def _add_estimator_args(p: argparse.ArgumentParser) -> None:
@@ -139,6 +141,50 @@ def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, p
         print(f"workbench: error: {len(failures)} of {len(todo)} frame(s) failed (each named above); the others are "
               f"in {args.out}. Fix them and run again with --resume to estimate only those.", file=sys.stderr)
         return 1
+    return 0
+
+
+def _cmd_track(args: argparse.Namespace) -> int:
+    from workbench.runner import PosteriorFile, ResultsFile, check_resumed
+    from workbench.track.config import TrackConfig
+    from workbench.track.sequence import Tracker, sequence_frames, track_frames
+
+    # Every setting, the frames and the output paths are checked before anything is loaded or started.
+    config, problem = estimator_config(args), problem_config(args)
+    check_estimator_config(config)
+    check_problem_config(problem)
+    check_workers(args.workers)
+    check_count(args.max_retries, "--max-retries", low=0)
+    check_count(args.track_particles, "--track-particles", low=1)
+    check_count(args.track_iterations, "--track-iterations", low=1)
+    track = TrackConfig(particles=args.track_particles, iterations=args.track_iterations, motion=args.motion)
+    track.validate()
+    frames = sequence_frames(args.dataset, args.scene, args.split, args.frames)
+    posterior = (None if args.posterior is None else
+                 PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
+    results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
+    tracker = None
+    try:
+        check_resumed(results, args.dataset, args.split)
+        done = {i for s, i in results.done() if s == args.scene}
+        if done & set(frames):
+            print(f"resuming: {len(done & set(frames))} of {len(frames)} frame(s) already in {args.out}",
+                  file=sys.stderr)
+        tracker = Tracker(args.dataset, args.scene, frames, config, track, problem, args.workers, args.split,
+                          args.objects, not args.no_early_stop, args.max_retries)
+
+        def write(result) -> None:
+            results.add(result.rows)
+            if posterior is not None:
+                posterior.add(result.rows)
+
+        tracked = track_frames(tracker, frames, done, write)
+    finally:
+        if tracker is not None:
+            tracker.close()
+        results.close()
+    print(f"wrote {sum(len(r.rows) for r in tracked)} result rows for {len(tracked)} frame(s) to {args.out}",
+          file=sys.stderr)
     return 0
 
 
@@ -335,6 +381,33 @@ def build_parser() -> argparse.ArgumentParser:
                    help="times a dead worker is started again: --engine local, per batch (its part retried); "
                         "--engine ray, per frame (default 3)")
     p.set_defaults(func=_cmd_estimate)
+
+    p = sub.add_parser("track", help="estimate the frames of one scene in order, each from the previous one")
+    p.add_argument("dataset", type=Path, help="BOP dataset folder (root or split folder)")
+    p.add_argument("--split", default=None, help="split folder (default: test, or the only one)")
+    p.add_argument("--scene", type=int, required=True, help="scene id: the sequence")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="image ids A to B, both included, every one present (default: all of the scene's)")
+    p.add_argument("--objects", type=int, nargs="+", default=None, help="object ids present (default: scene_gt.json)")
+    p.add_argument("--out", type=Path, default=Path("results.csv"),
+                   help="results CSV, written after every frame (default results.csv)")
+    p.add_argument("--force", action="store_true", help="replace --out even if it is not a results CSV of ours")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the frames already in --out and track the rest (the first one after a kept frame is "
+                        "estimated from scratch)")
+    p.add_argument("--posterior", type=Path, default=None, metavar="FILE.json",
+                   help="also write each object's modes per frame as JSON (as estimate --posterior)")
+    p.add_argument("--motion", choices=("auto", "given", "depth"), default="auto",
+                   help="the camera's motion between frames: given (the scene's scene_camera_world.json), depth "
+                        "(registered from the depth), auto (given where the scene has the file; default)")
+    p.add_argument("--track-particles", type=int, default=TRACK_DEFAULTS.particles,
+                   help=f"particles of a tracked frame (default {TRACK_DEFAULTS.particles})")
+    p.add_argument("--track-iterations", type=int, default=TRACK_DEFAULTS.iterations,
+                   help=f"iterations of a tracked frame (default {TRACK_DEFAULTS.iterations})")
+    _add_estimator_args(p)  # the first frame's, and a re-initialised frame's: as estimate's
+    p.add_argument("--max-retries", type=int, default=3,
+                   help="times a dead worker is started again, per batch (its part retried; default 3)")
+    p.set_defaults(func=_cmd_track)
 
     p = sub.add_parser("score", help="score a BOP results CSV against the dataset's scene_gt.json")
     p.add_argument("dataset", type=Path, help="BOP dataset folder (root or split folder)")

@@ -34,10 +34,12 @@ class Estimator:
     ``particles`` (``ParticleSet``, table frame); the estimate (``best``) is the best scene ever evaluated, with
     ``best_loglik``: it never gets worse from one iteration to the next. ``run`` returns it settled (``settle``)."""
 
-    def __init__(self, problem: Problem, config: EstimatorConfig, evaluator: Evaluator | None):
+    def __init__(self, problem: Problem, config: EstimatorConfig, evaluator: Evaluator | None,
+                 search: Search | None = None):
+        """``search``: another search than ``config.proposals``' (a tracked frame's, ``track_search``)."""
         config.validate()
         self.problem = problem
-        self.search = make_search(problem, config.proposals)
+        self.search = make_search(problem, config.proposals) if search is None else search
         self.filter = ParticleFilter(problem, config, evaluator, self.search)
         self.settle_scenes = 0  # scenes settling scored as given (a render each, no physics)
         self.settled: np.ndarray | None = None  # the estimate fitted to the depth (``settle``), once asked for

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 from tqdm import tqdm
 
 from workbench.checks import check_workers
@@ -30,6 +31,7 @@ from workbench.io.bop import ResultRow
 from workbench.outputs import OutputLock, check_output_file, write_file
 from workbench.pipeline import load_bop_problem, posterior_rows, result_rows
 from workbench.problem import Problem, ProblemConfig
+from workbench.scene import Frame as LoadedFrame
 
 
 def estimate_frame(
@@ -54,23 +56,40 @@ def estimate_frame(
     frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
     evaluator = evaluator_for(problem)
     try:
-        estimator = Estimator(problem, config, evaluator)
-        # On a terminal only (disable=None): in a log file the bar's carriage returns would share lines with the
-        # messages after it.
-        with tqdm(total=config.iterations + 1, desc=f"scene {scene_id} frame {im_id}", file=sys.stderr,
-                  leave=False, disable=None if show_progress else True) as bar:
-            def progress(report):
-                bar.update(1)
-                bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
-            best = estimator.run(stop_on_convergence=early_stop, callback=progress)
+        estimator, best = run_estimator(Estimator(problem, config, evaluator), f"scene {scene_id} frame {im_id}",
+                                        early_stop, show_progress)
     finally:
         evaluator.close()
     if estimator.posterior is not None:  # one line per frame: what the view leaves open
         print(f"scene {scene_id} frame {im_id}: {estimator.posterior.summary(problem)} "
               f"[posterior {estimator.posterior.seconds:.1f} s]", file=sys.stderr)
-        return posterior_rows(frame, problem, estimator.posterior, time.perf_counter() - t0)
+    return estimator_rows(frame, problem, estimator, best, time.perf_counter() - t0)
+
+
+def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show_progress: bool = False
+                  ) -> tuple[Estimator, np.ndarray]:
+    """Run ``estimator`` to its iteration budget (or convergence, ``early_stop``) -> (it, its settled estimate
+    (K, 4, 4) table frame). ``show_progress``: a progress bar named ``desc`` on stderr when stderr is a terminal."""
+    # On a terminal only (disable=None): in a log file the bar's carriage returns would share lines with the
+    # messages after it.
+    with tqdm(total=estimator.config.iterations + 1, desc=desc, file=sys.stderr, leave=False,
+              disable=None if show_progress else True) as bar:
+        def progress(report):
+            bar.update(1)
+            bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
+        best = estimator.run(stop_on_convergence=early_stop, callback=progress)
+    return estimator, best
+
+
+def estimator_rows(frame: LoadedFrame, problem: Problem, estimator: Estimator, best: np.ndarray, seconds: float
+                   ) -> list[ResultRow]:
+    """A finished estimator's BOP result rows, ``time`` = ``seconds``: each object's modes, best first, with their
+    probabilities (``pipeline.posterior_rows``); one row per object, scored by ``object_confidence``, where the
+    search gives no posterior."""
+    if estimator.posterior is not None:
+        return posterior_rows(frame, problem, estimator.posterior, seconds)
     scores = object_confidence(problem, estimator.particles.projected, estimator.weights(), best)
-    return result_rows(frame, problem, best, scores, time.perf_counter() - t0)
+    return result_rows(frame, problem, best, scores, seconds)
 
 
 def estimate_frame_task(scene_id: int, im_id: int, dataset: Path, config: EstimatorConfig,

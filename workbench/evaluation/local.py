@@ -71,6 +71,11 @@ class LocalEvaluator:
     def map(self, fn: Callable, calls: list[tuple]) -> list:
         return run_here(self.problem)(fn, calls)
 
+    def retarget(self, problem: Problem) -> None:
+        """Evaluate ``problem`` from now on (a sequence's next frame), as ``PoolEvaluator.retarget``."""
+        self.close()
+        LocalEvaluator.__init__(self, problem)
+
     def explain(self, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
         log-likelihood (h, w)) on the problem's grid."""

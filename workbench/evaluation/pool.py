@@ -28,6 +28,11 @@ def _worker(problem: Problem, conn, factory: Callable[[Problem], object] | None 
             if message is None:
                 break
             kind, *args = message
+            if kind == "problem":  # the next frame of a sequence: a new evaluator in this process, no new process
+                evaluator.close()
+                evaluator = (factory or LocalEvaluator)(*args)
+                conn.send(None)
+                continue
             conn.send(evaluator.evaluate(*args) if kind == "evaluate" else evaluator.map(*args))
     except (EOFError, KeyboardInterrupt, OSError):
         pass  # the main process is gone (killed, Ctrl-C, SIGTERM): nothing to send the answer to, and no traceback
@@ -123,6 +128,14 @@ class PoolEvaluator:
         if not chunks:
             return []
         return self._queue(_PoolPending(self, [("map", fn, chunk) for chunk in chunks], joined)).result()
+
+    def retarget(self, problem: Problem) -> None:
+        """Evaluate ``problem`` from now on (a sequence's next frame): each worker builds its evaluator anew, in the
+        process it already runs, which saves starting the processes and importing the libraries again."""
+        self._problem = problem  # a worker started again from now on gets the new problem
+        if self._factory is None:
+            prepare_meshes(problem)
+        self._queue(_PoolPending(self, [("problem", problem)] * len(self._conns), lambda replies: None)).result()
 
     def _queue(self, pending: _PoolPending) -> _PoolPending:
         self._waiting.append(pending)

@@ -167,11 +167,11 @@ class DefaultSearch:
         finally:
             self._map_wait += time.perf_counter() - t0
 
-    def refit_library(self, filt: ParticleFilter) -> None:
-        """Candidates from the clusters of observed points the estimate does not explain (all of them before
-        the first estimate), merged with the earlier candidates."""
+    def refit_library(self, filt: ParticleFilter, scene: np.ndarray | None = None) -> None:
+        """Candidates from the clusters of observed points the estimate (or ``scene`` (K, 4, 4), when given) does
+        not explain (all of them before the first estimate), merged with the earlier candidates."""
         g = self.geometry(filt)
-        loose = unexplained(self.problem, g.points, filt.map, g.samples)
+        loose = unexplained(self.problem, g.points, filt.map if scene is None else scene, g.samples)
         groups = clusters(g.points.points[loose])
         fresh = datadriven.build_library(self.problem, groups, g.points.points, g.rest, g.samples, g.hulls,
                                          self._cluster_memo, partial(self._run, filt))

@@ -353,6 +353,11 @@ def _scene_dir(split_dir: Path, scene_id: int) -> Path:
     return d
 
 
+def scene_folder(dataset: Path, scene_id: int, split: str | None = None) -> Path:
+    """The folder of scene ``scene_id`` (InputError when the dataset or the scene is not there)."""
+    return _scene_dir(_split_dir(Path(dataset), split), scene_id)
+
+
 def _image_file(folder: Path, im_id: int, exts: tuple[str, ...]) -> Path | None:
     for ext in exts:
         p = folder / f"{im_id:06d}{ext}"

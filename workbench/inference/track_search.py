@@ -1,0 +1,125 @@
+"""The search of a tracked frame: the previous frame's particles and estimate carried into this one, a short local
+search around them, and a light settle.
+
+A sequence keeps one table frame (``track``), so objects that do not move keep their poses and the previous
+frame's particle set is this frame's prior as it stands (the paper's Eq. 1 with a static-scene motion model). The
+default search's hooks, narrowed:
+
+- ``start``: the carried particles resampled by their weights, each object jittered by Sigma (the camera's motion
+  is known only so well), the carried estimate and its settled answer among them; objects found lost
+  (``lost``) are drawn from data-driven candidates fitted to what the carried scene leaves unexplained.
+- ``propose``: the default search's, with the tracked frame's move mix (local moves; data moves when re-searching).
+- ``after_step``: the default search's polish only while re-searching lost objects.
+- ``finish``: the estimate settled within the settling region and the previous posterior weighed again on this
+  view (``carried_posterior``); the default search's full finish (half turns, posterior sweep) when re-searching.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from workbench.inference import carried_posterior, datadriven, gaussian, settle
+from workbench.inference.context import SearchGeometry
+from workbench.inference.default_search import DefaultSearch
+from workbench.inference.filter import ParticleFilter, Settled
+from workbench.inference.moves import MoveKind
+from workbench.inference.posterior import Posterior
+from workbench.inference.resampling import systematic_resample
+from workbench.inference.scenepoints import observed_points
+from workbench.problem import Problem
+
+
+@dataclass(frozen=True)
+class Carried:
+    """What a frame hands the next, table frame, m: the final ``particles`` (N, K, 4, 4) as physics rested them
+    with their ``weights`` (N,); the filter's ``estimate`` (K, 4, 4) and the ``settled`` answer (K, 4, 4); the
+    ``sink`` (m); the candidate ``library`` (or None); the ``posterior`` (or None); the search ``geometry``, whose
+    per-model parts every frame shares; ``badness`` (K,): how badly each object of ``settled`` explained its part of
+    that frame (``scenepoints.object_badness``), the reference a later frame's fit is judged against."""
+
+    particles: np.ndarray
+    weights: np.ndarray
+    estimate: np.ndarray
+    settled: np.ndarray
+    sink: float
+    library: datadriven.Library | None
+    posterior: Posterior | None
+    geometry: SearchGeometry
+    badness: np.ndarray
+
+    def moved(self, A: np.ndarray) -> "Carried":
+        """Every pose left-multiplied by ``A`` (4, 4): into another table frame (identity: the same)."""
+        if np.allclose(A, np.eye(4), atol=1e-9):
+            return self
+        library = None if self.library is None else datadriven.Library(
+            [A @ p for p in self.library.poses], self.library.weights)
+        posterior = None if self.posterior is None else replace(self.posterior, objects=[
+            replace(o, modes=[replace(m, T=A @ m.T) for m in o.modes]) for o in self.posterior.objects])
+        return replace(self, particles=A @ self.particles, estimate=A @ self.estimate, settled=A @ self.settled,
+                       library=library, posterior=posterior)
+
+
+class TrackSearch(DefaultSearch):
+    """The default search narrowed to a tracked frame (module docstring); ``lost``: indices of the objects whose
+    carried poses no longer explain the observation, re-searched data-driven."""
+
+    def __init__(self, problem: Problem, carried: Carried, lost: list[int]):
+        super().__init__(problem)
+        self.carried, self.lost = carried, list(lost)
+        self.library = carried.library
+
+    def geometry(self, filt: ParticleFilter) -> SearchGeometry:
+        """The carried per-model geometry with this frame's observed points."""
+        if self._geometry is None:
+            self._geometry = replace(self.carried.geometry, points=observed_points(self.problem))
+        return self._geometry
+
+    def start(self, filt: ParticleFilter) -> tuple[np.ndarray, np.ndarray]:
+        cfg, c = filt.config, self.carried
+        n, K = cfg.particles, self.problem.n_objects
+        filt.sink = c.sink  # the same table plane: the same sink
+        idx = systematic_resample(np.log(np.maximum(c.weights, 1e-300)), filt.rng, n)
+        start = gaussian.propose_joint(filt.rng, c.particles[idx], cfg.sigma, np.ones(K), cfg.state).hypotheses
+        kinds = np.full(n, int(MoveKind.JOINT), np.int8)
+        start[: min(n, 2)] = np.stack([c.estimate, c.settled])[: min(n, 2)]  # carried as they were
+        kinds[: min(n, 2)] = int(MoveKind.START)
+        if self.lost:
+            self.refit_library(filt)
+            take = np.zeros((n, K), dtype=bool)
+            take[2:, self.lost] = filt.rng.random((max(n - 2, 0), len(self.lost))) < cfg.data_start
+            start = datadriven.sequential_start(filt.rng, self.library, n, self.geometry(filt).radius, take, start)
+            kinds[take.any(axis=1)] = int(MoveKind.DATA_START)
+        return start, kinds
+
+    def refit_library(self, filt: ParticleFilter, scene: np.ndarray | None = None) -> None:
+        """Only while re-searching lost objects: the carried candidates serve a tracked frame, and refitting them
+        costs more than the rest of the frame. Before the first estimate, against the carried scene."""
+        if self.lost:
+            super().refit_library(filt, self.carried.settled if scene is None and filt.map is None else scene)
+
+    def after_step(self, filt: ParticleFilter) -> None:
+        if self.lost:
+            super().after_step(filt)
+
+    def finish(self, filt: ParticleFilter) -> Settled:
+        """Re-searching: the default search's finish. Tracked: the estimate settled on this frame's depth and the
+        carried posterior weighed again (none when the first frame had none)."""
+        cfg = filt.config
+        if self.lost or filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
+            return super().finish(filt)
+        score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
+        # From the better of this frame's estimate and the last answer (a static object's answer is still about
+        # right): fewer rounds, and a static object's answer changes less from frame to frame. Half the first
+        # steps: the answer is within a few millimetres.
+        starts = np.stack([filt.map, self.carried.settled])
+        start = starts[int(np.argmax(score(starts)))]
+        scene, loglik, scored = settle.pattern_search(
+            start, score, step_m=settle.SETTLE_STEP / 2, step_deg=settle.SETTLE_DEGREES / 2,
+            max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
+        if self.carried.posterior is None:
+            return Settled(scene, loglik, [], scored)
+        posterior, n = carried_posterior.rescored(self.problem, scene, loglik, self.carried.posterior, score,
+                                                  filt.particles.projected, filt.weights())
+        return Settled(scene, loglik, [], scored + n, posterior)

@@ -1,0 +1,59 @@
+"""The settings of ``workbench track``: a tracked frame's short search, lost tracking, the camera's motion."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from workbench.errors import InputError
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.moves import MOVES, MoveMix
+from workbench.inference.particles import Sigma
+
+MOTIONS = ("auto", "given", "depth")
+
+
+def _only(**shares: float) -> MoveMix:
+    """A move mix of the named kinds only."""
+    return MoveMix(**{**{m.name: 0.0 for m in MOVES}, **shares})
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """A tracked frame runs ``iterations`` of ``particles`` from the carried particle set, with local moves
+    (``moves``) of a small ``sigma``: the objects stand still, only the camera's motion is uncertain (a few mm and
+    a degree). Objects found lost are re-searched with ``lost_iterations`` and ``lost_moves`` (data-driven moves
+    added). ``lost_badness``, ``lost_rise``: an object is lost when its carried pose's badness
+    (``scenepoints.object_badness``) on the new frame exceeds both ``lost_badness`` and its badness on the previous
+    frame plus ``lost_rise``. More than ``reinit_share`` of the objects lost: the frame is estimated from scratch.
+    ``motion``: the camera's motion from ``scene_camera_world.json`` (given), from the depth, or given where the
+    scene has the file (auto)."""
+
+    particles: int = 60
+    iterations: int = 2
+    sigma: Sigma = field(default_factory=lambda: Sigma(0.003, 0.003, 0.002, *np.radians([1.5, 1.5, 2.0])))
+    moves: MoveMix = field(default_factory=lambda: _only(joint=0.3, single=0.45, icp=0.25))
+    lost_iterations: int = 6
+    lost_moves: MoveMix = field(default_factory=lambda: _only(joint=0.15, single=0.3, icp=0.2, data=0.3, turn=0.05))
+    lost_badness: float = 0.35
+    lost_rise: float = 0.2
+    reinit_share: float = 0.5
+    motion: str = "auto"
+
+    def validate(self) -> None:
+        if self.motion not in MOTIONS:
+            raise InputError("--motion", f"unknown {self.motion!r}; use one of {', '.join(MOTIONS)}")
+        for name in ("particles", "iterations", "lost_iterations"):
+            if getattr(self, name) < 1:
+                raise InputError(name, f"must be >= 1, got {getattr(self, name)}")
+        for name in ("lost_badness", "lost_rise", "reinit_share"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise InputError(name, f"must lie in [0, 1], got {getattr(self, name)}")
+
+    def frame_config(self, config: EstimatorConfig, lost: bool) -> EstimatorConfig:
+        """The estimator's settings for a tracked frame, from the run's ``config`` (its seed, method, state and
+        settling kept): re-searching lost objects (``lost``) or not."""
+        return replace(config, particles=self.particles, sigma=self.sigma,
+                       iterations=self.lost_iterations if lost else self.iterations,
+                       moves=self.lost_moves if lost else self.moves)
