@@ -145,9 +145,7 @@ def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, p
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from workbench.runner import PosteriorFile, ResultsFile, check_resumed
-    from workbench.track.config import TrackConfig
-    from workbench.track.sequence import Tracker, sequence_frames, track_frames
+    from workbench.track.frames import sequence_frames, sequence_world
 
     # Every setting, the frames and the output paths are checked before anything is loaded or started.
     config, problem = estimator_config(args), problem_config(args)
@@ -160,6 +158,10 @@ def _cmd_track(args: argparse.Namespace) -> int:
     track = TrackConfig(particles=args.track_particles, iterations=args.track_iterations, motion=args.motion)
     track.validate()
     frames = sequence_frames(args.dataset, args.scene, args.split, args.frames)
+    sequence_world(args.dataset, args.scene, args.split, args.motion, frames)  # the camera poses, if given, all there
+    from workbench.runner import PosteriorFile, ResultsFile, check_resumed
+    from workbench.track.sequence import Tracker, track_frames
+
     posterior = (None if args.posterior is None else
                  PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
     results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
@@ -303,10 +305,34 @@ def _cmd_make_scenes(args: argparse.Namespace) -> int:
         make_demo(args.out, seed=args.seed, force=args.force)
         print(f"wrote the demo scene to {args.out}", file=sys.stderr)
         return 0
+    if args.sequence is not None:
+        return _make_sequences(args, t0)
+    if args.push is not None:
+        raise InputError("--push", "pushes an object in a sequence: use it with --sequence N")
     scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed,
                          distractors=args.distractors, table_pose=args.table_pose, force=args.force,
                          models=args.models)
     print(f"wrote {len(scenes)} scenes to {args.out} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return 0
+
+
+def _make_sequences(args: argparse.Namespace, t0: float) -> int:
+    """``make-scenes --sequence N``: each scene as a sequence of N frames on an arc (``synth.sequence``)."""
+    from workbench.synth.sequence import Push, make_sequences
+
+    check_count(args.sequence, "--sequence", low=1)
+    if not (np.isfinite(args.arc) and 0.0 <= args.arc <= 180.0):
+        raise InputError("--arc", f"must be degrees in [0, 180], got {args.arc}")
+    if args.models is not None or args.distractors is not None or args.table_pose is not None:
+        raise InputError("--sequence", "draws its scenes from the categories' own settings: give no --models, "
+                                       "--distractors or --table-pose with it")
+    if not (np.isfinite(args.push_distance) and 0.0 < args.push_distance <= 0.5):
+        raise InputError("--push-distance", f"must be metres in (0, 0.5], got {args.push_distance}")
+    push = None if args.push is None else Push(args.push, args.push_distance)
+    scenes = make_sequences(args.out, [c.strip() for c in args.categories.split(",")], args.per_category,
+                            args.sequence, args.seed, arc_deg=args.arc, push=push, force=args.force)
+    print(f"wrote {len(scenes)} sequences of {args.sequence} frames to {args.out} in {time.perf_counter() - t0:.1f} s",
+          file=sys.stderr)
     return 0
 
 
@@ -455,6 +481,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "mixed 0)")
     p.add_argument("--per-category", type=int, default=7)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sequence", type=int, default=None, metavar="N",
+                   help="each scene as a sequence of N frames, the camera on an arc about the objects, its pose per "
+                   "frame in scene_camera_world.json (as the real sequences; for `workbench track`)")
+    p.add_argument("--arc", type=float, default=10.0, help="with --sequence: the camera's arc, degrees (default 10)")
+    p.add_argument("--push", type=int, default=None, metavar="K",
+                   help="with --sequence: from frame K (0-based) on, one object standing on the table is pushed away "
+                   "from the others")
+    p.add_argument("--push-distance", type=float, default=0.05, metavar="M", help="how far, metres (default 0.05)")
     p.add_argument("--demo", action="store_true", help="write the small bundled demo (assets/demo) instead")
     p.add_argument("--force", action="store_true", help="write into OUT even if it is not empty")
     p.set_defaults(func=_cmd_make_scenes)

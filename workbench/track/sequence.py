@@ -34,7 +34,8 @@ from workbench.runner import estimator_rows, run_estimator
 from workbench.scene import Frame
 from workbench.track import lost as lost_words
 from workbench.track.config import TrackConfig
-from workbench.track.motion import WORLD_FILE, depth_motion, given_motion, read_world_poses
+from workbench.track.frames import sequence_world
+from workbench.track.motion import depth_motion, given_motion
 
 
 @dataclass(frozen=True)
@@ -76,8 +77,7 @@ class Tracker:
         self.dataset, self.scene_id, self.split, self.object_ids = Path(dataset), scene_id, split, object_ids
         self.config, self.track, self.problem_config = config, track, problem_config
         self.workers, self.early_stop, self.max_retries = workers, early_stop, max_retries
-        self.world = world_poses(self.dataset, scene_id, split, track.motion)
-        check_world_poses(self.world, frames, bop.scene_folder(self.dataset, scene_id, split) / WORLD_FILE)
+        self.world = sequence_world(self.dataset, scene_id, split, track.motion, frames)
         self.evaluator = None
         self.models: dict = {}
         self.previous: tuple[Frame, Problem] | None = None
@@ -143,7 +143,8 @@ class Tracker:
         if self.world is not None:
             M = given_motion(self.world[previous.im_id], self.world[frame.im_id])
         else:
-            M = depth_motion(previous, frame)
+            t = prev_problem.table
+            M = depth_motion(previous, frame, prev_problem.camera.T_cam_world, (t.region_min, t.region_max))
         expected = M @ prev_problem.camera.T_cam_world
         if frame.camera.T_cam_world is None:  # a table pose the dataset gives is the same table's: kept
             frame = replace(frame, camera=frame.camera.with_pose(expected))
@@ -166,62 +167,6 @@ class Tracker:
         still = lost_words.lost_objects(object_badness(problem, best, samples), carried.badness, t.lost_badness,
                                         t.lost_rise)
         return estimator, best, lost_words.status(int(lost.sum()), int((lost & ~still).sum()))
-
-
-def world_poses(dataset: Path, scene_id: int, split: str | None, motion: str) -> dict[int, np.ndarray] | None:
-    """The scene's camera poses for ``motion`` "given" (InputError when the scene has none) or "auto" (None
-    without the file: the motion is registered from the depth); None for "depth"."""
-    if motion == "depth":
-        return None
-    folder = bop.scene_folder(dataset, scene_id, split)
-    poses = read_world_poses(folder)
-    if poses is None and motion == "given":
-        raise InputError(folder / WORLD_FILE, "not found: --motion given needs each frame's camera pose in the world "
-                                              "frame (R_w2c, t_w2c mm); use --motion depth to register the camera's "
-                                              "motion from the depth instead")
-    return poses
-
-
-def sequence_frames(dataset: Path, scene_id: int, split: str | None, frames: str | None) -> list[int]:
-    """The image ids of ``--frames A:B`` (both included; default: all) of one scene, in order. InputError when the
-    scene, A or B is not there, when an id between them is missing (a sequence needs every frame) or a frame's
-    depth image is."""
-    folder = bop.scene_folder(dataset, scene_id, split)
-    cam_path = folder / "scene_camera.json"
-    ids = sorted(bop.image_ids(bop.read_json(cam_path), cam_path))
-    if not ids:
-        raise InputError(cam_path, "lists no frames")
-    lo, hi = ids[0], ids[-1]
-    if frames is not None:
-        try:
-            lo, hi = (int(v) for v in frames.split(":"))
-        except ValueError:
-            raise InputError("--frames", f"must be A:B, two image ids (e.g. 1:20), got {frames!r}") from None
-        if lo > hi:
-            raise InputError("--frames", f"A:B must have A <= B, got {frames}")
-        for v in (lo, hi):
-            if v not in ids:
-                raise InputError("--frames", f"scene {scene_id} has no frame {v} (frames {ids[0]}..{ids[-1]}, "
-                                             f"{len(ids)} of them, in {cam_path})")
-    chosen = [i for i in ids if lo <= i <= hi]
-    gaps = sorted(set(range(lo, hi + 1)) - set(chosen))
-    if gaps:
-        raise InputError(cam_path, f"frame {gaps[0]} is missing between {lo} and {hi}: a sequence needs every frame; "
-                                   f"track the parts either side of it (--frames)")
-    for i in chosen:
-        if not (folder / "depth" / f"{i:06d}.png").is_file():
-            raise InputError(folder / "depth" / f"{i:06d}.png", f"not found: frame {i} of the sequence has no depth")
-    return chosen
-
-
-def check_world_poses(world: dict[int, np.ndarray] | None, frames: list[int], path: Path) -> None:
-    """Every frame of the sequence has its camera pose in ``world`` (when there is one): InputError naming
-    ``path`` and the first frame without one."""
-    if world is not None:
-        lacking = [i for i in frames if i not in world]
-        if lacking:
-            raise InputError(path, f"frame {lacking[0]} has no camera pose (R_w2c, t_w2c); the sequence needs one "
-                                   "for every frame (or use --motion depth)")
 
 
 def track_frames(tracker: Tracker, frames: list[int], done: set[int],

@@ -1,0 +1,126 @@
+"""Generated sequences (``make-scenes --sequence N``): one generated scene seen from a camera moving on an arc about
+its objects, N frames, with each frame's camera pose in a fixed world frame (``scene_camera_world.json``, as the
+real sequences of ``ycbv-real-seq`` have it) and, optionally, one object pushed along the table from a frame on.
+
+The world frame is deliberately not the table frame (``WORLD_FROM_TABLE``: tilted and shifted), as a robot's base
+frame would not be. Frames are written as image ids 0..N-1 of one scene each, in the scene's BOP files.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from workbench.errors import InputError
+from workbench.geometry import invert_pose, make_pose, rot_x, rot_z
+from workbench.io import bop
+from workbench.synth.config import CATEGORIES, DESKS, DeskSpec, SynthConfig
+from workbench.synth.dataset import _scene_meta, _write_camera_json, check_out_folder, save_object_models
+from workbench.synth.layout import Placed
+from workbench.synth.scenes import SceneSample, generate_scene
+from workbench.synth.sensor import apply_sensor
+from workbench.synth.sim import Sim
+from workbench.synth.views import render_clean
+
+# The fixed world frame's pose in the table frame: 20 degrees off the table's normal, 0.3 m away.
+WORLD_FROM_TABLE = make_pose(rot_x(np.radians(20.0)) @ rot_z(np.radians(35.0)), np.array([0.3, -0.2, 0.1]))
+
+
+@dataclass(frozen=True)
+class Push:
+    """From frame ``frame`` (0-based) on, one object that stands on the table with nothing on or against it is
+    ``distance`` m further from the others' centre, on the table."""
+
+    frame: int
+    distance: float = 0.05
+
+
+def arc_cameras(T_cam_world: np.ndarray, centre: np.ndarray, n: int, arc_deg: float) -> np.ndarray:
+    """The camera ``T_cam_world`` (4, 4, table frame) turned about the vertical through ``centre`` (3,) m by
+    ``arc_deg`` degrees in all, evenly over ``n`` frames (the first as given) -> (n, 4, 4)."""
+    out = np.empty((n, 4, 4))
+    for i, a in enumerate(np.radians(np.linspace(0.0, arc_deg, n))):
+        turn = make_pose(rot_z(a), centre - rot_z(a) @ centre)  # about the vertical through centre
+        out[i] = T_cam_world @ invert_pose(turn)
+    return out
+
+
+def pushable(layout: list[Placed]) -> int:
+    """The layout index of the object a push moves: the first that stands on the table with nothing on or against
+    it. InputError when none does (every object stacked, leaning or carrying another)."""
+    carriers = {p.parent for p in layout if p.relation in ("stack", "slant")}  # something rests on or against it
+    for k, p in enumerate(layout):
+        if p.relation not in ("stack", "slant") and k not in carriers:
+            return k
+    raise InputError("--push", "no object of this scene stands alone on the table to be pushed; choose another "
+                               "category or seed")
+
+
+def pushed(layout: list[Placed], k: int, distance: float) -> list[Placed]:
+    """The layout with object ``k`` moved ``distance`` m along the table, away from the other objects' centre."""
+    others = np.mean([p.T[:2, 3] for j, p in enumerate(layout) if j != k], axis=0) if len(layout) > 1 else None
+    away = np.array([1.0, 0.0]) if others is None else layout[k].T[:2, 3] - others
+    away = away / max(np.linalg.norm(away), 1e-9)
+    T = layout[k].T.copy()
+    T[:2, 3] += distance * away
+    return [replace(p, T=T) if j == k else p for j, p in enumerate(layout)]
+
+
+def write_sequence(out: Path, scene_id: int, sample: SceneSample, cfg: SynthConfig, cameras: np.ndarray,
+                   rng: np.random.Generator, push: Push | None = None, split: str = "test") -> None:
+    """The scene ``sample`` seen from each of ``cameras`` (N, 4, 4, table frame) as frames 0..N-1 of ``scene_id``:
+    depth with sensor noise, scene_camera.json (the table pose where the sample gives it), scene_gt.json and
+    scene_camera_world.json (world -> camera, R row-major, t mm)."""
+    moved = None if push is None else pushed(sample.layout, pushable(sample.layout), push.distance)
+    world = {}
+    for i, T in enumerate(cameras):
+        layout = moved if moved is not None and i >= push.frame else sample.layout
+        clean, _ = render_clean(cfg, T, layout, sample.distractors)
+        gt = [(p.item.obj_id, T @ p.T) for p in layout]
+        bop.save_frame(out, scene_id, i, apply_sensor(clean, rng, cfg.sensor), cfg.K(),
+                       T if sample.table_pose else None, gt, split=split)
+        T_c_w = T @ WORLD_FROM_TABLE
+        world[str(i)] = {"R_w2c": T_c_w[:3, :3].ravel().tolist(), "t_w2c": (T_c_w[:3, 3] / bop.MM).tolist()}
+    path = Path(out) / split / f"{scene_id:06d}" / "scene_camera_world.json"
+    path.write_text(json.dumps(world, indent=1) + "\n")
+
+
+def make_sequences(out: Path, categories: list[str], per_category: int, frames: int, seed: int, width: int = 640,
+                   height: int = 480, arc_deg: float = 10.0, push: Push | None = None, force: bool = False
+                   ) -> list[dict]:
+    """``per_category`` sequences of ``frames`` frames per category, each a generated scene (as ``make_scenes``
+    draws it, same seed) seen on an arc of ``arc_deg`` degrees, with an optional ``push``. -> per scene the
+    metadata ``make_scenes`` gives, with "frames" and "push" (the pushed object's obj_id and frame) added."""
+    unknown = [c for c in categories if c not in CATEGORIES]
+    if unknown:
+        raise InputError("categories", f"unknown {unknown}; choose from {list(CATEGORIES)}")
+    if frames < 1:
+        raise InputError("--sequence", f"must be >= 1 frames, got {frames}")
+    if push is not None and not 0 <= push.frame < frames:
+        raise InputError("--push", f"the push's frame must be one of the sequence's 0..{frames - 1}, got {push.frame}")
+    out = Path(out)
+    check_out_folder(out, force)
+    cfg = SynthConfig(width=width, height=height)
+    save_object_models(out)
+    _write_camera_json(out, cfg)
+    meta, sim = [], Sim(cfg)
+    try:
+        for category in categories:
+            for j in range(per_category):
+                rng = np.random.default_rng([seed, CATEGORIES.index(category), j])
+                sample = generate_scene(sim, category, rng, cfg, DESKS.get(category, DeskSpec()))
+                centre = np.mean([p.T[:3, 3] for p in sample.layout], axis=0)
+                cameras = arc_cameras(sample.T_cam_world, centre, frames, arc_deg)
+                write_sequence(out, len(meta), sample, sim.cfg, cameras, rng, push)
+                entry = {**_scene_meta(len(meta), sample), "frames": frames}
+                if push is not None:
+                    entry["push"] = {"obj_id": sample.layout[pushable(sample.layout)].item.obj_id,
+                                     "frame": push.frame, "distance_m": push.distance}
+                meta.append(entry)
+    finally:
+        sim.close()
+    (out / "scenes.json").write_text(json.dumps({"scenes": meta}, indent=2) + "\n")
+    return meta
