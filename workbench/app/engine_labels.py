@@ -276,7 +276,9 @@ class FrameLabels:
         return gt if len(gt) == problem.n_objects and np.all(np.isfinite(gt)) else None
 
     def publish_truth(self) -> None:
-        """The best scene against the dataset's ground truth, every iteration, where the frame has one."""
+        """The estimate against the dataset's ground truth, every iteration, where the frame has one: the run's
+        settled answer with its posterior's confidences once it has one (what the 3D view draws, and what
+        ``workbench estimate`` writes), else the best scene."""
         est, frame, problem = self.engine.estimator, self.engine.frame, self.engine.problem
         if est is None or est.particles is None or frame is None or frame.gt_T_cam_obj is None:
             return
@@ -284,6 +286,6 @@ class FrameLabels:
 
         if self.truth_points is None:
             self.truth_points = truth_points(problem)
-        estimate = np.array(est.best, dtype=np.float64)
-        rows = truth_rows(frame, problem, estimate, self.truth_points)
+        estimate = np.array(est.settled if est.answer_current else est.best, dtype=np.float64)
+        rows = truth_rows(frame, problem, estimate, self.truth_points, est.current_posterior)
         self.engine.results.put(p.TruthErrors(est.iteration, rows, estimate))

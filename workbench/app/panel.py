@@ -10,6 +10,7 @@ import viser
 
 from workbench.app.camera import FRAME_OBJECTS, FROM_SENSOR
 from workbench.app.label_tab import LabelTab, build_label_tab
+from workbench.app.layout import button_row_css
 from workbench.app.modes import NO_POSTERIOR
 from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.plots import Plots
@@ -244,6 +245,7 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
     pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True, hint="stop after this iteration")
     reset = gui.add_button("Reset", icon=viser.Icon.REFRESH, color="gray",
                            hint="new random particles (seed and likelihood model apply here)")
+    gui.add_html(button_row_css([b._impl.uuid for b in (step, run, pause, reset)]))  # one row: a short top
     # The 3D view's camera presets, what it shows, the estimate's error against the truth, and its one legend.
     with gui.add_folder("View", expand_by_default=True):
         camera = gui.add_button_group("Camera", (FRAME_OBJECTS, FROM_SENSOR))

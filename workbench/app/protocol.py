@@ -338,8 +338,10 @@ class LabelErrors:
 @dataclass
 class TruthErrors:
     """The estimate against the dataset's ground truth (scene_gt.json), scored as ``workbench score`` scores a
-    results CSV: per ground-truth object a row {"obj_id", "position_cm", "rotation_deg", "add_s_mm", "right"}
-    (NaN errors where no estimate is matched). ``estimate``: the scored scene (K, 4, 4) in the table frame."""
+    results CSV: per ground-truth object a row {"index", "obj_id", "position_cm", "rotation_deg", "add_s_mm",
+    "right", "confidence"} (``truth.truth_rows``; NaN errors where no estimate is matched, NaN confidence before
+    the run has a posterior). ``estimate``: the scored scene (K, 4, 4) in the table frame: the settled answer once
+    there is one, else the best scene."""
 
     iteration: int
     rows: list[dict]

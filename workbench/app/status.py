@@ -33,7 +33,8 @@ class RunView:
 
 
 def status_markdown(s: RunView, cfg) -> str:
-    """The status line of the run ``s`` under the settings ``cfg`` (an ``EstimatorConfig``)."""
+    """The status of the run ``s`` under the settings ``cfg`` (an ``EstimatorConfig``): two short lines, since
+    they sit in the panel's fixed top (the iteration's numbers are in the Estimator tab, ``timings_markdown``)."""
     if not s.reports:
         state = "running" if s.running else "paused"
         return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."
@@ -49,7 +50,7 @@ def status_markdown(s: RunView, cfg) -> str:
         state = "paused"
     counter = f"Iteration {it} of {cfg.iterations}" if it <= cfg.iterations else \
         f"Iteration {it}, {it - cfg.iterations} past the budget of {cfg.iterations}"
-    rule = f"< {cfg.converge_position * 100:g} cm and < {cfg.converge_degrees:g}°"
+    rule = f"< {cfg.converge_position * 100:g} cm, < {cfg.converge_degrees:g}°"
     if r["converged"]:
         conv = f"**converged**: the best scene moved {rule} for {cfg.converge_patience} iterations"
     else:
@@ -60,22 +61,26 @@ def status_markdown(s: RunView, cfg) -> str:
             else:
                 break
         last = "" if not np.isfinite(r["best_move_m"]) else \
-            f"; last it moved {r['best_move_m'] * 100:.1f} cm, {r['best_move_deg']:.1f}°"
-        conv = f"calm {min(calm, cfg.converge_patience)} of {cfg.converge_patience} (calm: best moves {rule}{last})"
+            f" · last move {r['best_move_m'] * 100:.1f} cm, {r['best_move_deg']:.1f}°"
+        conv = f"calm {min(calm, cfg.converge_patience)}/{cfg.converge_patience} ({rule}){last}"
+    return f"**{counter}** · {state}  \n{conv}"
+
+
+def details_markdown(r: dict) -> str:
+    """The iteration's numbers below the status (``r``: its report): the best log-likelihood and the move that
+    found it, β, the failures, the acceptance and how far the objects rest below the fitted table."""
     accept = "" if np.isnan(r["accept_rate"]) else f" · accepted {r['accept_rate'] * 100:.0f} %"
-    return (
-        f"**{counter}** · {state}  \n{conv}  \n"
-        f"best log-lik {r['best_loglik']:.1f} (from a {r.get('best_kind') or 'start'} move) · β {r['beta']:.3g}"
-        f" · failed physics or outside the object region {r['n_failed']}{accept} · objects rest {r.get('sink_m', 0.0) * 1000:.0f} mm below"
-        f" the fitted table"
-    )
+    return (f"Iteration {r['iteration']}: best log-lik {r['best_loglik']:.1f} (from a {r.get('best_kind') or 'start'}"
+            f" move) · β {r['beta']:.3g} · failed physics or outside the object region {r['n_failed']}{accept} · "
+            f"objects rest {r.get('sink_m', 0.0) * 1000:.0f} mm below the fitted table")
 
 
 def timings_markdown(report: dict) -> str:
+    """The Estimator tab's account of an iteration: its numbers (``details_markdown``) and its stage timings."""
     t = report["timings"]
     rows = "\n".join(f"| {stage} | {t.get(stage, 0.0) * 1000:.1f} |"
                      for stage in ("projection", "render", "likelihood", "resampling", "total"))
-    return ("| stage | ms |\n|---|---:|\n" + rows +
+    return (details_markdown(report) + "\n\n| stage | ms |\n|---|---:|\n" + rows +
             "\n\n<small>projection, render and likelihood are summed over the workers; total is wall time</small>")
 
 
