@@ -11,7 +11,7 @@ from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_x, rot_z
 from workbench.io import bop
 from workbench.track.frames import sequence_frames, sequence_world
-from workbench.track.lost import lost_objects, status
+from workbench.track.lost import lost_objects, status_words
 from workbench.track.motion import given_motion, read_world_poses
 
 
@@ -109,4 +109,4 @@ def test_an_object_is_lost_when_it_fits_much_worse_than_before():
                                                    (2, 1, "1 object re-found, 1 object still lost"),
                                                    (1, 0, "1 object still lost")])
 def test_status_words(searched, found, words):
-    assert status(searched, found) == words
+    assert status_words(searched, found) == words

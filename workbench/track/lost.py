@@ -14,7 +14,7 @@ def lost_objects(badness: np.ndarray, before: np.ndarray, floor: float, rise: fl
     return (badness > floor) & (badness > np.asarray(before) + rise)
 
 
-def status(searched: int, found: int) -> str:
+def status_words(searched: int, found: int) -> str:
     """A tracked frame's status in words: "tracked", "2 objects re-found", "1 object re-found, 1 still lost"."""
     if searched == 0:
         return "tracked"

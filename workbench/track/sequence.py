@@ -32,7 +32,7 @@ from workbench.pipeline import problem_for_frame
 from workbench.problem import Problem, ProblemConfig
 from workbench.runner import estimator_rows, run_estimator
 from workbench.scene import Frame
-from workbench.track import lost as lost_words
+from workbench.track.lost import lost_objects, status_words
 from workbench.track.config import TrackConfig
 from workbench.track.frames import sequence_world
 from workbench.track.motion import depth_motion, given_motion
@@ -156,17 +156,16 @@ class Tracker:
         estimated from scratch when most are."""
         t = self.track
         samples = carried.geometry.samples
-        lost = lost_words.lost_objects(object_badness(problem, carried.settled, samples), carried.badness,
-                                       t.lost_badness, t.lost_rise)
+        lost = lost_objects(object_badness(problem, carried.settled, samples), carried.badness, t.lost_badness,
+                            t.lost_rise)
         if lost.sum() > t.reinit_share * problem.n_objects:
             return *self._estimate(problem, f"scene {self.scene_id}: re-initialising"), "re-initialised"
         self._use(problem)
         search = TrackSearch(problem, carried, np.flatnonzero(lost).tolist())
         estimator = Estimator(problem, t.frame_config(self.config, bool(lost.any())), self.evaluator, search)
         _, best = run_estimator(estimator, "tracking", early_stop=False)
-        still = lost_words.lost_objects(object_badness(problem, best, samples), carried.badness, t.lost_badness,
-                                        t.lost_rise)
-        return estimator, best, lost_words.status(int(lost.sum()), int((lost & ~still).sum()))
+        still = lost_objects(object_badness(problem, best, samples), carried.badness, t.lost_badness, t.lost_rise)
+        return estimator, best, status_words(int(lost.sum()), int((lost & ~still).sum()))
 
 
 def track_frames(tracker: Tracker, frames: list[int], done: set[int],
