@@ -510,6 +510,23 @@ def test_a_heavy_mesh_is_worked_on_as_a_lighter_one(monkeypatch):
     assert heavy.working_mesh(light) is light
 
 
+def test_the_search_lays_a_heavy_mesh_on_a_reduced_hull_and_once_per_shape():
+    from workbench.inference import resting
+
+    sphere = trimesh.creation.icosphere(6, radius=0.04)  # 40962 vertices, all on its hull
+    hull = resting.reduced_hull(sphere)
+    assert len(hull.vertices) <= resting.REDUCED_HULL_VERTICES < len(sphere.convex_hull.vertices)
+    assert np.abs(np.linalg.norm(hull.vertices, axis=1) - 0.04).max() < 1e-9  # hull points of the sphere itself
+    # Within 1.5 mm of the full hull: every face's plane passes that close to the sphere's centre-most extent.
+    distance_to_centre = np.abs(np.einsum("fi,fi->f", hull.face_normals, hull.triangles[:, 0]))
+    assert 0.04 - distance_to_centre.min() < 0.0015
+    box = trimesh.creation.box(extents=[0.1, 0.06, 0.2])
+    assert resting.reduced_hull(box).vertices.shape == box.convex_hull.vertices.shape  # light hulls as they are
+    first = resting.resting_poses(box)
+    again = resting.resting_poses(trimesh.creation.box(extents=[0.1, 0.06, 0.2]))  # the next frame's load
+    assert again is first and not first.rotations.flags.writeable
+
+
 def test_a_pool_prepares_the_meshes_once_before_its_workers_start(monkeypatch):
     from workbench.evaluation import pool
 

@@ -8,7 +8,9 @@ millimetre off at these counts) and both choices are made from that; its errors 
 full mesh where they are measured by rays (the render mesh). ``announced`` says what is being done while it takes
 long: a line when a step has taken over ``FIRST_S`` seconds, then one every ``EVERY_S`` seconds, so that no
 silence is longer than that. The evaluators prepare a problem's meshes once in the main process
-(``evaluation.local.prepare_meshes``); the workers then read them from the cache.
+(``evaluation.local.prepare_meshes``); the workers then read them from the cache. The search's geometry
+(``inference.context.search_mesh``) is computed from the render mesh of a heavy model, its stable poses from a hull
+of at most ``resting.MAX_HULL_VERTICES`` vertices, and the lowest points of its particles from its hull's vertices.
 """
 
 from __future__ import annotations
@@ -34,15 +36,21 @@ def faces_text(n: int) -> str:
     return f"{n / 1e6:.1f}M" if n >= 1e6 else f"{n / 1e3:.0f}k" if n >= 1e4 else str(n)
 
 
+def mesh_key(mesh: trimesh.Trimesh) -> str:
+    """A digest of the mesh's vertices and faces: the same shape loaded again (the next frame's models) has the
+    same key."""
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    return h.hexdigest()
+
+
 def working_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """``mesh`` itself up to ``HEAVY_FACES`` faces, else its quadric decimation to ``WORKING_FACES`` (once per
     process and mesh)."""
     if len(mesh.faces) <= HEAVY_FACES:
         return mesh
-    h = hashlib.sha1()
-    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
-    key = h.hexdigest()
+    key = mesh_key(mesh)
     if key not in _WORKING:
         import open3d as o3d
 

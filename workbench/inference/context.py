@@ -7,13 +7,16 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
+import trimesh
 
+from workbench.heavy import HEAVY_FACES, working_mesh
 from workbench.inference import assemble, resting
 from workbench.inference.datadriven import Library
 from workbench.inference.particles import Sigma
 from workbench.inference.proposal import Proposal
 from workbench.inference.scenepoints import ModelSamples, ScenePoints, model_samples, observed_points
 from workbench.problem import Problem
+from workbench.scene import ObjectModel
 
 
 @dataclass
@@ -35,11 +38,11 @@ class SearchGeometry:
     def of(cls, problem: Problem, upright: bool) -> "SearchGeometry":
         """Computed from the problem's meshes and observation; ``upright``: the reduced state's resting poses
         only (no object laid on its side)."""
-        models = problem.models
-        hulls = [np.asarray(m.mesh.convex_hull.vertices, dtype=np.float64) for m in models]
-        samples = [model_samples(m.mesh) for m in models]
+        meshes = [search_mesh(m, problem) for m in problem.models]
+        hulls = [np.asarray(resting.reduced_hull(m).vertices, dtype=np.float64) for m in meshes]
+        samples = [model_samples(m) for m in meshes]
         return cls(
-            rest=[resting.resting_poses(m.mesh, upright_only=upright) for m in models],
+            rest=[resting.resting_poses(m, upright_only=upright) for m in meshes],
             samples=samples,
             hulls=hulls,
             reach=np.array([float(np.max(np.linalg.norm(h[:, :2], axis=1))) for h in hulls]),
@@ -47,6 +50,18 @@ class SearchGeometry:
             points=observed_points(problem),
             solids=[assemble.solid(h, s) for h, s in zip(hulls, samples)],
         )
+
+
+def search_mesh(model: ObjectModel, problem: Problem) -> trimesh.Trimesh:
+    """The mesh the search's geometry is computed from: the model's own; for one of more than
+    ``heavy.HEAVY_FACES`` faces, the render mesh (decimated within the renderer's depth error, chosen once and
+    cached on disk by the evaluators), so that a 1.3M-face model costs no minutes here, in every run."""
+    if len(model.mesh.faces) <= HEAVY_FACES:
+        return model.mesh
+    from workbench.render.depth import render_mesh  # only here: importing it picks the OpenGL platform
+
+    mesh = render_mesh(model.mesh, problem.config.render.max_depth_error)
+    return mesh if len(mesh.faces) <= HEAVY_FACES else working_mesh(model.mesh)
 
 
 @dataclass(frozen=True)

@@ -15,12 +15,15 @@ import numpy as np
 import trimesh
 
 from workbench.geometry import rot_z
+from workbench.heavy import mesh_key
 from workbench.inference.proposal import Proposal, pick_objects
 
 BOX_FILL = 0.85
 # A side of a non-box mesh is proposed with at least this probability: a drop rarely lands a marker on its end,
 # but a scene can hold one standing (YCB-Video's large marker does).
 MIN_PROB = 0.05
+MAX_HULL_VERTICES = 4000  # YCB-Video's hulls have 314-3,277 vertices (the banana the most)
+REDUCED_HULL_VERTICES = 1000  # stable poses of a hull of 1,000 vertices take about 1.5 s
 
 
 @dataclass(frozen=True)
@@ -33,12 +36,23 @@ class RestingPoses:
     probs: np.ndarray
 
 
-def _faces_of_box(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None:
-    """The 6 face-down rotations of the mesh's oriented bounding box and their face areas, or None if the mesh
-    is not box-like."""
-    obb = mesh.bounding_box_oriented
-    hull = mesh if mesh.is_watertight else mesh.convex_hull
-    if abs(float(hull.volume)) < BOX_FILL * float(obb.volume):
+def reduced_hull(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The mesh's convex hull; one with more than ``MAX_HULL_VERTICES`` vertices (a finely tessellated sphere)
+    rebuilt from ``REDUCED_HULL_VERTICES`` of them (seeded), within about a millimetre of it: stable poses and the
+    oriented bounding box cost time that grows faster than the hull's faces (minutes for a 1.3M-face sphere)."""
+    hull = mesh.convex_hull
+    if len(hull.vertices) <= MAX_HULL_VERTICES:
+        return hull
+    keep = np.random.default_rng(0).choice(len(hull.vertices), REDUCED_HULL_VERTICES, replace=False)
+    return trimesh.convex.convex_hull(np.asarray(hull.vertices)[keep])
+
+
+def _faces_of_box(mesh: trimesh.Trimesh, hull: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """The 6 face-down rotations of the mesh's oriented bounding box (that of its ``hull``) and their face areas,
+    or None if the mesh is not box-like."""
+    obb = hull.bounding_box_oriented
+    solid = mesh if mesh.is_watertight else hull
+    if abs(float(solid.volume)) < BOX_FILL * float(obb.volume):
         return None
     axes = np.asarray(obb.primitive.transform)[:3, :3]  # box axes in the object frame (columns)
     ext = np.asarray(obb.primitive.extents)
@@ -58,21 +72,36 @@ def _faces_of_box(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None
 
 def resting_poses(mesh: trimesh.Trimesh, upright_only: bool = False) -> RestingPoses:
     """The stable resting poses of ``mesh`` (metres, object frame). ``upright_only``: only the model's own
-    orientation (for the x, y, z, yaw state, which never samples roll and pitch)."""
+    orientation (for the x, y, z, yaw state, which never samples roll and pitch). Computed once per process and
+    shape: a dataset's frames load the same models again, and a banana's stable poses take seconds."""
+    key = (mesh_key(mesh), upright_only)
+    if key not in _RESTING:
+        _RESTING[key] = _resting_poses(mesh, upright_only)
+    return _RESTING[key]
+
+
+_RESTING: dict[tuple[str, bool], RestingPoses] = {}
+
+
+def _resting_poses(mesh: trimesh.Trimesh, upright_only: bool) -> RestingPoses:
+    hull = reduced_hull(mesh)
     if upright_only:
         rots = np.eye(3)[None]
         probs = np.ones(1)
     else:
-        box = _faces_of_box(mesh)
+        box = _faces_of_box(mesh, hull)
         if box is not None:
             rots, areas = box
             probs = areas / areas.sum()  # a larger face is the likelier one to land on
         else:
-            transforms, probs = trimesh.poses.compute_stable_poses(mesh.convex_hull, n_samples=1)
-            axes = np.asarray(mesh.bounding_box_oriented.primitive.transform)[:3, :3]
+            transforms, probs = trimesh.poses.compute_stable_poses(hull, n_samples=1)
+            axes = np.asarray(hull.bounding_box_oriented.primitive.transform)[:3, :3]
             rots, probs = one_per_side(np.asarray(transforms)[:, :3, :3], np.asarray(probs, dtype=np.float64), axes)
-    heights = -np.min(np.einsum("fij,vj->fvi", rots, mesh.convex_hull.vertices)[..., 2], axis=1)
-    return RestingPoses(np.asarray(rots, dtype=np.float64), heights, np.asarray(probs, dtype=np.float64))
+    heights = -np.min(np.einsum("fij,vj->fvi", rots, hull.vertices)[..., 2], axis=1)
+    out = RestingPoses(np.array(rots, dtype=np.float64), np.array(heights), np.array(probs, dtype=np.float64))
+    for a in (out.rotations, out.heights, out.probs):  # shared by every caller (the cache): read only
+        a.setflags(write=False)
+    return out
 
 
 def one_per_side(rots: np.ndarray, probs: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
