@@ -300,10 +300,11 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         im_id = gui.add_text("Frame id", "", hint="empty: the first frame")
         load = gui.add_button("Load dataset", icon=viser.Icon.FOLDER_OPEN)
         demo = gui.add_button("Load demo", icon=viser.Icon.BOX, color="gray")
-        depth_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="depth", format="png", visible=False)
-        depth_legend = gui.add_html("")
+        # The colour image first, where the dataset has one: what poses are checked against by eye.
         rgb_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="colour image", format="jpeg",
                                   visible=False)
+        depth_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="depth", format="png", visible=False)
+        depth_legend = gui.add_html("")
         workers = gui.add_markdown("")
 
     with tabs.add_tab("Label", viser.Icon.PENCIL):
