@@ -135,3 +135,28 @@ def test_frame_selection_and_budgets():
     assert (quick.particles, quick.iterations) == (48, 4)
     custom = budget_for(2, quick=False, particles=100, iterations=0, state="xyzyaw")
     assert (custom.particles, custom.iterations, custom.state) == (100, 0, "xyzyaw")
+
+
+def test_a_worker_that_dies_during_bench_is_restarted_and_the_run_goes_on(touching_dataset, tmp_path, monkeypatch,
+                                                                         caplog):
+    """`bench` on the local engine restarts a dead evaluation worker and retries its part, as `estimate` does: here
+    worker 0 of each frame's pool is killed before its first batch."""
+    import logging
+
+    from workbench.bench import tables
+
+    real, made = tables.make_evaluator, []
+
+    def dying_pool(problem, workers, **kwargs):
+        evaluator = real(problem, workers, **kwargs)
+        evaluator._procs[0].kill()
+        evaluator._procs[0].join()
+        made.append(kwargs)
+        return evaluator
+
+    monkeypatch.setattr(tables, "make_evaluator", dying_pool)
+    with caplog.at_level(logging.WARNING):
+        report = tables.run_benchmark(touching_dataset, tmp_path / "bench", quick=True, methods=["pipf"], workers=2)
+    assert made and all(kw.get("max_retries") == 3 for kw in made)
+    assert report["table1"] and not report.get("failed_frames")
+    assert any("died" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)

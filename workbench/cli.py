@@ -362,7 +362,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
                   categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop,
-                  proposals=args.proposals, ray=ray)
+                  proposals=args.proposals, ray=ray, max_retries=args.max_retries)
     return 0
 
 

@@ -583,9 +583,11 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
                   particles: int | None = None, iterations: int | None = None, workers: int = 2,
                   state: str = "auto", categories: list[str] | None = None,
                   per_category: int | None = None, early_stop: bool = True, proposals: str = "default",
-                  ray: RayConfig | None = None) -> dict:
+                  ray: RayConfig | None = None, max_retries: int = 3) -> dict:
     """Run the methods on the dataset's frames, write OUT/report.md, OUT/report.json and OUT/results_<method>.csv,
     print the report -> report.json's content. ``proposals``: the filters' search ("default" or "paper").
+    ``max_retries``: on the local engine, times a dead evaluation worker is started again per batch, its part
+    retried (``evaluation.pool.PoolEvaluator``), as `estimate` does.
     ``ray`` (a RayConfig): frames as Ray tasks (``bench_frame_task``); a frame that fails is reported, left out
     of the tables and listed in the report's ``failed_frames``, and the others go on."""
     dataset, out = Path(dataset), Path(out)
@@ -616,7 +618,7 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
 
     def here(scene_id: int, im_id: int) -> FrameBench:
         return bench_frame(dataset, scene_id, im_id, cats[scene_id], settings,
-                           lambda problem: make_evaluator(problem, workers), on_run, progress)
+                           lambda problem: make_evaluator(problem, workers, max_retries=max_retries), on_run, progress)
 
     run_frames(frames, here, bench_frame_task, (dataset.resolve(), cats, settings), ray, results.__setitem__,
                failures.append, desc="bench")
