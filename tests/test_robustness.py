@@ -535,3 +535,47 @@ def test_a_pool_prepares_the_meshes_once_before_its_workers_start(monkeypatch):
     monkeypatch.setattr(pool.PoolEvaluator, "_start", lambda self, i: order.append(f"worker {i}"))
     pool.PoolEvaluator(object(), 3)
     assert order == ["prepare", "worker 0", "worker 1", "worker 2"]
+
+
+def _hold_the_lock(key: str, folder: str, log: str, name: str, until: str) -> None:
+    """Take the lock of ``key``, logging when trying, in and out; hold it until ``until`` is in the log."""
+    import time
+    from pathlib import Path
+
+    from workbench.heavy import one_at_a_time
+
+    def write(text: str) -> None:
+        with open(log, "a") as f:
+            f.write(text + "\n")
+
+    write(f"{name} trying")
+    with one_at_a_time(key, Path(folder)):
+        write(f"{name} in")
+        for _ in range(600):
+            if not until or until in Path(log).read_text():
+                break
+            time.sleep(0.05)
+        time.sleep(0.3)  # the other, blocked, has its chance to get in now if the lock did not hold it
+        write(f"{name} out")
+
+
+def test_processes_preparing_the_same_mesh_take_turns(tmp_path):
+    import multiprocessing
+    import time
+
+    ctx = multiprocessing.get_context("spawn")
+    log = tmp_path / "log"
+    log.touch()
+    first = ctx.Process(target=_hold_the_lock, args=("mesh-a", str(tmp_path), str(log), "first", "second trying"))
+    second = ctx.Process(target=_hold_the_lock, args=("mesh-a", str(tmp_path), str(log), "second", ""))
+    first.start()
+    for _ in range(1200):  # the second starts once the first holds the lock
+        if "first in" in log.read_text():
+            break
+        time.sleep(0.05)
+    second.start()
+    for p in (first, second):
+        p.join(60)
+    lines = [line for line in log.read_text().split("\n") if line and line != "first trying"]
+    assert lines.index("first in") < lines.index("second trying") < lines.index("first out") < \
+        lines.index("second in"), lines  # the second tried while the first held it, and waited its turn

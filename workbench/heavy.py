@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -59,6 +61,27 @@ def working_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
         simple = source.simplify_quadric_decimation(target_number_of_triangles=WORKING_FACES)
         _WORKING[key] = trimesh.Trimesh(np.asarray(simple.vertices), np.asarray(simple.triangles))
     return _WORKING[key]
+
+
+@contextlib.contextmanager
+def one_at_a_time(key: str, folder: Path):
+    """Hold an advisory lock (``flock``) named by ``key`` in ``folder`` for the block: processes preparing the
+    same mesh (Ray tasks of one node, two runs started together) take turns, so that the first simplifies it and
+    the others find it cached, instead of each computing the same side by side. Without a place for the lock (a
+    read-only cache), the block runs unlocked."""
+    import fcntl
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / f"{key}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
 
 
 _HEARTBEAT = """

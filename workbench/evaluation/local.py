@@ -18,15 +18,18 @@ from workbench.render.likelihood import pixel_loglik, predicted_depth, scene_log
 
 def prepare_meshes(problem: Problem) -> None:
     """Choose every model's collision shape and render mesh now, in this process, saying so when that takes long
-    (``heavy.announced``): a pool's workers then read them from the cache instead of each computing the same."""
-    from workbench.heavy import announced, faces_text
+    (``heavy.announced``): a pool's workers then read them from the cache instead of each computing the same, and
+    so do other processes preparing the same mesh meanwhile (Ray tasks, concurrent runs), which wait their turn
+    (``heavy.one_at_a_time``)."""
+    from workbench.heavy import announced, faces_text, mesh_key, one_at_a_time
     from workbench.physics.projector import collision_shapes
-    from workbench.render.depth import render_mesh
+    from workbench.render.depth import default_cache_dir, render_mesh
 
     for model in problem.models:
         name = model.source.name if model.source is not None else model.name
+        # One process at a time per mesh (its waiting announced as the work), the others then read the cache.
         with announced(f"simplifying {name} ({faces_text(len(model.mesh.faces))} faces) for collision and "
-                       "rendering, once"):
+                       "rendering, once"), one_at_a_time(mesh_key(model.mesh), default_cache_dir().parent / "locks"):
             collision_shapes([model], problem.config.physics)
             render_mesh(model.mesh, problem.config.render.max_depth_error)
 
