@@ -8,9 +8,10 @@ dataset's scene_gt.json (metrics.is_right: 2 cm, 10 degrees, up to the model's s
 on a grid, it recomputes the probabilities (posterior.probabilities, with the estimator's turn margin) and reports
 the negative log-likelihood of the right modes, the expected calibration error of the top mode, coverage (the
 truth among the modes holding 95 %) and top-1 accuracy; the temperature of least negative log-likelihood is the
-fit. It also counts how often the truth's heading lies inside a reported range of headings, and the posterior
-sweep's share of the frames' wall time. --data keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without
-estimating again; --png draws the reliability diagram at the fitted temperature.
+fit, then broken down per dataset and (generated sets) category. It also counts how often the truth's heading lies
+inside a reported range of headings, and the posterior sweep's share of the frames' wall time. --data keeps the
+gaps and right flags (benchmarks/calibration/), so that the fit can be redone without estimating again; --png
+draws the reliability diagram at the fitted temperature.
 """
 
 from __future__ import annotations
@@ -33,6 +34,9 @@ GRID = np.geomspace(2.0, 400.0, 60)
 def collect(dataset: Path, posterior: Path) -> list[dict]:
     """Per object of every frame in ``posterior``: its modes' gaps, which is the estimate's, which are right."""
     document = json.loads(posterior.read_text())
+    scenes_json = dataset / "scenes.json"  # a generated dataset's categories, for the breakdown
+    category = ({m["scene_id"]: m["category"] for m in json.loads(scenes_json.read_text())["scenes"]}
+                if scenes_json.is_file() else {})
     out = []
     models: dict = {}
     for f in document["frames"]:
@@ -47,7 +51,8 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
             # With several instances of a model, the instance nearest the estimate is this object's truth.
             truth = min(truths, key=lambda T: np.linalg.norm(T[:3, 3] - poses[0][:3, 3]))
             symmetries = models[o["obj_id"]].symmetries
-            out.append({"dataset": dataset.name, "scene_id": f["scene_id"], "im_id": f["im_id"], "obj_id": o["obj_id"],
+            out.append({"dataset": dataset.name, "category": category.get(f["scene_id"], "real"),
+                        "scene_id": f["scene_id"], "im_id": f["im_id"], "obj_id": o["obj_id"],
                         "gaps": [m["gap"] for m in modes], "estimate": [m["what"] == "the estimate" for m in modes],
                         "right": [bool(is_right(truth, T, symmetries)) for T in poses],
                         "yaw_range_deg": o["yaw_range_deg"],
@@ -110,6 +115,14 @@ def main(argv: list[str] | None = None) -> int:
     objects = modes_at(records, best)
     print(f"fit: temperature {best:.1f}: nll {nll(objects):.4f}, ECE {expected_calibration_error(objects):.3f}, "
           f"coverage {coverage(objects):.3f}, top-1 {top1(objects):.3f}")
+    print("at the fit, per dataset and category: objects, top-1, coverage95, ECE")
+    groups: dict[tuple[str, str], list[int]] = {}
+    for i, r in enumerate(records):
+        groups.setdefault((r["dataset"], r.get("category", "real")), []).append(i)
+    for (name, cat), idx in sorted(groups.items()):
+        part = [objects[i] for i in idx]
+        print(f"  {name:24s} {cat:14s} {len(part):4d}  {top1(part):.3f}  {coverage(part):.3f}  "
+              f"{expected_calibration_error(part):.3f}")
     if a.png:
         reliability_png(objects, a.png, f"temperature {best:.0f}, {len(objects)} objects")
     return 0

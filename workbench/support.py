@@ -272,11 +272,20 @@ def _object_region(
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world[above])).voxel_down_sample(cfg.cluster_voxel)
     pts = np.asarray(cloud.points)
     labels = np.asarray(cloud.cluster_dbscan(cfg.cluster_eps, min_points=5))
-    keep = np.zeros(len(pts), dtype=bool)
+    keep, tall = np.zeros(len(pts), dtype=bool), np.zeros(len(pts), dtype=bool)
     for label in range(labels.max() + 1):
         member = labels == label
-        if cfg.min_object_height <= pts[member, 2].max() <= cfg.max_height:
+        top = pts[member, 2].max()
+        if cfg.min_object_height <= top <= cfg.max_height:
             keep |= member
+        elif top > cfg.max_height:
+            tall |= member
+    if not keep.any() and tall.any():
+        # Only clusters taller than max_height (which drops walls and monitors): a stack of tall boxes is one, and
+        # no object region at all would end the run, so they are the region.
+        log.warning("%s: nothing stands on the table up to %g cm; taking what stands up to %.0f cm as the objects",
+                    path, cfg.max_height * 100, pts[tall, 2].max() * 100)
+        keep = tall
     if not keep.any():
         raise InputError(
             path, f"nothing stands on the table: no cluster of points {cfg.min_object_height * 100:g}-"
