@@ -419,6 +419,28 @@ def test_outlines_are_feature_edges_not_every_triangle():
     assert len(outline_segments(MeshData("box", mesh.vertices, mesh.faces))) == 18  # no outline: every edge
 
 
+def test_particles_get_a_coarser_outline_and_a_scan_with_too_many_edges_its_box(monkeypatch):
+    import trimesh
+
+    from workbench.app import observation
+    from workbench.app.observation import CLOUD_MAX_EDGES, cloud_outline, outline_edges
+    from workbench.app.protocol import MeshData
+    from workbench.app.views import outline_mesh
+
+    rock = trimesh.creation.icosphere(4, radius=0.05)  # a bumpy scan: many feature edges
+    rock.vertices *= 1 + 0.08 * np.random.default_rng(0).random((len(rock.vertices), 1))
+    fine, coarse = outline_edges(rock.vertices, rock.faces), cloud_outline(rock)
+    assert len(coarse) <= CLOUD_MAX_EDGES and 3 * len(coarse) < len(fine)
+    # Still too many edges (YCB's master chef can keeps 1,091 at any decimation): its bounding box's 12 edges.
+    monkeypatch.setattr(observation, "CLOUD_MAX_EDGES", len(coarse) - 1)
+    box = cloud_outline(rock)
+    assert box.shape == (12, 2, 3)
+    lengths = np.linalg.norm(box[:, 1] - box[:, 0], axis=1)
+    assert np.all((lengths > 0.1) & (lengths < 0.11))  # each a side of the box around a rock 0.10-0.108 m across
+    mesh = MeshData("rock", rock.vertices.astype(np.float32), rock.faces.astype(np.int32), fine, box)
+    assert len(outline_mesh(mesh, cloud=True)[1]) == 12 < len(outline_mesh(mesh)[1])
+
+
 def test_markdown_escape_keeps_underscores():
     from workbench.app.markdown import escape
 

@@ -178,9 +178,11 @@ class MeshData:
     name: str
     vertices: np.ndarray  # (V, 3) float32, object frame, metres
     faces: np.ndarray  # (F, 3) int32
-    # (E, 2, 3) float32, object frame: the outline drawn for ground truth, labels and particles (the feature edges
+    # (E, 2, 3) float32, object frame: the outline drawn for ground truth, labels and modes (the feature edges
     # of a coarse decimation, see observation.outline_edges); None: every triangle edge
     edges: np.ndarray | None = None
+    # The same, coarser, for the particles, drawn by the dozen per object: None: ``edges``
+    cloud_edges: np.ndarray | None = None
 
 
 @dataclass

@@ -78,11 +78,12 @@ def outline_segments(mesh: MeshData) -> np.ndarray:
     return np.asarray(mesh.vertices, np.float32)[pairs]
 
 
-def outline_mesh(mesh: MeshData) -> tuple[np.ndarray, np.ndarray]:
-    """``mesh``'s outline as a mesh whose wireframe draws only the outline (vertices (2E, 3), faces (E, 3)): each
-    segment a degenerate triangle (a, b, b), whose wireframe is the line a-b. Instanced meshes (the particles)
-    have no line-segment form in viser."""
-    seg = outline_segments(mesh)
+def outline_mesh(mesh: MeshData, cloud: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``mesh``'s outline (``cloud``: the particles' coarser one, where it has one) as a mesh whose wireframe draws
+    only the outline (vertices (2E, 3), faces (E, 3)): each segment a degenerate triangle (a, b, b), whose
+    wireframe is the line a-b. Instanced meshes (the particles) have no line-segment form in viser."""
+    seg = np.asarray(mesh.cloud_edges, np.float32) if cloud and mesh.cloud_edges is not None else \
+        outline_segments(mesh)
     vertices = seg.reshape(-1, 3)
     a = np.arange(0, len(vertices), 2, dtype=np.int32)
     return vertices, np.stack([a, a + 1, a + 1], axis=1)
@@ -209,7 +210,7 @@ class ParticleLayer:
         with self.server.atomic():
             for k, mesh in enumerate(self.meshes):
                 if len(self.batches) <= k:
-                    vertices, faces = outline_mesh(mesh)
+                    vertices, faces = outline_mesh(mesh, cloud=True)
                     handle = self.nodes.add(scene.add_batched_meshes_simple(
                         f"/particles/{k}", vertices, faces, batched_wxyzs=wxyz[:, k],
                         batched_positions=pos[:, k], batched_colors=tint, batched_opacities=opacity,
