@@ -137,8 +137,7 @@ class DefaultSearch:
             projected, weights = np.zeros((0, *scene.shape)), np.zeros(0)
         else:
             projected, weights = filt.particles.projected, filt.weights()
-        found, swept, final, loglik = posterior.sweep(self.problem, scene, loglik, score, rest,
-                                                      half_turns if scene is before else None,
+        found, swept, final, loglik = posterior.sweep(self.problem, scene, loglik, score, rest, half_turns, before,
                                                       self.geometry(filt), projected, weights,
                                                       cfg.settle_shift, cfg.settle_turn)
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own

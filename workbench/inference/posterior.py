@@ -46,7 +46,7 @@ from workbench.scene import display_names
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on the 50 objects of ycbv-real-dev, default estimate, seed 0 (benchmarks/calibration/): 95.
 # A first fit on real frames only, 6 of whose objects had a second mode (docs/benchmarks.md, "The posterior").
-TEMPERATURE = 95.0
+TEMPERATURE = 32.0
 YAW_STEP_DEG = 30.0
 SETTLE_SWEEP = 2  # per object, the best turns about the vertical (as given) that are settled and become modes
 PARTICLE_POSES = 2  # per object, the heaviest distinct poses of the final particles tried as modes
@@ -246,13 +246,16 @@ def distinct_poses(poses: np.ndarray, weights: np.ndarray, exclude: list[np.ndar
 
 
 def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Score, rest: settle.Rest,
-          half_turns: list[settle.Turn] | None, geometry: SearchGeometry, projected: np.ndarray, weights: np.ndarray,
+          half_turns: list[settle.Turn], turns_scene: np.ndarray, geometry: SearchGeometry, projected: np.ndarray,
+          weights: np.ndarray,
           max_shift_m: float, max_turn_deg: float, temperature: float = TEMPERATURE
           ) -> tuple[Posterior, int, np.ndarray, float]:
     """The posterior of the settled estimate ``scene`` (K, 4, 4), whose log-likelihood as given is ``loglik``.
     ``score``: scenes as given -> log-likelihoods; ``rest``: scenes -> at rest under physics. ``half_turns``:
-    ``settle.turn_over``'s settled half turns of this very scene, as (object, name, scene, log-likelihood), or None
-    to search them here. ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
+    ``settle.turn_over``'s settled half turns, as (object, name, scene, log-likelihood), of ``turns_scene`` (K, 4,
+    4): where that is not ``scene`` (settling kept a turn), each turned pose is scored again as given, the others
+    as they are now, rather than settled again (the half turns of a turned object are its pose before and its other
+    turns before). ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
     ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
     where they start. A candidate that beats the estimate by more than the turn margin, physics holding it,
     replaces it (``settle.adopt``) -> (the posterior, scenes scored, the scene, its log-likelihood)."""
@@ -303,14 +306,14 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         for i in picks:
             if given_ll[i] - loglik > hopeless:
                 starts.append(scenes[i]), owners.append(k), whats.append(given_what[i])
-    found = [(k, f"turned {name}", T, ll) for k, name, T, ll in (half_turns or [])]
-    if half_turns is None:
-        for k, model in enumerate(problem.models):
-            for name, pose in zip(settle.half_turn_names(scene[k]),
-                                  settle.half_turns(scene[k], model.mesh.bounds.mean(axis=0))):
-                start = scene.copy()
-                start[k] = pose
-                starts.append(start), owners.append(k), whats.append(f"turned {name}")
+    found = [(k, f"turned {name}", T, ll) for k, name, T, ll in half_turns]
+    if half_turns and not np.array_equal(turns_scene, scene):
+        again = np.repeat(scene[None], len(half_turns), axis=0)
+        for i, (k, _, T, _) in enumerate(half_turns):
+            again[i, k] = T[k]
+        again_ll = score(again)
+        scored += len(again)
+        found = [(k, f"turned {name}", again[i], float(again_ll[i])) for i, (k, name, _, _) in enumerate(half_turns)]
     searches = [settle.search(s, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES, max_shift_m=max_shift_m,
                               max_turn_deg=max_turn_deg, objects=[k]) for s, k in zip(starts, owners)]
     for k, what, (T, ll, n) in zip(owners, whats, settle.run(searches, score)):
@@ -334,16 +337,34 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     if better:
         kept, (scene, loglik), n = settle.adopt(scene, better, score)
         scored += n
+    # The headings about the vertical, for the range and its modes: scored in the scene before any candidate replaced
+    # an object; an object that one replaced is turned again about its new pose, in the scene as it is now.
+    headings = {}
+    for k, model in enumerate(problem.models):
+        angles, at, distinct = yaw[k]
+        headings[k] = (angles, [given[at + i][1] for i in range(len(angles))], given_ll[at:at + len(angles)],
+                       distinct, loglik_before)
+    for k in kept:
+        poses, angles = yaw_turns(scene[k], turn_centre(samples[k].points, scene[k, 2, :3]))
+        turned = np.repeat(scene[None], len(poses), axis=0)
+        turned[:, k] = poses
+        distinct = np.array([not is_right(scene[k], T, problem.models[k].symmetries) for T in poses])
+        headings[k] = (angles, list(poses), score(turned), distinct, loglik)
+        scored += len(turned)
     objects = []
     for k, model in enumerate(problem.models):
         candidates = [(T[k], ll, what) for j, what, T, ll in held if j == k]
         if k in kept:  # its pose before is now a candidate, its gaps are to its new pose
             candidates.append((before[k], loglik_before, "as first settled"))
-        angles, at, distinct = yaw[k]
+        angles, poses, lls, distinct, base = headings[k]
+        open_range = yaw_range(angles, lls - base, distinct, YAW_STEP_DEG, open_gap)
+        if open_range is not None:
+            # Each heading of the open range is a mode (scored as given: a lower bound of what settling would give),
+            # so that the estimate's probability is its share of the range, not of the two headings settled.
+            for i in np.flatnonzero(distinct & (angles >= open_range[0]) & (angles <= open_range[1])):
+                candidates.append((poses[i], float(lls[i]), f"turned {angles[i]:+.0f} degrees about the vertical"))
         objects.append(ObjectPosterior(
             obj=k,
             modes=object_modes(scene[k], kept.get(k, loglik_before), candidates, model.symmetries, temperature),
-            position_spread_m=position_spread(projected, weights, scene[k], k),
-            yaw_range_deg=yaw_range(angles, given_ll[at:at + len(angles)] - loglik, distinct, YAW_STEP_DEG,
-                                    open_gap)))
+            position_spread_m=position_spread(projected, weights, scene[k], k), yaw_range_deg=open_range))
     return Posterior(objects, temperature, time.perf_counter() - t0), scored, scene, loglik
