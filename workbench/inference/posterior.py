@@ -54,6 +54,7 @@ FACE_SWEEP = 2  # per object, the best poses on another resting face (as given) 
 RANGE_GAP = np.log(20.0)  # temperatures: a heading whose odds against the estimate are better than 1 : 20 is open
 MAX_MODES = 8  # modes reported per object (the most likely)
 MIN_PROBABILITY = 1e-3  # a mode less likely than this is not reported
+HOPELESS = 1500.0  # log-units: a candidate this far below the estimate as given is not settled
 
 
 @dataclass(frozen=True)
@@ -264,7 +265,7 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     samples, rest_poses, hulls = geometry.samples, geometry.rest, geometry.hulls
     # A heading is open when its odds against the estimate's are better than 1 : exp(RANGE_GAP) (``probabilities``).
     open_gap = RANGE_GAP * temperature - settle.TURN_MARGIN
-    hopeless = -15.0 * temperature  # as given this far below the estimate: odds under 1e-6 even if settling gained
+    hopeless = -HOPELESS  # as given this far below the estimate, settling it is not worth its cost
     # Scored as given first: every object's turns about the vertical, its particles' own poses, and its other
     # resting faces at every heading.
     given, given_what, yaw, faces = [], [], {}, {}

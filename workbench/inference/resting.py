@@ -47,10 +47,17 @@ def reduced_hull(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return trimesh.convex.convex_hull(np.asarray(hull.vertices)[keep])
 
 
+def _box_source(mesh: trimesh.Trimesh, hull: trimesh.Trimesh) -> trimesh.Trimesh:
+    """What the oriented bounding box is taken of: the mesh itself unless its hull was reduced. The box of the
+    mesh and of its hull are the same box, but not always with the same axes in the same order and sign (a box's
+    faces would come out in another order, and a seeded run would draw other faces)."""
+    return mesh if hull is mesh.convex_hull else hull
+
+
 def _faces_of_box(mesh: trimesh.Trimesh, hull: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None:
     """The 6 face-down rotations of the mesh's oriented bounding box (that of its ``hull``) and their face areas,
     or None if the mesh is not box-like."""
-    obb = hull.bounding_box_oriented
+    obb = _box_source(mesh, hull).bounding_box_oriented
     solid = mesh if mesh.is_watertight else hull
     if abs(float(solid.volume)) < BOX_FILL * float(obb.volume):
         return None
@@ -95,7 +102,7 @@ def _resting_poses(mesh: trimesh.Trimesh, upright_only: bool) -> RestingPoses:
             probs = areas / areas.sum()  # a larger face is the likelier one to land on
         else:
             transforms, probs = trimesh.poses.compute_stable_poses(hull, n_samples=1)
-            axes = np.asarray(hull.bounding_box_oriented.primitive.transform)[:3, :3]
+            axes = np.asarray(_box_source(mesh, hull).bounding_box_oriented.primitive.transform)[:3, :3]
             rots, probs = one_per_side(np.asarray(transforms)[:, :3, :3], np.asarray(probs, dtype=np.float64), axes)
     heights = -np.min(np.einsum("fij,vj->fvi", rots, hull.vertices)[..., 2], axis=1)
     out = RestingPoses(np.array(rots, dtype=np.float64), np.array(heights), np.array(probs, dtype=np.float64))
