@@ -441,6 +441,22 @@ def test_particles_get_a_coarser_outline_and_a_scan_with_too_many_edges_its_box(
     assert len(outline_mesh(mesh, cloud=True)[1]) == 12 < len(outline_mesh(mesh)[1])
 
 
+def test_solids_are_drawn_from_a_decimation_of_a_heavy_scan_and_boxes_as_they_are():
+    import trimesh
+
+    from workbench.app.observation import SOLID_FACES, solid_mesh
+    from workbench.app.protocol import MeshData
+
+    box = trimesh.creation.box(extents=(0.1, 0.06, 0.02))
+    assert solid_mesh(box) is None  # 12 triangles: drawn as they are
+    ball = trimesh.creation.icosphere(5, radius=0.05)  # 20,480 faces
+    vertices, faces = solid_mesh(ball)
+    assert len(faces) <= SOLID_FACES < len(ball.faces)
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 0.05).max() < 0.002  # still the ball, within 2 mm
+    mesh = MeshData("ball", ball.vertices.astype(np.float32), ball.faces.astype(np.int32), solid=(vertices, faces))
+    assert mesh.solid_mesh()[1] is faces and MeshData("box", box.vertices, box.faces).solid_mesh()[1] is box.faces
+
+
 def test_markdown_escape_keeps_underscores():
     from workbench.app.markdown import escape
 

@@ -35,6 +35,7 @@ OUTLINE_DEGREES = 20.0  # a coarse mesh's edge is drawn where its faces meet at 
 # decimation (a YCB frame's 32 particles drawn with the truth's outline cost 4x the demo's per frame in software WebGL).
 CLOUD_OUTLINE_FACES = 40
 CLOUD_OUTLINE_DEGREES = 35.0
+SOLID_FACES = 2000  # a solid drawn object: YCB-Video's scans have 15,728 faces, four of them cost more than the demo
 CLOUD_MAX_EDGES = 64  # more (an open scan keeps every hole's rim: YCB's master chef can 1,091): its box instead
 
 
@@ -102,6 +103,23 @@ def outline_edges(vertices: np.ndarray, faces: np.ndarray, n_faces: int = OUTLIN
     if len(lines) == 0:  # a mesh smooth everywhere: its decimation's edges then
         lines = edges
     return np.asarray(mesh.vertices, np.float32)[lines]
+
+
+def solid_mesh(mesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """``mesh`` (trimesh, metres) decimated for drawing as a solid, to about ``SOLID_FACES`` faces -> (vertices
+    float32, faces int32), or None where it has no more than that (it is drawn as it is)."""
+    if len(mesh.faces) <= SOLID_FACES:
+        return None
+    try:
+        import open3d as o3d
+    except ImportError:
+        return None
+    source = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, np.float64)),
+                                       o3d.utility.Vector3iVector(np.asarray(mesh.faces, np.int32)))
+    simple = source.simplify_quadric_decimation(target_number_of_triangles=SOLID_FACES)
+    if len(simple.triangles) == 0:
+        return None
+    return np.asarray(simple.vertices, np.float32), np.asarray(simple.triangles, np.int32)
 
 
 def cloud_outline(mesh) -> np.ndarray:
@@ -202,7 +220,7 @@ def build_view(frame: Frame, problem: Problem, title: str, dataset=None) -> Obse
         meshes=[
             MeshData(name, np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32),
                      outline_edges(m.mesh.vertices, m.mesh.faces),
-                     cloud_outline(m.mesh))
+                     cloud_outline(m.mesh), solid_mesh(m.mesh))
             for name, m in zip(display_names(problem.models), problem.models)
         ],
         T_world_cam=T_world_cam,

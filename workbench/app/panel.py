@@ -166,7 +166,6 @@ class Panel:
 
     def show_config(self, config: EstimatorConfig, likelihood: str) -> None:
         """Put ``config`` into the controls (call inside ``Quiet``: these writes fire the controls' callbacks)."""
-        s, deg = config.sigma, 180.0 / np.pi
         self.method.value = {v: k for k, v in METHOD_LABELS.items()}[config.method]
         self.revert(("Particles", "Iterations", SIGMA_XY, SIGMA_Z, SIGMA_ANGLES, "Seed"), config)
         self.likelihood.value = likelihood

@@ -183,6 +183,12 @@ class MeshData:
     edges: np.ndarray | None = None
     # The same, coarser, for the particles, drawn by the dozen per object: None: ``edges``
     cloud_edges: np.ndarray | None = None
+    # What a solid object is drawn with (the estimate, a chosen particle after physics): a decimation to at most
+    # observation.SOLID_FACES faces, (vertices (V', 3) float32, faces (F', 3) int32); None: vertices and faces
+    solid: tuple[np.ndarray, np.ndarray] | None = None
+
+    def solid_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.solid if self.solid is not None else (self.vertices, self.faces)
 
 
 @dataclass

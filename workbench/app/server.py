@@ -37,7 +37,6 @@ from workbench.app.truth import truth_markdown
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 
-
 # Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
 SESSIONS_DIR = Path("sessions")

@@ -224,7 +224,7 @@ class ParticleLayer:
                     b.batched_colors, b.batched_opacities = tint, opacity
                 if len(self.best) <= k:
                     self.best.append(self.nodes.add(scene.add_mesh_simple(
-                        f"/best/{k}", mesh.vertices, mesh.faces, color=colors.object_color(k), wxyz=best_wxyz[k],
+                        f"/best/{k}", *mesh.solid_mesh(), color=colors.object_color(k), wxyz=best_wxyz[k],
                         position=best_pos[k], visible=self.show_best, **NO_SHADOW)))
                 else:
                     self.best[k].wxyz, self.best[k].position = best_wxyz[k], best_pos[k]
@@ -278,7 +278,7 @@ class ChosenLayer:
         # "After" wears the objects' own colours, like the most likely scene: when the chosen particle is the most
         # likely one the two coincide, and equal colours hide the z-fighting.
         self.after = [
-            self.nodes.add(scene.add_mesh_simple(f"/chosen/after/{k}", m.vertices, m.faces,
+            self.nodes.add(scene.add_mesh_simple(f"/chosen/after/{k}", *m.solid_mesh(),
                                                  color=colors.object_color(k), visible=False, **NO_SHADOW))
             for k, m in enumerate(view.meshes)
         ]
