@@ -26,19 +26,12 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
-import socket
 import sys
 import time
 from collections import Counter
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent.parent
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def chromium_processes() -> dict[int, str]:
@@ -129,6 +122,7 @@ def main() -> int:
 
     import workbench
     from workbench.app import protocol as p
+    from workbench.app.headless import free_port
     from workbench.app.server import serve
     from workbench.inference.config import EstimatorConfig
 

@@ -19,7 +19,6 @@ README).
 from __future__ import annotations
 
 import argparse
-import socket
 import sys
 import time
 from pathlib import Path
@@ -27,16 +26,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from workbench.app.headless import chromium, dismiss_notifications, image_stats, open_workbench  # noqa: E402
+from workbench.app.headless import (  # noqa: E402
+    chromium,
+    dismiss_notifications,
+    free_port,
+    image_stats,
+    open_workbench,
+)
 from workbench.app.server import serve  # noqa: E402
 from workbench.inference.config import EstimatorConfig  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 MAX_BYTES = 400_000  # a README picture larger than this is stored with a palette of 256 colours
 

@@ -5,14 +5,13 @@ from __future__ import annotations
 import io
 import os
 import signal
-import socket
 
 import numpy as np
 import pytest
 
 from workbench.app import protocol as p
 from workbench.app.colors import MISSING, VIRIDIS, apply_map
-from workbench.app.headless import image_stats
+from workbench.app.headless import free_port, image_stats
 from workbench.app.views import wxyz_from_matrices
 from workbench.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, random_rotations, rot_x, rot_z
 
@@ -49,12 +48,6 @@ def test_image_stats_tell_blank_from_drawn():
     assert image_stats(png(blank)) == (0.0, 0.0)
     std, frac = image_stats(png(drawn))
     assert std > 10 and 0.15 < frac < 0.2
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_dead_worker_and_dead_engine_are_restarted_and_the_run_goes_on(capfd, caplog):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import socket
 import time
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from workbench.app.headless import (
     chromium_path,
     color_extent,
     frame_counts,
+    free_port,
     gui_input,
     image_stats,
     open_workbench,
@@ -34,12 +34,6 @@ pytestmark = [pytest.mark.slow,  # needs Chromium, and the engine: pybullet and 
 TIMEOUT_MS = 60_000
 # Software WebGL redraws the whole canvas on every change: a smaller page keeps two tabs responsive on 2 cores.
 VIEWPORT = {"width": 1000, "height": 700}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

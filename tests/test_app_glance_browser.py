@@ -8,12 +8,11 @@ from __future__ import annotations
 import io
 import re
 import shutil
-import socket
 
 import numpy as np
 import pytest
 
-from workbench.app.headless import chromium_path, open_workbench
+from workbench.app.headless import chromium_path, free_port, open_workbench
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -25,12 +24,6 @@ TIMEOUT_MS = 60_000
 VIEWPORT = {"width": 1000, "height": 700}
 ITERATIONS = 2  # the budget: the third Step finishes the run, which then has a posterior
 RED, BLUE = (220, 30, 40), (30, 60, 220)  # the colour image: red left half, blue right half
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

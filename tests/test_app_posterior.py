@@ -5,13 +5,12 @@ same posterior back."""
 
 from __future__ import annotations
 
-import socket
-
 import numpy as np
 import pytest
 
 from workbench.app import protocol as p
 from workbench.app.colors import view_legend_html
+from workbench.app.headless import free_port
 from workbench.app.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.posterior import Mode, ObjectPosterior, Posterior
@@ -29,12 +28,6 @@ class Inbox(list):
 
     def of(self, kind) -> list:
         return [m for m in self if isinstance(m, kind)]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def posterior_by_hand() -> Posterior:

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import io
 import re
-import socket
 import time
 
 import numpy as np
 import pytest
 
-from workbench.app.headless import FRAME_PROBE_JS, canvas_png, chromium_path, open_workbench
+from workbench.app.headless import FRAME_PROBE_JS, canvas_png, chromium_path, free_port, open_workbench
 from workbench.app.modes import confidence_text, mode_label, mode_option
 
 pytest.importorskip("playwright.sync_api")
@@ -23,12 +22,6 @@ pytestmark = [pytest.mark.slow,  # needs Chromium, and the engine: pybullet and 
 
 TIMEOUT_MS = 60_000
 VIEWPORT = {"width": 1000, "height": 700}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

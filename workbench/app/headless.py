@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import os
 import shutil
+import socket
 import threading
 import time
 from contextlib import contextmanager
@@ -25,6 +26,13 @@ CHROMIUM_ARGS = [
     "--mute-audio",
 ]
 VIEWPORT = {"width": 1280, "height": 800}
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now, for a workbench served to a headless browser (tests, screenshots)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def chromium_path() -> str | None:
