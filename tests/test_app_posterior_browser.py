@@ -52,14 +52,27 @@ def page(workbench):
         p.close()
 
 
-def settled_canvas(page, app) -> np.ndarray:
-    """The 3D view once the scene has gone quiet: (H, W, 3) int16."""
+def canvas(page) -> np.ndarray:
+    """The 3D view as drawn now: (H, W, 3) int16."""
     from PIL import Image
 
+    return np.asarray(Image.open(io.BytesIO(canvas_png(page))).convert("RGB"), dtype=np.int16)
+
+
+def settled_canvas(page, app, timeout_s: float = 30.0) -> np.ndarray:
+    """The 3D view once it has gone quiet: two captures half a second apart that agree. Software WebGL on a loaded
+    machine can take seconds to draw a change, so a fixed wait reads the frame before it (CI did)."""
     with app.lock:
         app.display.throttle.flush()
-    time.sleep(1.5)  # software WebGL draws the change within a few frames
-    return np.asarray(Image.open(io.BytesIO(canvas_png(page))).convert("RGB"), dtype=np.int16)
+    last = canvas(page)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        now = canvas(page)
+        if changed_pixels(last, now) < 20:
+            return now
+        last = now
+    return last
 
 
 def changed_pixels(a: np.ndarray, b: np.ndarray) -> int:
@@ -101,9 +114,15 @@ def test_a_finished_run_shows_its_modes_and_confidences(page, workbench):
     page.get_by_role("button", name="● modes").click()
     expect(page.get_by_role("button", name="○ modes")).to_be_visible(timeout=TIMEOUT_MS)
     hidden = settled_canvas(page, app)
+    deadline = time.monotonic() + 30
+    while changed_pixels(shown, hidden) <= 200 and time.monotonic() < deadline:
+        hidden = settled_canvas(page, app)  # a quiet view can still be one drawn before the ghosts went
     page.get_by_role("button", name="○ modes").click()
     expect(page.get_by_role("button", name="● modes")).to_be_visible(timeout=TIMEOUT_MS)
     again = settled_canvas(page, app)
+    deadline = time.monotonic() + 30
+    while changed_pixels(shown, again) >= changed_pixels(shown, hidden) / 10 and time.monotonic() < deadline:
+        again = settled_canvas(page, app)  # a quiet view can still be one drawn before the ghosts came back
     for item in ("points", "particles", "truth"):
         page.get_by_role("button", name=f"○ {item}").click()
         expect(page.get_by_role("button", name=f"● {item}")).to_be_visible(timeout=TIMEOUT_MS)
