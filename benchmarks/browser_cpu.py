@@ -16,6 +16,9 @@ estimator runs, and after it was paused. Printed per phase:
   the 3D view draw ("scene messages", most frequent types named) per second and the bursts they came in (each
   burst makes viser's client draw frames for 250 ms); and CPU milliseconds per drawn frame.
 
+``--layers`` then samples the paused page again with each layer of the visibility bar hidden in turn (points,
+particles, estimate, modes, truth): what each layer's drawing costs is the paused cost less that sample's.
+
 ``--root`` imports the served workbench from another checkout (e.g. an older commit unpacked with ``git archive``)
 to compare before and after a change with the same script; the browser and the probes always come from this
 checkout's ``workbench/app/headless.py``, loaded by path, so both runs are measured alike.
@@ -32,6 +35,7 @@ from collections import Counter
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent.parent
+LAYERS = ("points", "particles", "estimate", "modes", "truth")  # --layers: each hidden in turn, the others shown
 
 
 def chromium_processes() -> dict[int, str]:
@@ -116,6 +120,8 @@ def main() -> int:
     ap.add_argument("--dataset", type=Path, default=None)
     ap.add_argument("--scene", type=int, default=None)
     ap.add_argument("--frame", type=int, default=None)
+    ap.add_argument("--layers", action="store_true",
+                    help="after the paused phase, sample again with each layer of the visibility bar hidden in turn")
     args = ap.parse_args()
     probes = load_probes()
     sys.path.insert(0, str(args.root.resolve()))
@@ -156,6 +162,12 @@ def main() -> int:
             app.wait_for(lambda s: not s.running, 60)
             time.sleep(3.0)
             show("paused", sample(args.seconds, page, sent, probes))
+            for layer in LAYERS if args.layers else ():
+                page.get_by_role("button", name=f"● {layer}").click()
+                time.sleep(2.0)
+                show(f"-{layer}", sample(args.seconds, page, sent, probes))
+                page.get_by_role("button", name=f"○ {layer}").click()
+                time.sleep(2.0)
     finally:
         handle.stop()
     return 0
