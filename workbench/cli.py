@@ -193,7 +193,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
 def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
-    from workbench.bench.scoring import report, score_results
+    from workbench.bench.scoring import report, score_results, summary
+    from workbench.bench.vsd import VSDConfig
     from workbench.io import bop
 
     if not args.dataset.is_dir():
@@ -209,9 +210,10 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
         check_output_file(args.reliability, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n",
                           force=args.force, what="a reliability diagram", flag="--reliability")
+    vsd = VSDConfig()  # BOP's: tau 20 mm, theta 0.3, delta 15 mm; AR_VSD's grid
     frames = score_results(args.dataset, bop.read_results_csv(args.results), split=args.split,
-                           results_path=args.results)
-    print("\n".join(report(frames)))
+                           results_path=args.results, vsd=vsd)
+    print("\n".join(report(frames, vsd)))
     if args.reliability is not None:
         from workbench.bench.calibration import reliability_png
 
@@ -225,7 +227,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
         from workbench.outputs import write_file
 
         write_file(args.json, json.dumps({"dataset": str(args.dataset), "results": str(args.results),
-                                          "objects": objects}, indent=1))
+                                          "objects": objects, "summary": summary(frames, vsd)}, indent=1))
     return 0
 
 
@@ -234,7 +236,8 @@ def _is_score_json(path: Path) -> bool:
     import json
 
     document = json.loads(path.read_text())
-    return isinstance(document, dict) and set(document) == {"dataset", "results", "objects"}
+    # "summary" came with VSD: a score JSON written before it is ours too
+    return isinstance(document, dict) and set(document) - {"summary"} == {"dataset", "results", "objects"}
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
