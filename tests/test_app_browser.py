@@ -519,7 +519,7 @@ def test_a_damaged_session_shows_its_problem_and_the_run_goes_on(page, workbench
     page.get_by_role("tab", name="Sessions").click()
     page.get_by_text(re.compile(r"damaged — ⚠ cannot be loaded: corrupt session file")).wait_for(timeout=TIMEOUT_MS)
     app.sessions.tab.choice.value = "damaged"  # shared GUI state, as another tab would choose it
-    unsaved = app.unsaved() is not None
+    unsaved = app.sessions.unsaved() is not None
     page.get_by_role("button", name="Load session").click()
     if unsaved:  # the current run is not saved: asked first
         page.get_by_text("The current run is not saved").wait_for(timeout=TIMEOUT_MS)

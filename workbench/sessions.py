@@ -8,7 +8,8 @@ A session named NAME is two files in one folder (the app's ``sessions/``):
   problem, physics, likelihood, render), the RNG state, the tempering and convergence state, the iteration
   history, the labels (T_world_obj per object, or null), the settled answer of the current estimate with its
   posterior per object (``estimator.answer``, ``answer_json``; null when not settled, or saved before it was
-  kept), and the name, size and SHA-256 of the arrays file.
+  kept), the workbench's position in a sequence of frames (``sequence``, plain JSON the app reads and checks;
+  absent outside a sequence), and the name, size and SHA-256 of the arrays file.
 - ``NAME.<first 16 hex digits of its SHA-256>.npz``: the particle set (``ParticleSet.arrays()``: ``hypotheses``,
   ``projected``, ``loglik``, ``status``, ``kinds``; absent before the first step) and ``best_history``, written
   with ``np.savez`` and read with ``allow_pickle=False``. (Format 2 kept ``kinds`` in the JSON, as
@@ -90,7 +91,8 @@ class FrameRef:
 @dataclass
 class SessionState:
     """Everything a session holds. ``estimator``: ``Estimator.state_dict()``; ``labels``: per object a (4, 4)
-    T_world_obj or None; ``problem_sha256``: ``problem_fingerprint`` of the problem the run used."""
+    T_world_obj or None; ``problem_sha256``: ``problem_fingerprint`` of the problem the run used; ``sequence``: the
+    workbench's position in the frame's sequence (``app.sequence_record``), stored as given, or None."""
 
     frame: FrameRef
     T_cam_world: np.ndarray
@@ -101,6 +103,7 @@ class SessionState:
     labels: list[np.ndarray | None]
     problem_sha256: str
     saved_at: str = ""
+    sequence: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -381,6 +384,7 @@ def _document(state: SessionState, arrays: dict[str, np.ndarray], arrays_entry: 
         },
         "labels": [None if T is None else np.asarray(T, dtype=np.float64).tolist() for T in state.labels],
         "arrays": arrays_entry,
+        **({} if state.sequence is None else {"sequence": state.sequence}),
     }
 
 
@@ -533,6 +537,9 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
         problem_sha256=_str(d["problem_sha256"], "problem_sha256"),
         saved_at=_str(d["saved_at"], "saved_at"),
     )
+    state.sequence = d.get("sequence")
+    if not isinstance(state.sequence, (dict, type(None))):
+        raise ValueError("sequence must be an object")
     arrays_entry = d["arrays"]
     if not isinstance(arrays_entry["shapes"], dict):
         raise ValueError("arrays.shapes must be an object")

@@ -5,8 +5,8 @@ Commands are drained between iterations, so a Pause takes effect after the itera
 iteration only once the server has shown the last one (``protocol.Shown``): a slow display holds the run back
 instead of falling behind it, and a Pause stops the run one iteration after the one on display at the latest.
 
-Labels and sessions are handled in this process too, because they need the estimator and a renderer: the server
-only shows them (``engine_labels``, ``engine_sessions``).
+Labels, sessions and sequences are handled in this process too, because they need the estimator and a renderer:
+the server only shows them (``engine_labels``, ``engine_sessions``, ``engine_sequence``).
 
 A dead evaluation worker surfaces as ``WorkerCrashed`` (or a broken pipe): the pool is rebuilt and the iteration
 retried once, and the user is told (``evaluators``). If this whole process dies, ``engine_process.EngineClient``
@@ -26,6 +26,7 @@ from typing import Callable
 
 from workbench.app import protocol as p
 from workbench.app.engine_labels import FrameLabels
+from workbench.app.engine_sequence import EngineSequence
 from workbench.app.engine_sessions import open_session, save_session
 from workbench.app.evaluators import CRASH_ERRORS, Evaluators
 from workbench.app.particle_display import ParticleDisplay
@@ -102,11 +103,6 @@ def load(source: p.Source, likelihood: str):
     return dataset, frame, problem
 
 
-def title_of(source: p.Source, frame) -> str:
-    name = "demo" if source.demo else Path(source.dataset).name
-    return f"{name} · scene {frame.scene_id} · frame {frame.im_id}"
-
-
 def session_source(dataset: Path, split: str | None, frame) -> p.Source:
     """What a restarted engine reloads for a session's frame of ``dataset`` (its ``split`` folder, if any): the
     demo when the session was saved from the demo's copy or the bundled folder."""
@@ -121,8 +117,8 @@ def session_source(dataset: Path, split: str | None, frame) -> p.Source:
 
 class Engine:
     """One estimation run on the loaded frame, answering the server's commands (``handle``). Its collaborators:
-    ``evaluators`` (the worker pool and an in-process renderer), ``display`` (what of the run is shown) and
-    ``labels`` (the frame's labels)."""
+    ``evaluators`` (the worker pool and an in-process renderer), ``display`` (what of the run is shown),
+    ``labels`` (the frame's labels) and ``sequence`` (the frames of its scene, one after another)."""
 
     def __init__(self, results, workers: int, ray=None):
         # results: what the engine tells the server, anything with a put (engine_process.Outbox, a test's list)
@@ -130,6 +126,7 @@ class Engine:
         self.evaluators = Evaluators(results, workers, ray)
         self.display = ParticleDisplay()
         self.labels = FrameLabels(self)
+        self.sequence = EngineSequence(self)
         self.problem = None
         self.frame = None
         self.estimator = None
@@ -178,9 +175,13 @@ class Engine:
             self.aside("labels", lambda: self.labels.save(cmd.overwrite_original))
         elif isinstance(cmd, p.SaveSession):
             self.aside("session", lambda: self.results.put(
-                save_session(cmd, self.estimator, self.labels, self.evaluators.describe())))
+                save_session(cmd, self.estimator, self.labels, self.evaluators.describe(), self.sequence.record())))
         elif isinstance(cmd, p.LoadSession):
             self.aside("session", lambda: self.load_session(cmd))
+        elif isinstance(cmd, p.NextFrame):
+            self.sequence.guarded(self.sequence.next)
+        elif isinstance(cmd, p.ShowFrame):
+            self.sequence.guarded(lambda: self.sequence.show(cmd.im_id))
 
     def aside(self, topic: str, action: Callable[[], None]) -> None:
         """A labelling or session action: bad input is reported next to its button and the run goes on (``fail``
@@ -195,10 +196,11 @@ class Engine:
         dataset, frame, problem = load(cmd.source, cmd.likelihood)  # on failure the old run stays
         from workbench.app.observation import build_view
 
-        view = build_view(frame, problem, title_of(cmd.source, frame), dataset)
+        view = build_view(frame, problem, cmd.source.title(frame.scene_id, frame.im_id), dataset)
         self.replace_frame(cmd.source, view, frame, problem, cmd.config)
         self.new_estimator()
         self.labels.adopt_frame(dataset)
+        self.sequence.start(cmd.source, dataset, None, view)
 
     def replace_frame(self, source: p.Source, view: p.ObservationView, frame, problem, config) -> None:
         """Put ``frame`` in place of the loaded one and show it; the run on it is started by the caller."""
@@ -245,7 +247,7 @@ class Engine:
         if self.finished():
             self.results.put(p.Failure(
                 "Nothing to run",
-                f"the run is at iteration {self.estimator.iteration} of {self.config.iterations}"
+                f"the run is at iteration {self.estimator.iteration} of {self.estimator.config.iterations}"
                 + (" and has converged" if self.estimator.converged else "")
                 + ": raise the iteration budget, press Step, or Reset",
             ))
@@ -258,8 +260,9 @@ class Engine:
         return self.running and self.unshown is None
 
     def finished(self) -> bool:
+        """At the run's own budget (a tracked frame's is its short search's), or converged."""
         est = self.estimator
-        return est.iteration >= self.config.iterations or (
+        return est.iteration >= est.config.iterations or (
             self.stop_on_convergence and est.iteration >= 0 and est.converged
         )
 
@@ -280,6 +283,8 @@ class Engine:
             # the snapshot carries. Computed once per estimate (a Step past the end settles only a new one).
             self.estimator.settle()
         self.publish(report)
+        if self.finished():
+            self.sequence.finished()
         if not self.running:
             self.send_state("converged" if report.converged else "done" if self.finished() else "paused")
 
@@ -334,19 +339,22 @@ class Engine:
         source = session_source(opened.dataset, state.frame.split, frame)
         view = build_view(frame, problem, opened.title(), opened.dataset)
 
-        # From here on the current run is replaced.
-        self.replace_frame(source, view, frame, problem, state.estimator_config)
+        # From here on the current run is replaced. In a sequence the panel's settings are the sequence's (a
+        # tracked frame's run has its own).
+        config = state.estimator_config if opened.sequence is None else opened.sequence.config
+        self.replace_frame(source, view, frame, problem, config)
         try:
             self.estimator = sessions.restore_estimator(state, problem, self.evaluators.evaluator())
         except Exception:
             self.new_estimator()  # a fresh run on the session's frame: the server shows that frame already
             self.labels.adopt_frame(opened.dataset)
+            self.sequence.start(source, opened.dataset, state.frame.split, view)
             raise
         est = self.estimator
         self.labels.adopt_frame(opened.dataset, labels=state.labels)
-        self.results.put(p.SessionRestored(opened.name, opened.path, state.estimator_config,
-                                           problem.config.likelihood.model, [r.as_dict() for r in est.history],
-                                           opened.warnings))
+        self.results.put(p.SessionRestored(opened.name, opened.path, config, problem.config.likelihood.model,
+                                           [r.as_dict() for r in est.history], opened.warnings))
+        self.sequence.start(source, opened.dataset, state.frame.split, view, opened.sequence)
         self.send_state("restored")
         if est.iteration >= 0:
             self.publish()

@@ -2,8 +2,9 @@
 the single scenes the display and the labelling render (one particle's per-pixel likelihood, the labelled scene).
 
 Both hold the problem they were made for: a new frame or likelihood closes them (``use``), and the pool is made
-again on demand. A dead evaluation worker surfaces as ``WorkerCrashed`` (or one of ``CRASH_ERRORS``): ``restart``
-replaces the pool and the server is told (``protocol.Workers``).
+again on demand; another frame of a sequence is given to the running pool instead (``retarget``). A dead
+evaluation worker surfaces as ``WorkerCrashed`` (or one of ``CRASH_ERRORS``): ``restart`` replaces the pool and the
+server is told (``protocol.Workers``).
 """
 
 from __future__ import annotations
@@ -32,6 +33,20 @@ class Evaluators:
         """Evaluate ``problem`` from now on; the evaluators of the old one are closed (their workers hold it)."""
         self.close()
         self.problem = problem
+
+    def retarget(self, problem):
+        """-> the pool, evaluating ``problem`` from now on (another frame of a sequence): its running workers are
+        given the new problem instead of being started again (a pool that cannot take one, Ray's actors, is made
+        anew). The in-process explainer, made for the old problem, goes."""
+        if self.pool is None or not hasattr(self.pool, "retarget"):
+            self.use(problem)
+            return self.evaluator()
+        if self.explainer is not None and self.explainer is not self.pool:
+            self.explainer.close()
+        self.explainer = None
+        self.pool.retarget(problem)
+        self.problem = problem
+        return self.pool
 
     def evaluator(self):
         """The pool, made (and announced to the server) if there is none."""

@@ -14,6 +14,7 @@ from workbench.app.layout import button_row_css
 from workbench.app.modes import NO_POSTERIOR
 from workbench.app.particle_display import DEFAULT_DISPLAY
 from workbench.app.plots import Plots
+from workbench.app.sequence_panel import SequenceTab, build_sequence_tab
 from workbench.app.sessions_panel import SessionsTab, build_sessions_tab
 from workbench.app.views import HEATMAP_MODES, SCENE_MODES
 from workbench.errors import InputError
@@ -72,6 +73,7 @@ class Panel:
     im_id: viser.GuiTextHandle
     load: viser.GuiButtonHandle
     demo: viser.GuiButtonHandle
+    sequence: SequenceTab  # Next frame, the timeline and the plots across frames, where the scene has several
     depth_image: viser.GuiImageHandle
     depth_legend: viser.GuiHtmlHandle
     rgb_image: viser.GuiImageHandle
@@ -299,6 +301,7 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         im_id = gui.add_text("Frame id", "", hint="empty: the first frame")
         load = gui.add_button("Load dataset", icon=viser.Icon.FOLDER_OPEN)
         demo = gui.add_button("Load demo", icon=viser.Icon.BOX, color="gray")
+        sequence = build_sequence_tab(gui)
         # The colour image first, where the dataset has one: what poses are checked against by eye.
         rgb_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="colour image", format="jpeg",
                                   visible=False)
@@ -323,8 +326,8 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         stop_on_convergence=stop, timings=timings, posterior=posterior, rank=rank, best=best, scene_mode=scene_mode,
         physics_change=physics_change, heatmap_mode=heatmap_mode, legend=legend, heat_image=heat_image,
         max_particles=max_particles, plots=plots, dataset=dataset, scene_id=scene_id, im_id=im_id, load=load,
-        demo=demo, depth_image=depth_image, depth_legend=depth_legend, rgb_image=rgb_image, workers=workers,
-        label=label, label_rgb=label_rgb, sessions=sessions,
+        demo=demo, sequence=sequence, depth_image=depth_image, depth_legend=depth_legend, rgb_image=rgb_image,
+        workers=workers, label=label, label_rgb=label_rgb, sessions=sessions,
     )
 
 

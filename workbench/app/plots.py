@@ -182,14 +182,19 @@ CHARTS: tuple[Chart, ...] = (
 
 def legend_html(chart: Chart, lines: tuple[Line, ...]) -> str:
     """The chart's title and a colour swatch per line, as one line of HTML."""
+    return header_html(chart.title, lines, chart.note)
+
+
+def header_html(title: str, lines: tuple[Line, ...], note: str = "") -> str:
+    """A chart's ``title``, its ``note`` and a colour swatch per line, as one line of HTML."""
     swatches = " ".join(
         f'<span style="white-space:nowrap"><span style="display:inline-block;width:14px;height:0;'
         f'border-top:2px {"dashed" if ln.dashed else "solid"} {ln.color};vertical-align:middle"></span> '
         f"{ln.label}</span>"
         for ln in lines
     )
-    note = f' <span style="opacity:0.6">· {chart.note}</span>' if chart.note else ""
-    return f'<div style="font-size:0.8em;padding:0.3em 0.5em 0"><b>{chart.title}</b>{note}<br>{swatches}</div>'
+    note = f' <span style="opacity:0.6">· {note}</span>' if note else ""
+    return f'<div style="font-size:0.8em;padding:0.3em 0.5em 0"><b>{title}</b>{note}<br>{swatches}</div>'
 
 
 @dataclass

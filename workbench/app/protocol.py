@@ -8,7 +8,7 @@ Poses are 4x4 float arrays in the table frame; conversion to viser's (wxyz, posi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +33,11 @@ class Source:
         scene = "its first scene" if self.scene_id is None else f"scene {self.scene_id}"
         frame = "first frame" if self.im_id is None else f"frame {self.im_id}"
         return f"{self.dataset} {scene}, {frame}"
+
+    def title(self, scene_id: int, im_id: int) -> str:
+        """The loaded frame ``im_id`` of scene ``scene_id`` as the panel's title names it."""
+        name = "demo" if self.demo else Path(self.dataset).name
+        return f"{name} · scene {scene_id} · frame {im_id}"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -165,8 +170,25 @@ class LoadSession:
     confirmed: bool = False
 
 
-Command = (Load | Step | Run | Pause | Shown | Reset | SetConfig | Select | SetDisplay | Shutdown | SetLabels | SnapLabels
-           | FitLabels | UseBestAsLabel | SaveLabels | SaveSession | LoadSession)
+# Sequences: the frames of the loaded frame's scene, one after another (``engine_sequence``).
+
+
+@dataclass(frozen=True)
+class NextFrame:
+    """Go to the scene's frame after the one on show: tracked from the run on show (the frames processed after
+    the one on show are dropped from the timeline), or, where that run has not changed since its next frame was
+    tracked from it, that frame as it was."""
+
+
+@dataclass(frozen=True)
+class ShowFrame:
+    """Show the processed frame ``im_id`` of the sequence again, its run as it was left (nothing is re-run)."""
+
+    im_id: int
+
+
+Command = (Load | Step | Run | Pause | Shown | Reset | SetConfig | Select | SetDisplay | Shutdown | SetLabels
+           | SnapLabels | FitLabels | UseBestAsLabel | SaveLabels | SaveSession | LoadSession | NextFrame | ShowFrame)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -276,6 +298,8 @@ class Chosen:
 class Loaded:
     source: Source
     view: ObservationView
+    # Another frame of the same sequence: the same table frame, so the 3D view keeps the user's camera.
+    keep_camera: bool = False
 
 
 @dataclass
@@ -295,7 +319,7 @@ class Failure:
     problem: str
     path: str | None = None
     fatal: bool = False  # the estimator is gone for good: only a server restart helps
-    topic: str = ""  # "labels" or "session": also shown in that tab, next to the button that failed
+    topic: str = ""  # "labels", "session" or "sequence": also shown in that tab, next to the button that failed
 
 
 @dataclass
@@ -386,5 +410,41 @@ class SessionRestored:
     warnings: list[str]
 
 
+@dataclass(frozen=True)
+class SequenceFrame:
+    """One processed frame of a sequence, for the timeline and the plots across frames. ``status``: how its run
+    began ("estimated" from scratch, "tracked", "2 objects re-found", "re-initialised"); ``seconds``: the wall
+    time it took (a tracked frame's Next; the first frame's iterations); ``motion``: where the camera's motion came
+    from ("given", "depth"; "" when estimated from scratch); ``positions`` (K, 3) m: its answer's object positions
+    in the sequence's table frame (NaN before its run has iterated); ``confidences`` (K,): each object's top
+    mode's probability (NaN without a posterior); ``held``: its run can be shown again (a restored session holds
+    the run of the frame it was saved on only)."""
+
+    im_id: int
+    status: str
+    seconds: float
+    motion: str
+    positions: np.ndarray
+    confidences: np.ndarray
+    held: bool = True
+
+
+@dataclass
+class SequenceState:
+    """The sequence of the loaded frame's scene, sent whenever it changes. ``scene_id`` None: the scene has one
+    frame, no sequence. ``frame_ids``: the scene's image ids; ``frames``: the processed ones, in order;
+    ``current``: the image id on show; ``next_id``: the frame Next goes to (None on the scene's last).
+    ``reports``: where the frame on show changed, its run's history (``IterationReport.as_dict()`` each), run with
+    ``run_config`` (None: the panel's settings; a tracked frame's short search has its own)."""
+
+    scene_id: int | None
+    frame_ids: tuple[int, ...] = ()
+    frames: list[SequenceFrame] = field(default_factory=list)
+    current: int = -1
+    next_id: int | None = None
+    reports: list[dict] | None = None
+    run_config: EstimatorConfig | None = None
+
+
 Message = (Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready | Labels | LabelHeatmap | LabelErrors
-           | TruthErrors | Saved | SessionQuestion | SessionRestored)
+           | TruthErrors | Saved | SessionQuestion | SessionRestored | SequenceState)

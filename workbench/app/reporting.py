@@ -29,6 +29,8 @@ class Reporter:
                  labelling: Labelling, sessions: Sessions):
         self.server, self.panel, self.lock, self.state = server, panel, lock, state
         self.labelling, self.sessions = labelling, sessions
+        # Where a failure about a topic (``Failure.topic``) is also told, beside the button that failed.
+        self.topics = {"session": sessions.on_failure, "labels": labelling.show_failure}
         # Every current error, banner line by banner line: key (a field's label, or the failure's title and path)
         # -> markdown. All are listed, not only the newest; they go when the input is corrected or an iteration
         # goes through.
@@ -88,10 +90,8 @@ class Reporter:
         # The terminal hears of every failure too: a server started on a bad path must not look healthy there.
         log.warning("%s: %s%s", failure.title, f"{failure.path}: " if failure.path else "", failure.problem)
         with self.lock:
-            if failure.topic == "session":
-                self.sessions.on_failure(failure)
-            elif failure.topic == "labels":
-                self.labelling.show_failure(failure)
+            if failure.topic in self.topics:
+                self.topics[failure.topic](failure)
             state = self.state()
             state.failures.append(failure)
             where = f"`{failure.path}`: " if failure.path else ""

@@ -29,6 +29,7 @@ from workbench.app.panel import Panel, build_panel, visibility_item
 from workbench.app.quiet import Quiet
 from workbench.app.reporting import Reporter
 from workbench.app.run_display import RunDisplay
+from workbench.app.sequence_panel import SequencePanel
 from workbench.app.sessions_panel import Sessions
 from workbench.app.settings_form import SettingsForm
 from workbench.app.status import RunView, status_markdown, timings_markdown
@@ -60,13 +61,14 @@ class App:
         self.labelling = Labelling(server, self.panel.label, self.send, self.lock, self.quiet,
                                    on_heatmap_mode=lambda: self.display.label_heatmap_mode_changed())
         self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.lock, self.quiet,
-                                 unsaved=self.unsaved)
-        self.saved_iteration: int | None = None  # the run's iteration last saved to or loaded from a session
+                                 iteration=lambda: self.state.iteration)
         self.reporter = Reporter(server, self.panel, self.lock, lambda: self.state, self.labelling, self.sessions)
         self.settings = SettingsForm(self.panel, self.lock, self.quiet, self.reporter, self.send, config, likelihood)
         self.stepper = StepButton(self.panel, self.lock, self.send, lambda: self.state.running, self.settings.revert)
         self.display = RunDisplay(server, self.panel, self.lock, self.labelling, on_pick=self.pick,
                                   on_error=self.reporter.drawing_failed)
+        self.sequence = SequencePanel(self.panel.sequence, self.lock, self.send, self.reporter.topics,
+                                      self.show_history, names=lambda: self.display.names)
         self._wire()
         self.engine = EngineClient(workers, self.on_message, self.on_engine_died, ray=ray)
         if session is not None:
@@ -115,19 +117,6 @@ class App:
         with self.lock:
             self.settings.revert()
         self.send(p.Run(self.panel.stop_on_convergence.value))
-
-    def unsaved(self) -> str | None:
-        """What of the current run a session load would lose, or None (nothing run, or saved as it is)."""
-        it = self.state.iteration
-        if it < 0 or it == self.saved_iteration:
-            return None
-        return f"iteration {it}" + (f"; last saved at iteration {self.saved_iteration}"
-                                    if self.saved_iteration is not None else "")
-
-    def on_saved(self, msg: p.Saved) -> None:
-        if msg.kind == "session":
-            self.saved_iteration = self.state.iteration
-        self.reporter.on_saved(msg)
 
     def on_truth(self, msg: p.TruthErrors) -> None:
         self.state.truth = msg
@@ -188,9 +177,10 @@ class App:
                 p.LabelHeatmap: self.labelling.show_heatmap,
                 p.LabelErrors: self.labelling.show_errors,
                 p.TruthErrors: self.on_truth,
-                p.Saved: self.on_saved,
+                p.Saved: self.reporter.on_saved,
                 p.SessionQuestion: self.sessions.on_question,
                 p.SessionRestored: self.on_session_restored,
+                p.SequenceState: self.sequence.show,
             }[type(msg)]
             try:
                 handler(msg)
@@ -208,14 +198,14 @@ class App:
         old = self.state
         self.state = replace(RunView(), view=view, engine_pid=old.engine_pid, restarts=old.restarts,
                              failures=old.failures, display_errors=old.display_errors)
-        self.saved_iteration = None
         with self.server.atomic():
             P.title.content = f"**workbench** · {view.title}"
             P.error.visible = False
             self.display.set_frame(view)
             self.labelling.set_frame(view)
             self.sessions.on_frame(view.title)
-        self.cameras.preset(view, FRAME_OBJECTS, None)
+        if not msg.keep_camera:  # another frame of a sequence: the same table frame, the user's view
+            self.cameras.preset(view, FRAME_OBJECTS, None)
 
     def on_snapshot(self, msg: p.Snapshot) -> None:
         s, P = self.state, self.panel
@@ -241,7 +231,7 @@ class App:
         s.last_state, s.running = msg, msg.running
         self.stepper.done()
         if msg.reason == "reset":
-            s.reports, s.cloud, s.chosen, s.iteration, s.truth = [], None, None, -1, None
+            s.reports, s.cloud, s.chosen, s.iteration, s.truth, s.run_config = [], None, None, -1, None, None
             self.display.reset()
         elif not msg.running:
             self.display.throttle.flush()  # the run stopped: show where it stopped now
@@ -252,18 +242,21 @@ class App:
 
     def on_session_restored(self, msg: p.SessionRestored) -> None:
         """Show the restored run's settings and history (its frame came in ``Loaded`` just before)."""
-        s, P = self.state, self.panel
         self.settings.config, self.settings.likelihood = msg.config, msg.likelihood
         with self.quiet:  # the engine has these settings already; showing them must not send them back
-            P.show_config(msg.config, msg.likelihood)
-        s.reports = list(msg.reports)
-        s.iteration = msg.reports[-1]["iteration"] if msg.reports else -1
-        self.saved_iteration = s.iteration
+            self.panel.show_config(msg.config, msg.likelihood)
+        self.show_history(msg.reports)
         self.settings.show_pending()
-        P.plots.set_history(msg.reports, msg.config.particles, msg.config.converge_position,
-                            msg.config.converge_degrees)
         self.sessions.on_restored(msg)
-        P.status.content = status_markdown(self.state, self.config)
+
+    def show_history(self, reports: list[dict], run_config: EstimatorConfig | None = None) -> None:
+        """A run's iterations at once (a restored session; a frame of a sequence put on show, whose run may have
+        settings of its own, ``run_config``): the plots and the status line."""
+        s, cfg = self.state, run_config or self.config
+        s.reports, s.run_config = list(reports), run_config
+        s.iteration = reports[-1]["iteration"] if reports else -1
+        self.panel.plots.set_history(reports, cfg.particles, cfg.converge_position, cfg.converge_degrees)
+        self.panel.status.content = status_markdown(s, self.config)
 
     def on_engine_died(self, exitcode: int | None, gave_up: bool) -> None:
         self.stepper.done()

@@ -84,9 +84,8 @@ class Sessions:
     quiet: Quiet
     rows: dict[str, sessions.SessionInfo] = field(default_factory=dict)
     pending: Path | None = None  # the session waiting for the user's confirmation
-    # What of the current run no session holds ("iteration 7 of the current run"), or None: asked before a load
-    # replaces it.
-    unsaved: Callable[[], str | None] = lambda: None
+    iteration: Callable[[], int] = lambda: -1  # the current run's iteration (-1: nothing run)
+    saved_iteration: int | None = None  # the run's iteration last saved to or loaded from a session
     unsaved_ok: bool = False  # the pending question is about the unsaved run, not a changed dataset
 
     def __post_init__(self) -> None:
@@ -131,6 +130,15 @@ class Sessions:
             return
         self.tab.message.content = f"Saving `{name}` …"
         self.send(p.SaveSession(self.directory, name, overwrite=bool(self.tab.overwrite.value)))
+
+    def unsaved(self) -> str | None:
+        """What of the current run no session holds ("iteration 7; last saved at iteration 5"), or None (nothing
+        run, or saved as it is): asked before a load replaces it."""
+        it = self.iteration()
+        if it < 0 or it == self.saved_iteration:
+            return None
+        return f"iteration {it}" + (f"; last saved at iteration {self.saved_iteration}"
+                                    if self.saved_iteration is not None else "")
 
     def load(self) -> None:
         info = self.rows.get(self.tab.choice.value)
@@ -186,7 +194,8 @@ class Sessions:
     # -- engine messages (called with the app's lock held)
 
     def on_frame(self, title: str) -> None:
-        """A frame was loaded: offer a name made from it, unless the user typed one."""
+        """A frame was loaded (its run not saved yet): offer a name made from it, unless the user typed one."""
+        self.saved_iteration = None
         if not self.tab.name.value.strip():
             with self.quiet:
                 self.tab.name.value = sessions.suggest_name(title.replace(" · ", "-"))
@@ -197,13 +206,14 @@ class Sessions:
 
     def on_saved(self, msg: p.Saved) -> None:
         name = Path(msg.path).name.removesuffix(".json")
+        self.saved_iteration = self.iteration()
         self.tab.message.content = f"Saved session `{name}` ({msg.note}) to `{msg.path}`"
         with self.quiet:
             self.tab.overwrite.value = False  # replacing is a choice for one save
         self.refresh(select=name)
 
     def on_restored(self, msg: p.SessionRestored) -> None:
-        it = msg.reports[-1]["iteration"] if msg.reports else -1
+        it = self.saved_iteration = msg.reports[-1]["iteration"] if msg.reports else -1
         text = f"Loaded session `{msg.name}` at iteration {it}; press **Step** or **Run** to continue it."
         if msg.warnings:
             text += " Loaded despite: " + "; ".join(msg.warnings)

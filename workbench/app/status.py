@@ -9,6 +9,7 @@ import numpy as np
 
 from workbench.app import protocol as p
 from workbench.geometry import rotation_angle
+from workbench.inference.config import EstimatorConfig
 from workbench.physics import STATUS_NAMES
 
 
@@ -30,11 +31,15 @@ class RunView:
     pause_requested_at: int | None = None  # the iteration on display when Pause was pressed
     display_errors: list[str] = field(default_factory=list)  # bugs in drawing a message (logged, kept for tests)
     truth: p.TruthErrors | None = None  # the estimate against the dataset's ground truth, latest iteration
+    # The run's own settings where they are not the panel's (a sequence's tracked frame): its budget is its own.
+    run_config: EstimatorConfig | None = None
 
 
 def status_markdown(s: RunView, cfg) -> str:
     """The status of the run ``s`` under the settings ``cfg`` (an ``EstimatorConfig``): two short lines, since
-    they sit in the panel's fixed top (the iteration's numbers are in the Estimator tab, ``timings_markdown``)."""
+    they sit in the panel's fixed top (the iteration's numbers are in the Estimator tab, ``timings_markdown``). A run
+    with settings of its own (``s.run_config``) is counted against its own budget."""
+    cfg = s.run_config or cfg
     if not s.reports:
         state = "running" if s.running else "paused"
         return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."

@@ -1,6 +1,9 @@
 """The frame loop of ``workbench track``: one scene's frames in id order, the first estimated as ``estimate`` does,
 each next one tracked from the previous one (``Tracker.step``), with its status in words.
 
+``Tracker.resume`` and ``Tracker.advance`` are the same loop driven from outside, one frame at a time: the workbench
+tracks the next frame from the run it shows, with its own evaluator (``evaluator_for``).
+
 The frames share one table frame: the first frame's (found in its depth, or given), moved by the camera's motion
 from frame to frame (``motion``) and kept by the support fit when the depth agrees with it (``support``). Objects
 that do not move therefore keep their table-frame poses, and the previous frame's particles, estimate, candidates
@@ -20,7 +23,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.estimators import Estimator
-from workbench.evaluation import WorkerCrashed, make_evaluator
+from workbench.evaluation import Evaluator, WorkerCrashed, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.context import SearchGeometry
@@ -32,9 +35,9 @@ from workbench.pipeline import problem_for_frame
 from workbench.problem import Problem, ProblemConfig
 from workbench.runner import estimator_rows, run_estimator
 from workbench.scene import Frame
-from workbench.track.lost import lost_objects, status_words
 from workbench.track.config import TrackConfig
 from workbench.track.frames import sequence_world
+from workbench.track.lost import lost_objects, status_words
 from workbench.track.motion import depth_motion, given_motion
 
 
@@ -49,6 +52,20 @@ class FrameResult:
     seconds: float
     motion: str
     line: str  # the frame's line on stderr
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """A frame as ``Tracker.advance`` left it: the ``frame`` and its ``problem`` in the sequence's table frame, the
+    finished ``estimator`` and its answer ``best`` (K, 4, 4), table frame; ``status`` and ``motion`` as
+    ``FrameResult``'s."""
+
+    frame: Frame
+    problem: Problem
+    estimator: Estimator
+    best: np.ndarray
+    status: str
+    motion: str
 
 
 def carry(estimator: Estimator, best: np.ndarray) -> Carried:
@@ -67,18 +84,20 @@ class Tracker:
     """One scene's ``frames`` (image ids), stepped in order (``step``); ``restart`` makes the next frame start from
     scratch.
     ``config``: the first (and any re-initialised) frame's estimator settings, as ``estimate``'s; ``track``: the
-    tracked frames'. ``close`` ends the evaluator's worker processes."""
+    tracked frames'. ``evaluator_for(problem)``: the evaluator of each frame's problem; by default one of
+    ``workers`` processes, started with the first frame and given each next one's problem (``close`` ends it)."""
 
     def __init__(self, dataset: Path, scene_id: int, frames: list[int], config: EstimatorConfig,
                  track: TrackConfig, problem_config: ProblemConfig = ProblemConfig(), workers: int = 2,
                  split: str | None = None, object_ids: list[int] | None = None, early_stop: bool = True,
-                 max_retries: int = 3):
+                 max_retries: int = 3, evaluator_for: Callable[[Problem], Evaluator] | None = None):
         track.validate()
         self.dataset, self.scene_id, self.split, self.object_ids = Path(dataset), scene_id, split, object_ids
         self.config, self.track, self.problem_config = config, track, problem_config
         self.workers, self.early_stop, self.max_retries = workers, early_stop, max_retries
         self.world = sequence_world(self.dataset, scene_id, split, track.motion, frames)
         self.evaluator = None
+        self.evaluator_for = evaluator_for
         self.models: dict = {}
         self.previous: tuple[Frame, Problem] | None = None
         self.carried: Carried | None = None
@@ -94,6 +113,25 @@ class Tracker:
     def step(self, im_id: int) -> FrameResult:
         """Estimate or track frame ``im_id`` (the one after the previous step's, unless restarted)."""
         t0 = time.perf_counter()
+        done = self.advance(im_id)
+        seconds = time.perf_counter() - t0
+        rows = estimator_rows(done.frame, done.problem, done.estimator, done.best, seconds)
+        self.resume(done.frame, done.problem, done.estimator, done.best)
+        how = f" (camera motion {done.motion})" if done.motion else ""
+        line = f"scene {self.scene_id} frame {im_id}: {done.status} in {seconds:.1f} s{how}"
+        if done.estimator.posterior is not None:
+            line += f"; {done.estimator.posterior.summary(done.problem)}"
+        return FrameResult(rows, done.status, seconds, done.motion, line)
+
+    def resume(self, frame: Frame, problem: Problem, estimator: Estimator, best: np.ndarray) -> None:
+        """The next frame starts from ``frame`` (its ``problem``) as ``estimator`` finished it, ``best`` (K, 4, 4)
+        its answer: the last frame ``advance`` gave, or one estimated elsewhere (the workbench's run)."""
+        self.carried, self.previous = carry(estimator, best), (frame, problem)
+        self.models.update({m.obj_id: m for m in problem.models})
+
+    def advance(self, im_id: int) -> TrackedFrame:
+        """Estimate frame ``im_id`` from scratch, or track it from the frame the tracker ``resume``s from (unless
+        restarted) -> what it became. A frame that cannot be read fails (InputError) before any evaluator is used."""
         frame = bop.load_frame(self.dataset, self.scene_id, im_id, self.split, self.object_ids)
         missing = sorted(set(frame.object_ids) - set(self.models))
         if missing:
@@ -108,18 +146,14 @@ class Tracker:
             motion = "given" if self.world is not None else "depth"
             frame, problem, carried = self._tracked_problem(frame)
             estimator, best, status = self._track(problem, carried)
-        seconds = time.perf_counter() - t0
-        rows = estimator_rows(frame, problem, estimator, best, seconds)
-        self.carried, self.previous = carry(estimator, best), (frame, problem)
-        how = f" (camera motion {motion})" if motion else ""
-        line = f"scene {self.scene_id} frame {im_id}: {status} in {seconds:.1f} s{how}"
-        if estimator.posterior is not None:
-            line += f"; {estimator.posterior.summary(problem)}"
-        return FrameResult(rows, status, seconds, motion, line)
+        return TrackedFrame(frame, problem, estimator, best, status, motion)
 
     # ----------------------------------------------------------------------------------------------------- parts
-    def _use(self, problem: Problem) -> None:
-        """The evaluator, for ``problem``: started with the first frame, given each next frame's problem."""
+    def _use(self, problem: Problem) -> Evaluator:
+        """The evaluator, for ``problem``: ``evaluator_for``'s, or one started with the first frame and given each
+        next frame's problem."""
+        if self.evaluator_for is not None:
+            return self.evaluator_for(problem)
         try:
             if self.evaluator is None:
                 self.evaluator = make_evaluator(problem, self.workers, max_retries=self.max_retries)
@@ -128,11 +162,11 @@ class Tracker:
         except WorkerCrashed as err:
             raise InputError(f"scene {self.scene_id}", f"{err}; the frames before it are kept (run again with "
                                                        "--resume)") from None
+        return self.evaluator
 
     def _estimate(self, problem: Problem, desc: str) -> tuple[Estimator, np.ndarray]:
         """From scratch, as ``estimate`` does."""
-        self._use(problem)
-        return run_estimator(Estimator(problem, self.config, self.evaluator), desc, self.early_stop,
+        return run_estimator(Estimator(problem, self.config, self._use(problem)), desc, self.early_stop,
                              show_progress=True)
 
     def _tracked_problem(self, frame: Frame) -> tuple[Frame, Problem, Carried]:
@@ -160,9 +194,8 @@ class Tracker:
                             t.lost_rise)
         if lost.sum() > t.reinit_share * problem.n_objects:
             return *self._estimate(problem, f"scene {self.scene_id}: re-initialising"), "re-initialised"
-        self._use(problem)
         search = TrackSearch(problem, carried, np.flatnonzero(lost).tolist())
-        estimator = Estimator(problem, t.frame_config(self.config, bool(lost.any())), self.evaluator, search)
+        estimator = Estimator(problem, t.frame_config(self.config, bool(lost.any())), self._use(problem), search)
         _, best = run_estimator(estimator, "tracking", early_stop=False)
         still = lost_objects(object_badness(problem, best, samples), carried.badness, t.lost_badness, t.lost_rise)
         return estimator, best, status_words(int(lost.sum()), int((lost & ~still).sum()))
