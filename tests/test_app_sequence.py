@@ -70,6 +70,8 @@ def test_next_frame_tracks_jumps_back_and_a_session_keeps_the_position(sequence,
         moved = np.linalg.norm(state.frames[2].positions - state.frames[0].positions, axis=1)
         assert moved.max() < 0.01, moved
         assert engine.evaluators.problem is engine.problem  # the pool evaluates the frame on show
+        loaded = inbox.of(p.Loaded)
+        assert loaded[-1].view.meshes is loaded[-2].view.meshes  # the same objects: not decimated again
 
         # Next on the last frame: a message, nothing changes.
         tracked = engine.estimator

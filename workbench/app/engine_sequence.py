@@ -158,7 +158,9 @@ class EngineSequence:
             raise
         seconds = time.perf_counter() - t0  # as `workbench track` counts a frame
         source = replace(here.held.source, im_id=nxt)
-        view = build_view(done.frame, done.problem, source.title(self.scene_id, nxt), self.dataset)
+        same = [m.obj_id for m in done.problem.models] == [m.obj_id for m in e.problem.models]
+        view = build_view(done.frame, done.problem, source.title(self.scene_id, nxt), self.dataset,
+                          here.held.view.meshes if same else None)
         self.leave()
         here.handed = (est, est.iteration)
         del self.frames[self.at + 1:]

@@ -179,8 +179,11 @@ def cloud_points(frame: Frame, camera: Camera, T_world_cam: np.ndarray, stride: 
     return points[mask], flat[mask]
 
 
-def build_view(frame: Frame, problem: Problem, title: str, dataset=None) -> ObservationView:
-    """The frame as the workbench shows it; ``dataset``: its folder, for the Data tab."""
+def build_view(frame: Frame, problem: Problem, title: str, dataset=None, meshes: list[MeshData] | None = None
+               ) -> ObservationView:
+    """The frame as the workbench shows it; ``dataset``: its folder, for the Data tab. ``meshes``: the objects as
+    another view of the same models drew them (the frame before in a sequence): their outlines and decimations are
+    not made again (about a second for YCB-Video's four scans)."""
     camera = problem.camera
     T_world_cam = invert_pose(camera.T_cam_world)
     t = problem.table
@@ -224,7 +227,7 @@ def build_view(frame: Frame, problem: Problem, title: str, dataset=None) -> Obse
         depth_range=drange,
         table=(t.x_min, t.x_max, t.y_min, t.y_max),
         region=region,
-        meshes=[
+        meshes=meshes if meshes is not None else [
             MeshData(name, np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32),
                      outline_edges(m.mesh.vertices, m.mesh.faces),
                      cloud_outline(m.mesh), solid_mesh(m.mesh))

@@ -59,7 +59,7 @@ def timeline_markdown(msg: p.SequenceState) -> str:
         seconds = f"{f.seconds:.1f}" if f.seconds > 0 else "–"
         rows.append(f"| {'▶' if f.im_id == msg.current else ''} | {f.im_id} | {status} | {seconds} | "
                     f"{f.motion or '–'} |")
-    return "| | frame | status | s | camera |\n|---|---:|---|---:|---|\n" + "\n".join(rows)
+    return "| | frame | status | s | camera |\n|:---:|:---:|---|---:|:---:|\n" + "\n".join(rows)
 
 
 class SequencePanel:
