@@ -147,3 +147,32 @@ def test_a_next_frame_without_depth_is_a_message_and_the_frame_on_show_stays(seq
         assert engine.estimator.iteration == run.iteration and not inbox.of(p.SequenceState)[-1].frames[1:]
     finally:
         engine.close()
+
+
+def test_a_sequence_record_round_trips_and_a_damaged_one_names_the_file(tmp_path):
+    import json
+
+    from workbench.app.sequence_record import SequenceRecord, parse_record, record_json
+    from workbench.errors import InputError
+    from workbench.inference.config import EstimatorConfig
+
+    frames = [p.SequenceFrame(3, "estimated", 2.5, "", np.zeros((2, 3)), np.array([0.9, np.nan])),
+              p.SequenceFrame(4, "1 object re-found", 0.8, "depth", np.ones((2, 3)), np.array([1.0, 0.5]))]
+    record = SequenceRecord(frames, 4, EstimatorConfig(particles=16, iterations=2))
+    stored = json.loads(json.dumps(record_json(record)))  # as a session file holds it (NaN included)
+    back = parse_record(stored, tmp_path / "s.json", 2, 4)
+    assert back.config == record.config and back.current == 4 and not any(f.held for f in back.frames)
+    for a, b in zip(back.frames, frames):
+        assert (a.im_id, a.status, a.seconds, a.motion) == (b.im_id, b.status, b.seconds, b.motion)
+        assert np.array_equal(a.positions, b.positions) and np.array_equal(a.confidences, b.confidences,
+                                                                           equal_nan=True)
+    for damage, words in ((lambda d: d.update(current=3), "sequence.current"),
+                          (lambda d: d["frames"][1].update(confidences=[1.0, 2.0]), "confidences must lie"),
+                          (lambda d: d["frames"].reverse(), "increasing order"),
+                          (lambda d: d["config"].pop("particles"), "missing settings"),
+                          (lambda d: d.pop("frames"), "malformed sequence entry")):
+        bad = json.loads(json.dumps(stored))
+        damage(bad)
+        with pytest.raises(InputError) as err:
+            parse_record(bad, tmp_path / "s.json", 2, 4)
+        assert err.value.path.endswith("s.json") and words in err.value.problem, err.value.problem

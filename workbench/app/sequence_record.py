@@ -18,6 +18,7 @@ from workbench.app import protocol as p
 from workbench.checks import check_estimator_config
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.moves import MoveMix
 from workbench.sessions import config_from_dict
 
 
@@ -32,10 +33,10 @@ class SequenceRecord:
 
 
 def record_json(record: SequenceRecord) -> dict:
-    """-> the JSON object a session stores (positions in m, NaN where unknown)."""
+    """-> the plain JSON object a session stores (positions in m, NaN where unknown)."""
     return {
         "current": record.current,
-        "config": asdict(record.config),
+        "config": {k: v.as_dict() if isinstance(v, MoveMix) else v for k, v in asdict(record.config).items()},
         "frames": [{"im_id": f.im_id, "status": f.status, "seconds": f.seconds, "motion": f.motion,
                     "positions": np.asarray(f.positions, dtype=np.float64).tolist(),
                     "confidences": np.asarray(f.confidences, dtype=np.float64).tolist()} for f in record.frames],
