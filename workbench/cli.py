@@ -473,10 +473,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated, of touching,stacked,slant,occluded,three,four (the paper's); clutter, "
                    "mixed (larger desks, round objects, distractors, frames without the table pose); handle_hidden, "
                    "handle_shown (a mug whose handle the body hides from the camera, or that shows it); lying "
-                   "(2-4 objects free, each in any stable pose: a can on its side, a bottle lying down)")
+                   "(2-4 objects free, each in any stable pose: a can on its side, a bottle lying down); with "
+                   "--models only: ycb_clutter (6-8 models, some touching, other models as distractors), raised (2-4 "
+                   "on a large box on the table), leaning (a box leaning on a bowl or box), tools (drill, clamps, "
+                   "scissors lying with 1-3 others)")
     p.add_argument("--models", type=Path, default=None, metavar="DIR",
                    help="draw the objects from this BOP dataset's (or models folder's) models, e.g. the YCB-Video "
-                   "models, instead of the built-in ones (category lying); they are copied into OUT")
+                   "models, instead of the built-in ones (category lying; ycb_clutter, raised, leaning and tools "
+                   "need it); they are copied into OUT")
     p.add_argument("--distractors", type=int, default=None,
                    help="objects the estimator is not told about, per scene (default: clutter 2-4, mixed 1-3, else 0)")
     p.add_argument("--table-pose", type=float, default=None, metavar="P",

@@ -20,9 +20,14 @@ Categories for the posterior: ``handle_hidden`` and ``handle_shown`` (the mug an
 camera drawn about the mug's handle so that its body hides it, or so that it shows) and ``lying`` (2-4 objects
 free, each in one of its stable poses). ``lying`` can draw from any BOP models (``make_scenes(models=...)``).
 
+Categories of real shapes (``SHAPE_CATEGORIES``), drawn only from given models, which collide as V-HACD pieces:
+``ycb_clutter`` (6-8 models, some touching, 2-4 distractors, other models among them), ``raised`` (2-4 models on a
+large box on the table, which is environment: in the depth, not in scene_gt.json; no table pose), ``leaning`` (a
+box leaning on a vessel or another box, 0-2 more) and ``tools`` (1-2 tools lying, 1-3 other models).
+
 Every scene is laid out from *relations* (touch / stack / slant / hide / free), each new object moved along one
 degree of freedom by bisection until it just touches its partner, then settled by physics in the generator's own
-pybullet world (independent of ``workbench.physics``) and kept only when the settled scene still is what its
+pybullet world (not ``workbench.physics``'s, whose V-HACD pieces it borrows for given models) and kept only when the settled scene still is what its
 relations say (contacts from ``getContactPoints``, tilt, visibility); otherwise the next random draw is tried.
 Distractors are placed after settling, resting on the desk. Depth is ray-cast with open3d (independent of the
 estimator's OpenGL renderer) and degraded by a Kinect-like sensor model.
@@ -34,6 +39,10 @@ In pipeline order:
 - ``meshes``: the can, mug and cable meshes built here;
 - ``sim``: the generator's pybullet world: settling, contacts, closest distances;
 - ``layout``: objects placed by relations, per category, settled and checked;
+- ``bodies``: given models as bodies of the generator's world, their V-HACD pieces at their centre of mass;
+- ``roles``: what a given model can be in a scene (box, vessel, tool, other), from its geometry;
+- ``resting``: given models placed on a surface (the table, a raised box): free, against another, leaning;
+- ``shape_layouts``: the categories of real shapes, placed by ``resting``, settled and checked;
 - ``distractors``: slabs, cylinders and cables on the desk;
 - ``views``: the camera, ray-cast depth and object masks;
 - ``sensor``: the Kinect-like depth noise;

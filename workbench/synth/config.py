@@ -10,9 +10,10 @@ import numpy as np
 from workbench.synth.sensor import SensorModel
 
 PAPER_CATEGORIES = ("touching", "stacked", "slant", "occluded", "three", "four")
-CATEGORIES = PAPER_CATEGORIES + ("clutter", "mixed", "handle_hidden", "handle_shown", "lying")  # new ones go last:
-# a category's index seeds its scenes
-MODEL_CATEGORIES = ("lying",)  # those that can draw from any models (``make-scenes --models``)
+SHAPE_CATEGORIES = ("ycb_clutter", "raised", "leaning", "tools")  # real shapes: drawn from given models only
+CATEGORIES = PAPER_CATEGORIES + ("clutter", "mixed", "handle_hidden", "handle_shown", "lying") + SHAPE_CATEGORIES
+# new ones go last: a category's index seeds its scenes
+MODEL_CATEGORIES = ("lying",) + SHAPE_CATEGORIES  # those that can draw from any models (``make-scenes --models``)
 HANDLE_CATEGORIES = ("handle_hidden", "handle_shown")  # the mug, its handle hidden behind its body or in view
 
 
@@ -48,8 +49,11 @@ class SynthConfig:
     max_layout_tries: int = 300
     max_camera_tries: int = 40
     distractor_clearance: float = 0.03  # seen from above, between a distractor and any object of interest
+    clutter_count: tuple[int, int] = (6, 8)  # ``ycb_clutter``'s objects (inclusive; fewer when fewer are given)
+    free_clearance: float = 0.015  # between an object placed free and the others (real shapes: a crowded desk)
+    raised_extents: tuple[tuple[float, float], ...] = ((0.30, 0.50), (0.30, 0.50), (0.05, 0.20))  # ``raised``'s box
     sensor: SensorModel = field(default_factory=SensorModel)
-    objects: tuple = ()  # the objects (``objects.Item``) ``lying`` scenes draw from; empty: the built-in ones
+    objects: tuple = ()  # the objects (``objects.Item``) ``MODEL_CATEGORIES`` draw from; empty: the built-in ones
 
     def K(self) -> np.ndarray:
         """Kinect-like intrinsics; principal point at the image centre (pixel centres at integer u, v)."""
@@ -68,4 +72,6 @@ class DeskSpec:
 
 # Desks up to 2.4 x 1.5 m: larger than the camera's view of them (about 1.2 x 0.9 m at 1 m).
 LARGE_DESK = ((0.9, 2.4), (0.7, 1.5))
-DESKS = {"clutter": DeskSpec((2, 4), 0.5, LARGE_DESK), "mixed": DeskSpec((1, 3), 0.0, LARGE_DESK)}
+DESKS = {"clutter": DeskSpec((2, 4), 0.5, LARGE_DESK), "mixed": DeskSpec((1, 3), 0.0, LARGE_DESK),
+         "ycb_clutter": DeskSpec((2, 4), 0.5, LARGE_DESK), "raised": DeskSpec((0, 2), 0.0, LARGE_DESK),
+         "leaning": DeskSpec((0, 2), 0.5, LARGE_DESK), "tools": DeskSpec((1, 3), 0.5, LARGE_DESK)}

@@ -16,10 +16,11 @@ from workbench.errors import InputError
 from workbench.geometry import make_pose
 from workbench.io import bop
 from workbench.metrics import box_symmetries
-from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, DeskSpec, SynthConfig
+from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, SHAPE_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.distractors import Distractor, distractor_mesh
 from workbench.synth.objects import BOXES, ROUND, MeshItem, box_mesh, item_mesh
 from workbench.synth.scenes import SceneSample, generate_scene
+from workbench.synth.shape_layouts import check_models
 from workbench.synth.sim import Sim
 
 
@@ -53,16 +54,19 @@ def write_scene(out: Path, scene_id: int, sample: SceneSample, cfg: SynthConfig,
 
 
 def _distractor_entry(d: Distractor, T_cam_world: np.ndarray) -> dict:
-    """A distractor as JSON: kind, sizes in mm, pose in the camera frame (BOP's cam_R_m2c, cam_t_m2c)."""
+    """A distractor as JSON: kind, sizes in mm (a model: its obj_id), pose in the camera frame (BOP's cam_R_m2c,
+    cam_t_m2c)."""
     T = T_cam_world @ d.T
     params = {k: (np.asarray(v) / bop.MM).tolist() for k, v in d.params.items()}
-    return {"kind": d.kind, **{f"{k}_mm": v for k, v in params.items()},
+    model = {} if d.item is None else {"obj_id": d.item.obj_id}
+    return {"kind": d.kind, **model, **{f"{k}_mm": v for k, v in params.items()},
             "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": (T[:3, 3] / bop.MM).tolist()}
 
 
 def load_distractors(dataset: Path, scene_id: int, im_id: int = 0,
                      split: str = "test") -> list[tuple[trimesh.Trimesh, np.ndarray]]:
-    """The distractors of a generated frame: (model mesh in metres, T_cam_obj (4, 4) metres) each; [] if none."""
+    """The distractors of a generated frame, a raised box included: (model mesh in metres, T_cam_obj (4, 4)
+    metres) each; [] if none. A model distractor's mesh is the dataset's model of its obj_id."""
     path = Path(dataset) / split / f"{scene_id:06d}" / "scene_distractors.json"
     if not path.is_file():
         return []
@@ -70,7 +74,11 @@ def load_distractors(dataset: Path, scene_id: int, im_id: int = 0,
     for e in bop.read_json(path).get(str(im_id), []):
         params = {k[:-3]: np.asarray(v) * bop.MM for k, v in e.items() if k.endswith("_mm")}
         T = bop.parse_pose(e["cam_R_m2c"], e["cam_t_m2c"], path, f"image {im_id} distractor")
-        out.append((distractor_mesh(e["kind"], params), T))
+        if e["kind"] == "model":
+            mesh = bop.load_models(dataset, [e["obj_id"]])[e["obj_id"]].mesh
+        else:
+            mesh = distractor_mesh(e["kind"], params)
+        out.append((mesh, T))
     return out
 
 
@@ -173,7 +181,7 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     -> per scene {"scene_id", "category", "obj_ids", "relations", "visib_fract", "tries"} and, where they differ
     from the paper's set-up, "table_size", "table_pose", "distractors" (also in scenes.json).
     ``models``: a BOP dataset (or models folder) whose models the scenes draw from instead of the built-in
-    objects (only ``MODEL_CATEGORIES``); copied into ``out`` with their symmetries.
+    objects (only ``MODEL_CATEGORIES``; ``SHAPE_CATEGORIES`` need it); copied into ``out`` with their symmetries.
     ``out`` must be new or empty unless ``force``.
     """
     unknown = [c for c in categories if c not in CATEGORIES]
@@ -182,6 +190,10 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     if models is not None and any(c not in MODEL_CATEGORIES for c in categories):
         raise InputError("categories", f"with --models, choose from {list(MODEL_CATEGORIES)}: the others are "
                                        "built from the built-in boxes, can and mug")
+    if models is None and any(c in SHAPE_CATEGORIES for c in categories):
+        shaped = [c for c in categories if c in SHAPE_CATEGORIES]
+        raise InputError("--models", f"{', '.join(shaped)} draw real shapes from given models: pass --models DIR "
+                                     "(a BOP dataset or models folder, e.g. ../shared/datasets/ycbv-models)")
     if distractors is not None and distractors < 0:
         raise InputError("distractors", f"must be >= 0, got {distractors}")
     if table_pose is not None and not 0.0 <= table_pose <= 1.0:
@@ -189,6 +201,8 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     out = Path(out)
     check_out_folder(out, force)
     pool = model_items(models) if models is not None else ()
+    for category in dict.fromkeys(c for c in categories if c in SHAPE_CATEGORIES):
+        check_models(category, pool)
     cfg = SynthConfig(width=width, height=height, objects=pool)
     if models is not None:
         bop.copy_models(models, out, [o.obj_id for o in pool])

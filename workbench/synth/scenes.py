@@ -7,11 +7,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from workbench.synth.config import DESKS, HANDLE_CATEGORIES, DeskSpec, SynthConfig
+from workbench.synth.config import DESKS, HANDLE_CATEGORIES, SHAPE_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.distractors import Distractor, place_distractors
 from workbench.synth.layout import Placed, draw_layout, relations_hold, settle_layout
 from workbench.synth.objects import item_mesh
 from workbench.synth.sensor import apply_sensor
+from workbench.synth.shape_layouts import draw_shape_layout, holds
 from workbench.synth.sim import Sim
 from workbench.synth.views import (
     draw_camera,
@@ -93,6 +94,35 @@ def _draw_desk(desk: DeskSpec, cfg: SynthConfig, rng) -> SynthConfig:
     return replace(cfg, table_size=(float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1))))
 
 
+def _settled_layout(sim: Sim, category: str, rng) -> tuple[list[Placed], list[np.ndarray], list[Distractor]] | None:
+    """One layout of ``category`` drawn and settled: (objects, normals of the faces hidden behind, the
+    environment: a raised box), or None when it did not settle into what the category says."""
+    if category in SHAPE_CATEGORIES:
+        shaped = draw_shape_layout(sim, category, rng)
+        if shaped is None or not (settle_layout(sim, shaped.layout) and holds(sim, shaped)):
+            return None
+        return shaped.layout, [], shaped.environment
+    drawn = draw_layout(sim, category, rng)
+    if drawn is None:
+        return None
+    layout, hide_normals = drawn
+    if not (settle_layout(sim, layout) and relations_hold(sim, layout)):
+        return None
+    return layout, hide_normals, []
+
+
+def _distractors(rng, category: str, layout: list[Placed], environment: list[Distractor], count: int,
+                 cfg: SynthConfig) -> list[Distractor]:
+    """The environment and ``count`` distractors on the desk; with real shapes, some of them models not in the
+    scene."""
+    if category not in SHAPE_CATEGORIES:
+        return place_distractors(rng, layout, count, cfg) if count else []
+    listed = {id(p.item) for p in layout}
+    spare = tuple(o for o in cfg.objects if id(o) not in listed)
+    obstacles = tuple(d.mesh().apply_transform(d.T) for d in environment)
+    return environment + (place_distractors(rng, layout, count, cfg, spare, obstacles) if count else [])
+
+
 def generate_scene(sim: Sim, category: str, rng: np.random.Generator, cfg: SynthConfig,
                    desk: DeskSpec | None = None) -> SceneSample:
     """Draw layouts until one settles into what ``category`` says and a camera shows it so. ``desk``: table size,
@@ -103,14 +133,13 @@ def generate_scene(sim: Sim, category: str, rng: np.random.Generator, cfg: Synth
     K = cfg.K()
     for tries in range(1, cfg.max_layout_tries + 1):
         sim.reset()
-        drawn = draw_layout(sim, category, rng)
-        if drawn is None:
+        settled = _settled_layout(sim, category, rng)
+        if settled is None:
             continue
-        layout, hide_normals = drawn
-        if not (settle_layout(sim, layout) and relations_hold(sim, layout)):
-            continue
+        layout, hide_normals, environment = settled
         lo, hi = desk.distractors
-        distractors = place_distractors(rng, layout, int(rng.integers(lo, hi + 1)), cfg) if hi > 0 else []
+        distractors = _distractors(rng, category, layout, environment, int(rng.integers(lo, hi + 1)) if hi > 0 else 0,
+                                   cfg)
         for _ in range(cfg.max_camera_tries):
             T_cam_world = (draw_handle_camera(cfg, rng, layout, category == "handle_hidden")
                            if category in HANDLE_CATEGORIES else draw_camera(cfg, rng, layout, hide_normals))

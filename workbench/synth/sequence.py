@@ -17,7 +17,7 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_x, rot_z
 from workbench.io import bop
-from workbench.synth.config import CATEGORIES, DESKS, DeskSpec, SynthConfig
+from workbench.synth.config import CATEGORIES, DESKS, SHAPE_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.dataset import _scene_meta, _write_camera_json, check_out_folder, save_object_models
 from workbench.synth.layout import Placed
 from workbench.synth.scenes import SceneSample, generate_scene
@@ -97,6 +97,10 @@ def make_sequences(out: Path, categories: list[str], per_category: int, frames: 
     unknown = [c for c in categories if c not in CATEGORIES]
     if unknown:
         raise InputError("categories", f"unknown {unknown}; choose from {list(CATEGORIES)}")
+    shaped = [c for c in categories if c in SHAPE_CATEGORIES]
+    if shaped:
+        raise InputError("categories", f"{', '.join(shaped)} draw from given models (make-scenes --models), which "
+                                       "sequences do not take")
     if frames < 1:
         raise InputError("--sequence", f"must be >= 1 frames, got {frames}")
     if push is not None and not 0 <= push.frame < frames:

@@ -1,16 +1,30 @@
-"""The generator's own pybullet world (independent of ``workbench.physics``): a fixed table and free objects,
+"""The generator's own pybullet world (not the estimator's ``workbench.physics`` world, whose V-HACD
+decomposition only it borrows for given models' pieces): a fixed table and free objects,
 settled to rest, with contacts and closest distances for placing objects against each other and checking
-relations."""
+relations. Given models collide as their convex hulls, or (``pieces``) as their V-HACD pieces (``bodies``); a
+raised box the objects rest on is a fixed body like the table."""
 
 from __future__ import annotations
 
+import shutil
+import tempfile
+from pathlib import Path
+
 import numpy as np
 
-from workbench.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix, wxyz_to_xyzw, xyzw_to_wxyz
+from workbench.geometry import (
+    invert_pose,
+    make_pose,
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    wxyz_to_xyzw,
+    xyzw_to_wxyz,
+)
 from workbench.physics.bullet import pybullet as pb
+from workbench.synth.bodies import piece_body
 from workbench.synth.config import SynthConfig
 from workbench.synth.meshes import mug_collision_parts
-from workbench.synth.objects import Box, Item, model_mesh
+from workbench.synth.objects import Box, Item, MeshItem, model_mesh
 
 
 class Sim:
@@ -20,14 +34,20 @@ class Sim:
         self.cfg = cfg
         self.cid = pb.connect(pb.DIRECT)
         self.table = -1
+        self._T_obj_body: dict[int, np.ndarray] = {}  # bodies whose frame is not their object's (pieces)
+        self._piece_files: dict[int, Path] = {}  # id(item) -> its pieces' OBJ file, written once per world
+        self._tmpdir: Path | None = None
 
     def close(self) -> None:
         pb.disconnect(self.cid)
+        if self._tmpdir is not None:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
 
     def reset(self) -> None:
         """Empty world with the table; bodies are re-created per scene (a reused world is not deterministic)."""
         c = self.cfg
         pb.resetSimulation(physicsClientId=self.cid)
+        self._T_obj_body = {}
         pb.setGravity(0, 0, -9.81, physicsClientId=self.cid)
         pb.setPhysicsEngineParameter(fixedTimeStep=c.dt, numSolverIterations=50, physicsClientId=self.cid)
         half = [c.table_size[0] / 2, c.table_size[1] / 2, c.table_thickness / 2]
@@ -40,9 +60,21 @@ class Sim:
         shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=(e / 2).tolist(), physicsClientId=self.cid)
         return self._add_body(shape, float(np.prod(e)), T)
 
-    def add_item(self, item: Item, T: np.ndarray) -> int:
+    def add_fixed_box(self, extents, T: np.ndarray) -> int:
+        """A box that does not move (a raised support on the table), ``extents`` (3,) m at T_world_box (4, 4)."""
+        half = (np.asarray(extents, dtype=np.float64) / 2).tolist()
+        shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=self.cid)
+        q = wxyz_to_xyzw(matrix_to_quat_wxyz(T[:3, :3]))
+        body = pb.createMultiBody(0, shape, basePosition=T[:3, 3].tolist(), baseOrientation=q.tolist(),
+                                  physicsClientId=self.cid)
+        pb.changeDynamics(body, -1, lateralFriction=self.cfg.friction, restitution=0.0, physicsClientId=self.cid)
+        return body
+
+    def add_item(self, item: Item, T: np.ndarray, pieces: bool = False) -> int:
         """A free body of the object's shape: its box, a cylinder, (mug) a solid cylinder and handle boxes, or
-        (a given mesh) its convex hull."""
+        (a given mesh) its convex hull, or with ``pieces`` its V-HACD pieces (``bodies.piece_body``)."""
+        if pieces and item.kind == "mesh":
+            return self._add_pieces(item, T)
         if item.kind == "box":
             return self.add_box(item.extents, T)
         if item.kind == "can":
@@ -77,14 +109,39 @@ class Sim:
         self.set_pose(body, T)
         return body
 
+    def _add_pieces(self, item: MeshItem, T: np.ndarray) -> int:
+        """A model as its pieces, its body frame at its centre of mass. Rolling and spinning friction as the
+        estimator's physics has them (``PhysicsConfig``): without them a can on its side never comes to rest."""
+        c, body_of = self.cfg, piece_body(item)
+        if id(item) not in self._piece_files:
+            if self._tmpdir is None:
+                self._tmpdir = Path(tempfile.mkdtemp(prefix="workbench_synth_"))
+            self._piece_files[id(item)] = self._tmpdir / f"pieces{len(self._piece_files)}.obj"
+            body_of.write_obj(self._piece_files[id(item)])
+        shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(self._piece_files[id(item)]),
+                                        physicsClientId=self.cid)
+        mass = float(c.density * body_of.volume)
+        body = pb.createMultiBody(mass, shape, useMaximalCoordinates=True, physicsClientId=self.cid)
+        # Margin 0: Bullet otherwise pads hulls by a millimetre, and the objects would float above what they rest on.
+        pb.changeDynamics(
+            body, -1, mass=mass, localInertiaDiagonal=(mass * body_of.inertia).tolist(), lateralFriction=c.friction,
+            rollingFriction=0.002, spinningFriction=0.002, restitution=0.0, linearDamping=0.04, angularDamping=0.04,
+            collisionMargin=0.0, physicsClientId=self.cid)
+        self._T_obj_body[body] = body_of.T_obj_body
+        self.set_pose(body, T)
+        return body
+
     def set_pose(self, body: int, T: np.ndarray) -> None:
+        if body in self._T_obj_body:
+            T = T @ self._T_obj_body[body]
         q = wxyz_to_xyzw(matrix_to_quat_wxyz(T[:3, :3]))
         pb.resetBasePositionAndOrientation(body, T[:3, 3].tolist(), q.tolist(), physicsClientId=self.cid)
         pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=self.cid)
 
     def pose(self, body: int) -> np.ndarray:
         p, q = pb.getBasePositionAndOrientation(body, physicsClientId=self.cid)
-        return make_pose(quat_wxyz_to_matrix(xyzw_to_wxyz(np.asarray(q))), np.asarray(p))
+        T = make_pose(quat_wxyz_to_matrix(xyzw_to_wxyz(np.asarray(q))), np.asarray(p))
+        return T @ invert_pose(self._T_obj_body[body]) if body in self._T_obj_body else T
 
     def distance(self, a: int, b: int, horizon: float = 1.0) -> float:
         """Signed closest distance (negative: penetration) between two bodies, capped at ``horizon``."""
