@@ -27,8 +27,9 @@ box leaning on a vessel or another box, 0-2 more) and ``tools`` (1-2 tools lying
 
 Every scene is laid out from *relations* (touch / stack / slant / hide / free), each new object moved along one
 degree of freedom by bisection until it just touches its partner, then settled by physics in the generator's own
-pybullet world (not ``workbench.physics``'s, whose V-HACD pieces it borrows for given models) and kept only when the settled scene still is what its
-relations say (contacts from ``getContactPoints``, tilt, visibility); otherwise the next random draw is tried.
+pybullet world (not ``workbench.physics``'s, whose V-HACD pieces it borrows for given models) and kept only when
+the settled scene still is what its relations say (contacts from ``getContactPoints``, tilt, visibility);
+otherwise the next random draw is tried.
 Distractors are placed after settling, resting on the desk. Depth is ray-cast with open3d (independent of the
 estimator's OpenGL renderer) and degraded by a Kinect-like sensor model.
 

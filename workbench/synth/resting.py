@@ -20,7 +20,8 @@ from workbench.synth.sim import Sim, bisect_contact
 @dataclass(frozen=True)
 class Surface:
     """What objects rest on: the table's top or a raised box's. ``T`` (4, 4): T_world_top, the top's centre with
-    z up; ``half`` (2,): half its sizes along the top's x and y, m; ``body``: its body in the sim."""
+    z up; ``half`` (2,): how far from that centre along the top's x and y objects may stand (half its sizes, less
+    a margin), m; ``body``: its body in the sim."""
 
     body: int
     T: np.ndarray
@@ -30,10 +31,10 @@ class Surface:
     def z(self) -> float:
         return float(self.T[2, 3])
 
-    def holds(self, xy: np.ndarray, margin: float) -> bool:
-        """Are the world points ``xy`` (N, 2) all at least ``margin`` m inside the top's edges?"""
+    def holds(self, xy: np.ndarray) -> bool:
+        """Are the world points ``xy`` (N, 2) all within the top's edges (``half``)?"""
         local = (np.atleast_2d(xy) - self.T[:2, 3]) @ self.T[:2, :2]
-        return bool(np.all(np.abs(local) <= np.asarray(self.half) - margin))
+        return bool(np.all(np.abs(local) <= np.asarray(self.half)))
 
 
 def posed_points(item: MeshItem, T: np.ndarray) -> np.ndarray:
@@ -64,16 +65,16 @@ def clear_of(sim: Sim, body: int, others: list[Placed], gap: float) -> bool:
 
 
 def place_free(sim: Sim, rng, layout: list[Placed], item: MeshItem, body: int, surface: Surface,
-               clearance: float, margin: float) -> np.ndarray | None:
-    """``item`` in a stable pose on ``surface``, ``clearance`` m clear of every placed object and ``margin`` m
-    inside the surface's edges: tried at 40 spots on rings 6-45 cm about the layout's centre (the surface's, for
+               clearance: float) -> np.ndarray | None:
+    """``item`` in a stable pose on ``surface``, within its edges and ``clearance`` m clear of every placed
+    object: tried at 40 spots on rings 6-45 cm about the layout's centre (the surface's, for
     the first object), nearest first, so that the objects stand close as on a desk. -> T_world_obj or None."""
     centre = np.mean([p.T[:2, 3] for p in layout], axis=0) if layout else surface.T[:2, 3]
     for k in range(40):
         R = stable_rotation(item, rng)
         a, r = rng.uniform(-np.pi, np.pi), (0.06 + 0.01 * k if layout else 0.005 * k)
         T = resting_pose(item, R, centre + r * np.array([np.cos(a), np.sin(a)]), surface, sim.cfg.lift)
-        if not surface.holds(posed_points(item, T)[:, :2], margin):
+        if not surface.holds(posed_points(item, T)[:, :2]):
             continue
         sim.set_pose(body, T)
         if clear_of(sim, body, layout, clearance):

@@ -21,6 +21,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.geometry import make_pose, rot_z
+from workbench.synth.config import SynthConfig
 from workbench.synth.distractors import Distractor
 from workbench.synth.layout import Placed
 from workbench.synth.objects import MeshItem, tilt_deg
@@ -38,17 +39,19 @@ from workbench.synth.sim import Sim
 PARKED = make_pose(np.eye(3), np.array([5.0, 5.0, 5.0]))  # where a body waits until it is placed
 TABLE_MARGIN = 0.02  # m: objects stand this far inside the table's edges
 TOP_MARGIN = 0.005  # m: ... and inside a raised box's top
+STABLE_TOL = 5.0  # degrees an object placed in a stable pose may tip while the scene settles
 PLACE_TRIES = 5  # placements tried per object (each a new pose and direction) before the layout is redrawn
 
 
 @dataclass
 class ShapeLayout:
-    """A layout of real shapes: the objects, the surface they rest on, and the environment that is no object of
-    interest (the raised box)."""
+    """A layout of real shapes: the objects, the surface they rest on, the environment that is no object of
+    interest (the raised box), and each object's up direction in its own frame as placed (K, 3)."""
 
     layout: list[Placed]
     surface: Surface
     environment: list[Distractor]
+    placed_up: np.ndarray
 
 
 def leaners(pool: tuple[MeshItem, ...]) -> list[MeshItem]:
@@ -78,7 +81,8 @@ def _pick(rng, items: list[MeshItem], n: int) -> list[MeshItem]:
     return [items[int(i)] for i in rng.permutation(len(items))[:n]]
 
 
-def _others(rng, placed: list[tuple[MeshItem, str, int]], items: list[MeshItem], p_touch: float):
+def _others(rng, placed: list[tuple[MeshItem, str, int]], items: list[MeshItem],
+            p_touch: float) -> list[tuple[MeshItem, str, int]]:
     """Plan steps for ``items`` after ``placed``: each slid against an earlier object with probability
     ``p_touch`` (not against a leaning box: it would push it over), else free."""
     plan = list(placed)
@@ -91,7 +95,7 @@ def _others(rng, placed: list[tuple[MeshItem, str, int]], items: list[MeshItem],
     return plan
 
 
-def draw_plan(category: str, rng, pool: tuple[MeshItem, ...], cfg) -> list[tuple[MeshItem, str, int]]:
+def draw_plan(category: str, rng, pool: tuple[MeshItem, ...], cfg: SynthConfig) -> list[tuple[MeshItem, str, int]]:
     """What a scene of ``category`` holds: (model, relation "lie" | "touch" | "lean", parent index or -1), in
     placing order."""
     pool = list(pool)
@@ -113,13 +117,14 @@ def draw_plan(category: str, rng, pool: tuple[MeshItem, ...], cfg) -> list[tuple
     leaner = _pick(rng, leaners(pool), 1)[0]
     vessels = [o for o in pool if role(o) == VESSEL]
     boxes = [o for o in pool if role(o) == BOX and o is not leaner]
-    # A vessel half the time where there is one (a box leaning on an upturned bowl), though boxes are many more.
+    # A vessel half the time where there is one (a box on an upturned bowl): YCB has six boxes and two vessels.
     partner = _pick(rng, vessels if vessels and (not boxes or rng.random() < 0.5) else boxes, 1)[0]
     rest = _pick(rng, [o for o in pool if o is not leaner and o is not partner], int(rng.integers(0, 3)))
     return _others(rng, [(partner, "lie", -1), (leaner, "lean", 0)], rest, 0.4)
 
 
 def _table(sim: Sim) -> Surface:
+    """The table's top as a surface, its edges ``TABLE_MARGIN`` in."""
     half = (sim.cfg.table_size[0] / 2 - TABLE_MARGIN, sim.cfg.table_size[1] / 2 - TABLE_MARGIN)
     return Surface(sim.table, np.eye(4), half)
 
@@ -153,7 +158,7 @@ def draw_shape_layout(sim: Sim, category: str, rng) -> ShapeLayout | None:
         else:
             return None
         layout.append(Placed(item, T, rel, parent, body))
-    return ShapeLayout(layout, surface, environment)
+    return ShapeLayout(layout, surface, environment, np.array([p.T[2, :3] for p in layout]))
 
 
 def _place(sim: Sim, rng, layout: list[Placed], item: MeshItem, body: int, rel: str, parent: int,
@@ -162,12 +167,12 @@ def _place(sim: Sim, rng, layout: list[Placed], item: MeshItem, body: int, rel: 
     when it finds no place, ends beyond the surface's edges or touches an object besides its partner (a relation
     not drawn)."""
     if rel == "lie":
-        T = place_free(sim, rng, layout, item, body, surface, sim.cfg.free_clearance, 0.0)
+        T = place_free(sim, rng, layout, item, body, surface, sim.cfg.free_clearance)
     elif rel == "touch":
         T = place_against(sim, rng, layout[parent], item, body, surface)
     else:
         T = place_lean(sim, rng, layout[parent], item, body, surface)
-    if T is None or not surface.holds(posed_points(item, T)[:, :2], 0.0):
+    if T is None or not surface.holds(posed_points(item, T)[:, :2]):
         return None
     others = [p for j, p in enumerate(layout) if j != parent]
     return T if clear_of(sim, body, others, 2 * sim.cfg.contact_tol) else None
@@ -175,12 +180,16 @@ def _place(sim: Sim, rng, layout: list[Placed], item: MeshItem, body: int, rel: 
 
 def holds(sim: Sim, scene: ShapeLayout) -> bool:
     """After settling: does every object rest on its surface (a raised box's objects off the table), touching
-    exactly the objects it was placed against, a leaning box tilted ``slant_range`` degrees?"""
+    exactly the objects it was placed against, in the stable pose it was placed in (within ``STABLE_TOL``: not a
+    bowl tipped onto its rim by a box leaning on it), a leaning box tilted ``slant_range`` degrees?"""
     layout, surface = scene.layout, scene.surface
     planned = {(i, p.parent) for i, p in enumerate(layout) if p.parent >= 0}
     planned |= {(j, i) for i, j in planned}
     for i, p in enumerate(layout):
-        if not (surface.holds(p.T[:2, 3], 0.0) and sim.touching(p.body, surface.body)):
+        if not (surface.holds(p.T[:2, 3]) and sim.touching(p.body, surface.body)):
+            return False
+        tipped = np.degrees(np.arccos(np.clip(p.T[2, :3] @ scene.placed_up[i], -1.0, 1.0)))
+        if p.relation != "lean" and tipped > STABLE_TOL:
             return False
         if surface.body != sim.table and sim.touching(p.body, sim.table):
             return False
