@@ -8,6 +8,7 @@ settling moved it from the search's projected estimate, how far physics moves th
 
     .venv/bin/python benchmarks/real_frames.py ../shared/datasets/ycbv-real-dev [--proposals default|paper]
         [--method pipf|mcpf] [--particles N] [--iterations K] [--workers W] [--frames S:I S:I ...]
+        [--likelihood robust|ssd] [--free-space F] [--weighting pixel|area]
 """
 
 from __future__ import annotations
@@ -27,12 +28,14 @@ from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.metrics import is_right, position_error, rotation_error
 from workbench.pipeline import load_bop_problem
-from workbench.render.likelihood import scene_loglik
+from workbench.problem import ProblemConfig
+from workbench.render.likelihood import LikelihoodConfig, scene_loglik
 
 
-def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig, workers: int) -> dict:
+def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig, workers: int,
+              problem_config: ProblemConfig = ProblemConfig()) -> dict:
     t0 = time.perf_counter()
-    frame, problem = load_bop_problem(dataset, scene_id, im_id)
+    frame, problem = load_bop_problem(dataset, scene_id, im_id, config=problem_config)
     evaluator = make_evaluator(problem, workers)
     try:
         gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
@@ -91,6 +94,12 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
     }
 
 
+def likelihood_failures(results: list[dict]) -> int:
+    """Frames with a wrong object whose estimate scores at least the projected truth: the likelihood's failures
+    (the search found something it prefers to the truth)."""
+    return sum(not r["all_right"] and r["estimate_loglik"] >= r["truth_loglik_projected"] for r in results)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dataset", type=Path)
@@ -103,6 +112,12 @@ def main() -> None:
     ap.add_argument("--library-every", type=int, default=EstimatorConfig.library_every,
                     help="iterations between refits of the data-driven candidates")
     ap.add_argument("--frames", nargs="*", help="scene:frame pairs (default: all)")
+    ap.add_argument("--likelihood", choices=("robust", "ssd"), default="robust")
+    ap.add_argument("--weighting", choices=("pixel", "area"), default=LikelihoodConfig.weighting,
+                    help="robust/ssd: what a pixel counts (LikelihoodConfig.weighting)")
+    ap.add_argument("--free-space", type=float, default=LikelihoodConfig.free_space,
+                    help="robust: a reading behind the predicted surface this many times less likely than one in "
+                         "front (LikelihoodConfig.free_space)")
     ap.add_argument("--out", type=Path, help="JSON lines, one per frame")
     args = ap.parse_args()
     frames = ([tuple(map(int, f.split(":"))) for f in args.frames] if args.frames
@@ -111,7 +126,9 @@ def main() -> None:
                              proposals=args.proposals, seed=args.seed, library_every=args.library_every)
     results = []
     for scene_id, im_id in frames:
-        r = run_frame(args.dataset, scene_id, im_id, config, args.workers)
+        r = run_frame(args.dataset, scene_id, im_id, config, args.workers, ProblemConfig(
+            likelihood=LikelihoodConfig(model=args.likelihood, free_space=args.free_space,
+                                        weighting=args.weighting)))
         results.append(r)
         line = json.dumps(r)
         print(line, flush=True)
@@ -124,6 +141,8 @@ def main() -> None:
           f"{sum(r['all_right'] for r in results)}/{len(results)}, objects right {right}/{total}, "
           f"median position error {np.median([o['position_cm'] for r in results for o in r['objects']]):.1f} cm, "
           f"estimate >= projected truth in {sum(r['estimate_loglik'] >= r['truth_loglik_projected'] for r in results)}"
+          f"/{len(results)} (of them wrong: {likelihood_failures(results)}), "
+          f"truth above the estimate in {sum(r['truth_loglik_projected'] > r['estimate_loglik'] for r in results)}"
           f"/{len(results)}, median {np.median([r['seconds'] for r in results]):.0f} s per frame", file=sys.stderr)
     objects = [o for r in results for o in r["objects"]]
     tied = [o for o in objects if o["ties"]]

@@ -58,3 +58,41 @@ def test_bad_settings_are_named():
         LikelihoodConfig(sigma=-1.0).validate()
     with pytest.raises(InputError, match="model"):
         LikelihoodConfig(model="l1").validate()
+    with pytest.raises(InputError, match="free_space"):
+        LikelihoodConfig(free_space=0.0).validate()
+
+
+def test_a_free_space_violation_costs_more_than_an_occluding_reading():
+    """A reading 10 cm behind the predicted surface (the sensor saw through it) against one 10 cm in front (an
+    unmodelled occluder): the symmetric mixture scores them alike, the free-space term lowers the first."""
+    observed = np.array([[1.1, 0.9]], np.float32)
+    predicted = np.array([[[1.0, 1.0]]], np.float32)
+    symmetric = pixel_loglik(observed, predicted, LikelihoodConfig(free_space=1.0))[0, 0]
+    assert np.isclose(symmetric[0], symmetric[1])
+    free = pixel_loglik(observed, predicted, LikelihoodConfig(free_space=0.1))[0, 0]
+    assert free[1] == pytest.approx(symmetric[1])
+    assert free[0] == pytest.approx(symmetric[0] + np.log(0.1), abs=1e-3)
+    # The same in a scene: an object drawn over a hole in it (the table seen through it) loses, one drawn where
+    # something unmodelled stands in front of it does not.
+    observed, background, rendered = _scene()
+    cfg = LikelihoodConfig(free_space=0.1)
+    through = rendered[:1].copy()
+    through[0, 12:17, 5:10] = 0.95  # over the bare table: the sensor sees the table behind it
+    base = scene_loglik(observed, background, rendered[:1], cfg)[0]
+    assert scene_loglik(observed, background, through, cfg)[0] < \
+        base + (scene_loglik(observed, background, through, LikelihoodConfig())[0]
+                - scene_loglik(observed, background, rendered[:1], LikelihoodConfig())[0])
+
+
+def test_area_weighting_counts_a_pixel_by_the_surface_it_samples():
+    """The same misfit at 0.5 m and at 1.0 m: counted alike per pixel, four times less near the camera by area."""
+    observed = np.array([[0.5, 1.0]], np.float32)
+    predicted = np.array([[[0.45, 0.95]]], np.float32)
+    pixel = pixel_loglik(observed, predicted, LikelihoodConfig())[0, 0]
+    area = pixel_loglik(observed, predicted, LikelihoodConfig(weighting="area", ref_depth=1.0))[0, 0]
+    assert pixel[0] == pytest.approx(pixel[1])
+    assert area[0] == pytest.approx(pixel[0] / 4) and area[1] == pytest.approx(pixel[1])
+    rendered = np.array([[[0.45, 0.95]]], np.float32)
+    background = np.zeros((1, 2), np.float32)
+    cfg = LikelihoodConfig(weighting="area", ref_depth=1.0)
+    assert scene_loglik(observed, background, rendered, cfg)[0] == pytest.approx(float(area.sum()), rel=1e-5)

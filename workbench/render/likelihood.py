@@ -3,8 +3,11 @@
 Two models, selected by ``LikelihoodConfig.model``:
 - ``"ssd"``: the paper's sum of squared per-pixel differences, as a Gaussian log-likelihood
   ``-sum((obs - pred)^2) / (2 sigma^2)``, residuals capped at ``max_residual``.
-- ``"robust"`` (default): a per-pixel mixture of a Gaussian around the predicted depth and a uniform outlier term
-  (as in 3DP3 / Bayes3D), so unmodelled clutter, sensor artefacts and holes cost a bounded amount.
+- ``"robust"`` (default): a per-pixel mixture of a Gaussian around the predicted depth and an outlier term (as in
+  3DP3 / Bayes3D), so unmodelled clutter, sensor artefacts and holes cost a bounded amount. The outlier term is
+  not symmetric: a reading in front of the predicted surface is something unmodelled occluding it (clutter, a
+  hand), while a reading behind it means the sensor saw through the predicted surface, into space the hypothesis
+  says is solid. That free-space violation is ``free_space`` times less likely than an occluding outlier.
 Observed pixels with no reading (0) are ignored by both. The prediction at a pixel is the rendered object depth,
 else the table-plane depth, else nothing (a pixel no hypothesis explains: outlier for every particle alike).
 """
@@ -12,6 +15,7 @@ else the table-plane depth, else nothing (a pixel no hypothesis explains: outlie
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -23,6 +27,14 @@ class LikelihoodConfig:
     outlier_prob: float = 0.1  # robust only: share of pixels the scene model cannot explain
     depth_range: float = 3.0  # m; support of the uniform outlier density
     max_residual: float = 0.05  # m; ssd only: caps a pixel's residual so one far pixel cannot dominate
+    # robust only: the outlier density of a reading behind the predicted surface (seen through it) over that of a
+    # reading in front of it (occluded). 1: the symmetric mixture.
+    free_space: float = 1.0
+    # "pixel": every pixel counts alike (the paper's). "area": a pixel counts (z / ref_depth)^2, the surface it
+    # samples at its observed depth z, so an object gains by the area it explains, not by its pixels: a pixel-count
+    # likelihood favours laying an object on clutter near the camera, where the same surface covers more pixels.
+    weighting: Literal["pixel", "area"] = "pixel"
+    ref_depth: float = 0.0  # m; "area": the depth at which a pixel counts 1 (build_problem: the observed median)
 
     def validate(self) -> None:
         from workbench.errors import InputError
@@ -33,6 +45,12 @@ class LikelihoodConfig:
             raise InputError("likelihood.sigma", f"sigma must be a positive number of metres, got {self.sigma}")
         if not 0.0 < self.outlier_prob < 1.0:
             raise InputError("likelihood.outlier_prob", f"must lie in (0, 1), got {self.outlier_prob}")
+        if self.weighting not in ("pixel", "area"):
+            raise InputError("likelihood.weighting", f"unknown weighting {self.weighting!r}; use 'pixel' or 'area'")
+        if not (self.ref_depth >= 0 and np.isfinite(self.ref_depth)):
+            raise InputError("likelihood.ref_depth", f"must be a number of metres >= 0, got {self.ref_depth}")
+        if not 0.0 < self.free_space <= 1.0:
+            raise InputError("likelihood.free_space", f"must lie in (0, 1], got {self.free_space}")
 
 
 def predicted_depth(rendered: np.ndarray, background: np.ndarray) -> np.ndarray:
@@ -50,14 +68,25 @@ def _loglik(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.n
         return (-0.5 / config.sigma**2) * r * r
     scale = np.float32((1.0 - config.outlier_prob) / (config.sigma * np.sqrt(2.0 * np.pi)))
     inlier = scale * np.exp(np.float32(-0.5 / config.sigma**2) * r * r)
-    return np.log(np.where(pred > 0, inlier, 0.0) + np.float32(config.outlier_prob / config.depth_range))
+    outlier = np.float32(config.outlier_prob / config.depth_range)
+    if config.free_space < 1.0:
+        outlier = np.where((pred > 0) & (r > 0), outlier * np.float32(config.free_space), outlier)
+    return np.log(np.where(pred > 0, inlier, 0.0) + outlier)
+
+
+def pixel_weights(observed: np.ndarray, config: LikelihoodConfig) -> np.ndarray | np.float32:
+    """What each pixel's log-likelihood counts: 1 ("pixel" weighting, or no reference depth yet), else
+    (z / ref_depth)^2 for the observed depth z. ``observed``: any shape, metres -> the same shape, float32."""
+    if config.weighting == "pixel" or config.ref_depth <= 0:
+        return np.float32(1.0)
+    return np.square(observed.astype(np.float32) / np.float32(config.ref_depth))
 
 
 def pixel_loglik(observed: np.ndarray, predicted: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
-    """Per-pixel log-likelihood. ``observed``: (H, W); ``predicted``: (B, H, W) -> (B, H, W) float32, 0 where the
-    observation has no reading."""
+    """Per-pixel log-likelihood, weighted (``pixel_weights``). ``observed``: (H, W); ``predicted``: (B, H, W)
+    -> (B, H, W) float32, 0 where the observation has no reading."""
     obs = np.broadcast_to(observed.astype(np.float32)[None], predicted.shape)
-    ll = _loglik(obs, predicted.astype(np.float32), config)
+    ll = _loglik(obs, predicted.astype(np.float32), config) * pixel_weights(obs, config)
     return np.where(obs > 0, ll, 0.0).astype(np.float32)
 
 
@@ -73,8 +102,8 @@ def scene_loglik(
     obs = observed.astype(np.float32).ravel()
     bg = background.astype(np.float32).ravel()
     valid = obs > 0
-    table_ll = np.where(valid, _loglik(obs, bg, config), 0.0)  # (P,)
+    table_ll = np.where(valid, _loglik(obs, bg, config) * pixel_weights(obs, config), 0.0)  # (P,)
     flat = rendered.reshape(len(rendered), -1)
     b, p = np.nonzero((flat > 0) & valid[None])
-    delta = _loglik(obs[p], flat[b, p], config) - table_ll[p]
+    delta = _loglik(obs[p], flat[b, p], config) * pixel_weights(obs[p], config) - table_ll[p]
     return float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=delta, minlength=len(rendered))
