@@ -15,7 +15,6 @@ else the table-plane depth, else nothing (a pixel no hypothesis explains: outlie
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
@@ -33,7 +32,7 @@ class LikelihoodConfig:
     # "pixel": every pixel counts alike (the paper's). "area": a pixel counts (z / ref_depth)^2, the surface it
     # samples at its observed depth z, so an object gains by the area it explains, not by its pixels: a pixel-count
     # likelihood favours laying an object on clutter near the camera, where the same surface covers more pixels.
-    weighting: Literal["pixel", "area"] = "pixel"
+    weighting: str = "pixel"  # "pixel" | "area" (a str: sessions restore only plain types)
     ref_depth: float = 0.0  # m; "area": the depth at which a pixel counts 1 (build_problem: the observed median)
 
     def validate(self) -> None:
