@@ -110,3 +110,7 @@ def test_an_object_is_lost_when_it_fits_much_worse_than_before():
                                                    (1, 0, "1 object still lost")])
 def test_status_words(searched, found, words):
     assert status_words(searched, found) == words
+
+
+def test_status_words_name_the_objects_recovered():
+    assert status_words(1, 0, recovered=2) == "2 objects recovered, 1 object still lost"

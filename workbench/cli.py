@@ -310,8 +310,11 @@ def _cmd_make_scenes(args: argparse.Namespace) -> int:
         return 0
     if args.sequence is not None:
         return _make_sequences(args, t0)
-    if args.push is not None:
-        raise InputError("--push", "pushes an object in a sequence: use it with --sequence N")
+    for flag, value, what in (("--push", args.push, "pushes an object"), ("--take-out", args.take_out,
+                                                                            "takes an object out"),
+                              ("--handle", args.handle, "turns a mug's hidden handle into view")):
+        if value is not None:
+            raise InputError(flag, f"{what} in a sequence: use it with --sequence N")
     scenes = make_scenes(args.out, [c.strip() for c in args.categories.split(",")], args.per_category, args.seed,
                          distractors=args.distractors, table_pose=args.table_pose, force=args.force,
                          models=args.models)
@@ -321,7 +324,7 @@ def _cmd_make_scenes(args: argparse.Namespace) -> int:
 
 def _make_sequences(args: argparse.Namespace, t0: float) -> int:
     """``make-scenes --sequence N``: each scene as a sequence of N frames on an arc (``synth.sequence``)."""
-    from workbench.synth.sequence import Push, make_sequences
+    from workbench.synth.sequence import Push, TakeOut, make_sequences
 
     check_count(args.sequence, "--sequence", low=1)
     if not (np.isfinite(args.arc) and 0.0 <= args.arc <= 180.0):
@@ -332,8 +335,16 @@ def _make_sequences(args: argparse.Namespace, t0: float) -> int:
     if not (np.isfinite(args.push_distance) and 0.0 < args.push_distance <= 0.5):
         raise InputError("--push-distance", f"must be metres in (0, 0.5], got {args.push_distance}")
     push = None if args.push is None else Push(args.push, args.push_distance)
+    take_out = None
+    if args.take_out is not None:
+        try:
+            k, j = (int(v) for v in args.take_out.split(":"))
+        except ValueError:
+            raise InputError("--take-out", f"must be K:J, two frames (e.g. 3:5), got {args.take_out!r}") from None
+        take_out = TakeOut(k, j)
     scenes = make_sequences(args.out, [c.strip() for c in args.categories.split(",")], args.per_category,
-                            args.sequence, args.seed, arc_deg=args.arc, push=push, force=args.force)
+                            args.sequence, args.seed, arc_deg=args.arc, push=push, force=args.force,
+                            take_out=take_out, handle=args.handle)
     print(f"wrote {len(scenes)} sequences of {args.sequence} frames to {args.out} in {time.perf_counter() - t0:.1f} s",
           file=sys.stderr)
     return 0
@@ -496,6 +507,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --sequence: from frame K (0-based) on, one object standing on the table is pushed away "
                    "from the others")
     p.add_argument("--push-distance", type=float, default=0.05, metavar="M", help="how far, metres (default 0.05)")
+    p.add_argument("--take-out", default=None, metavar="K:J",
+                   help="with --sequence: on frames K to J-1 one object standing on the table is out of the scene "
+                   "(lifted away: not in the depth nor in scene_gt.json), from J on back where it was")
+    p.add_argument("--handle", type=int, default=None, metavar="K",
+                   help="with --sequence and --categories handle_hidden: the mug's handle, hidden behind its body on "
+                   "the first frames, comes into view from frame K on as the camera moves (the arc is chosen for "
+                   "it; --arc is not used)")
     p.add_argument("--demo", action="store_true", help="write the small bundled demo (assets/demo) instead")
     p.add_argument("--force", action="store_true", help="write into OUT even if it is not empty")
     p.set_defaults(func=_cmd_make_scenes)

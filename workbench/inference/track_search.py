@@ -12,7 +12,8 @@ default search's hooks, narrowed:
 - ``after_step``: the default search's polish only while re-searching lost objects.
 - ``finish``: the estimate settled within the settling region, each object kept at its last answer unless the
   depth clearly moves it (``keep_still``), and the previous posterior weighed again on this
-  view (``carried_posterior``); the default search's full finish (half turns, posterior sweep) when re-searching.
+  view, its evidence kept (``carried_posterior``: a mode this view decides is gone, one it favours clearly
+  replaces the estimate); the default search's full finish (half turns, posterior sweep) when re-searching.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ from workbench.inference.posterior import Posterior
 from workbench.inference.resampling import systematic_resample
 from workbench.inference.scenepoints import observed_points
 from workbench.problem import Problem
-
 
 # Log-units a settled object must gain over its last answer to move from it: the estimator's margin for a turn
 # (settle.TURN_MARGIN). The depth's noise alone moved settled objects by about a millimetre and a degree from frame
@@ -60,7 +60,9 @@ class Carried:
     with their ``weights`` (N,); the filter's ``estimate`` (K, 4, 4) and the ``settled`` answer (K, 4, 4); the
     ``sink`` (m); the candidate ``library`` (or None); the ``posterior`` (or None); the search ``geometry``, whose
     per-model parts every frame shares; ``badness`` (K,): how badly each object of ``settled`` explained its part of
-    that frame (``scenepoints.object_badness``), the reference a later frame's fit is judged against."""
+    that frame (``scenepoints.object_badness``), the reference a later frame's fit is judged against; ``lost`` (K,)
+    bool or None: objects that frame lost and did not find again, carried where they were last found
+    (``held``)."""
 
     particles: np.ndarray
     weights: np.ndarray
@@ -71,6 +73,28 @@ class Carried:
     posterior: Posterior | None
     geometry: SearchGeometry
     badness: np.ndarray
+    lost: np.ndarray | None = None
+
+    def held(self, before: "Carried", lost: np.ndarray) -> "Carried":
+        """This frame's state with the ``lost`` objects ((K,) bool) put back where ``before`` (the state this frame
+        started from, same table frame) had them: its answer, estimate, every particle, badness and posterior. An
+        object taken out of the scene, or one the re-search could not find, is looked for again on the next frame
+        where it was last seen: put back there, it is explained at once (recovered); else it is lost again."""
+        lost = np.asarray(lost, dtype=bool)
+        if not lost.any():
+            return replace(self, lost=lost)
+        settled, estimate, particles = self.settled.copy(), self.estimate.copy(), self.particles.copy()
+        settled[lost], estimate[lost] = before.settled[lost], before.estimate[lost]
+        particles[:, lost] = before.settled[lost]
+        badness = self.badness.copy()
+        badness[lost] = before.badness[lost]
+        posterior = self.posterior
+        if posterior is not None and before.posterior is not None:
+            was = {o.obj: o for o in before.posterior.objects}
+            posterior = replace(posterior, objects=[was[o.obj] if lost[o.obj] and o.obj in was else o
+                                                    for o in posterior.objects])
+        return replace(self, particles=particles, estimate=estimate, settled=settled, badness=badness,
+                       posterior=posterior, lost=lost)
 
     def moved(self, A: np.ndarray) -> "Carried":
         """Every pose left-multiplied by ``A`` (4, 4): into another table frame (identity: the same)."""
@@ -145,6 +169,12 @@ class TrackSearch(DefaultSearch):
         scored += kept
         if self.carried.posterior is None:
             return Settled(scene, loglik, [], scored)
-        posterior, n = carried_posterior.rescored(self.problem, scene, loglik, self.carried.posterior, score,
-                                                  filt.particles.projected, filt.weights())
+        def refine(scene: np.ndarray, k: int) -> tuple[np.ndarray, float, int]:  # a mode that replaced the estimate
+            return settle.pattern_search(
+                scene, score, step_m=settle.SETTLE_STEP / 2, step_deg=settle.SETTLE_DEGREES / 2, min_step_m=0.001,
+                max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn, objects=[k])
+
+        posterior, scene, loglik, n = carried_posterior.rescored(
+            self.problem, scene, loglik, self.carried.posterior, score, filt.particles.projected, filt.weights(),
+            refine)
         return Settled(scene, loglik, [], scored + n, posterior)

@@ -27,6 +27,8 @@ class TrackConfig:
     added). ``lost_badness``, ``lost_rise``: an object is lost when its carried pose's badness
     (``scenepoints.object_badness``) on the new frame exceeds both ``lost_badness`` and its badness on the previous
     frame plus ``lost_rise``. More than ``reinit_share`` of the objects lost: the frame is estimated from scratch.
+    A frame whose depth has readings on less than ``min_depth_share`` of its pixels (a dropped or blanked frame) is
+    lost as a whole: nothing is searched, the posterior is carried through it unchanged.
     ``motion``: the camera's motion from ``scene_camera_world.json`` (given), from the depth, or given where the
     scene has the file (auto)."""
 
@@ -39,6 +41,7 @@ class TrackConfig:
     lost_badness: float = 0.35
     lost_rise: float = 0.2
     reinit_share: float = 0.5
+    min_depth_share: float = 0.05
     motion: str = "auto"
 
     def validate(self) -> None:
@@ -47,7 +50,7 @@ class TrackConfig:
         for name in ("particles", "iterations", "lost_iterations"):
             if getattr(self, name) < 1:
                 raise InputError(name, f"must be >= 1, got {getattr(self, name)}")
-        for name in ("lost_badness", "lost_rise", "reinit_share"):
+        for name in ("lost_badness", "lost_rise", "reinit_share", "min_depth_share"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise InputError(name, f"must lie in [0, 1], got {getattr(self, name)}")
 

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+NO_DEPTH = "lost: no depth"  # a frame whose depth holds (almost) nothing: the posterior carried through it unchanged
+RECOVERED = "recovered"  # the first frame tracked after a lost one
+
 
 def lost_objects(badness: np.ndarray, before: np.ndarray, floor: float, rise: float) -> np.ndarray:
     """Per object, whether its carried pose is lost: its badness on the new frame (``badness`` (K,) in [0, 1],
@@ -14,12 +17,16 @@ def lost_objects(badness: np.ndarray, before: np.ndarray, floor: float, rise: fl
     return (badness > floor) & (badness > np.asarray(before) + rise)
 
 
-def status_words(searched: int, found: int) -> str:
-    """A tracked frame's status in words: "tracked", "2 objects re-found", "1 object re-found, 1 still lost"."""
-    if searched == 0:
-        return "tracked"
-    words = f"{found} object{'s' if found != 1 else ''} re-found" if found else ""
-    missing = searched - found
-    if missing:
-        words += (", " if words else "") + f"{missing} object{'s' if missing != 1 else ''} still lost"
-    return words
+def _objects(n: int, what: str) -> str:
+    return f"{n} object{'s' if n != 1 else ''} {what}"
+
+
+def status_words(searched: int, found: int, recovered: int = 0) -> str:
+    """A tracked frame's status in words: "tracked", "2 objects re-found", "1 object re-found, 1 still lost",
+    "1 object recovered" (an object lost on the frame before, explained again where it was last found)."""
+    parts = [_objects(recovered, "recovered")] if recovered else []
+    if found:
+        parts.append(_objects(found, "re-found"))
+    if searched - found:
+        parts.append(_objects(searched - found, "still lost"))
+    return ", ".join(parts) if parts else "tracked"

@@ -22,22 +22,23 @@ from typing import Callable
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.estimators import Estimator
+from workbench.estimators import Estimator, object_confidence
 from workbench.evaluation import Evaluator, WorkerCrashed, make_evaluator
 from workbench.geometry import invert_pose
+from workbench.inference.carried_posterior import filled
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.context import SearchGeometry
 from workbench.inference.scenepoints import object_badness
 from workbench.inference.track_search import Carried, TrackSearch
 from workbench.io import bop
 from workbench.io.bop import ResultRow
-from workbench.pipeline import problem_for_frame
+from workbench.pipeline import posterior_rows, problem_for_frame, result_rows
 from workbench.problem import Problem, ProblemConfig
 from workbench.runner import estimator_rows, run_estimator
 from workbench.scene import Frame
 from workbench.track.config import TrackConfig
 from workbench.track.frames import sequence_world
-from workbench.track.lost import lost_objects, status_words
+from workbench.track.lost import NO_DEPTH, RECOVERED, lost_objects, status_words
 from workbench.track.motion import depth_motion, given_motion
 
 
@@ -66,6 +67,7 @@ class TrackedFrame:
     best: np.ndarray
     status: str
     motion: str
+    lost: np.ndarray | None = None  # (K,) bool: objects lost and not found again (held where last found)
 
 
 def carry(estimator: Estimator, best: np.ndarray) -> Carried:
@@ -101,9 +103,12 @@ class Tracker:
         self.models: dict = {}
         self.previous: tuple[Frame, Problem] | None = None
         self.carried: Carried | None = None
+        self._started: Carried | None = None  # the carried state the frame being tracked started from
+        self.after_gap = False  # the frame before was lost (no depth)
 
     def restart(self) -> None:
-        self.carried = self.previous = None
+        self.carried = self.previous = self._started = None
+        self.after_gap = False
 
     def close(self) -> None:
         if self.evaluator is not None:
@@ -111,22 +116,35 @@ class Tracker:
             self.evaluator = None
 
     def step(self, im_id: int) -> FrameResult:
-        """Estimate or track frame ``im_id`` (the one after the previous step's, unless restarted)."""
+        """Estimate or track frame ``im_id`` (the one after the previous step's, unless restarted). A frame without
+        depth (``TrackConfig.min_depth_share``) is lost as a whole (``lost.NO_DEPTH``): the posterior carried through
+        it unchanged, its rows the carried answer where the camera now is; the next frame is tracked from the last
+        one with depth, and says it has ``lost.RECOVERED``."""
         t0 = time.perf_counter()
+        if self._without_depth(im_id):
+            return self._lost_frame(im_id, t0)
         done = self.advance(im_id)
+        if self.after_gap and done.status not in ("estimated", "re-initialised"):
+            done = replace(done, status=RECOVERED if done.status == "tracked" else f"{RECOVERED}, {done.status}")
+        self.after_gap = False
         seconds = time.perf_counter() - t0
         rows = estimator_rows(done.frame, done.problem, done.estimator, done.best, seconds)
-        self.resume(done.frame, done.problem, done.estimator, done.best)
+        self.resume(done.frame, done.problem, done.estimator, done.best, done.lost)
         how = f" (camera motion {done.motion})" if done.motion else ""
         line = f"scene {self.scene_id} frame {im_id}: {done.status} in {seconds:.1f} s{how}"
         if done.estimator.posterior is not None:
             line += f"; {done.estimator.posterior.summary(done.problem)}"
         return FrameResult(rows, done.status, seconds, done.motion, line)
 
-    def resume(self, frame: Frame, problem: Problem, estimator: Estimator, best: np.ndarray) -> None:
+    def resume(self, frame: Frame, problem: Problem, estimator: Estimator, best: np.ndarray,
+               lost: np.ndarray | None = None) -> None:
         """The next frame starts from ``frame`` (its ``problem``) as ``estimator`` finished it, ``best`` (K, 4, 4)
-        its answer: the last frame ``advance`` gave, or one estimated elsewhere (the workbench's run)."""
-        self.carried, self.previous = carry(estimator, best), (frame, problem)
+        its answer: the last frame ``advance`` gave, or one estimated elsewhere (the workbench's run). ``lost``
+        (K,) bool: objects that frame lost and did not find again, held where the frame before had them."""
+        carried = carry(estimator, best)
+        if lost is not None and self._started is not None:
+            carried = carried.held(self._started, lost)
+        self.carried, self.previous, self._started = carried, (frame, problem), None
         self.models.update({m.obj_id: m for m in problem.models})
 
     def advance(self, im_id: int) -> TrackedFrame:
@@ -145,7 +163,9 @@ class Tracker:
         else:
             motion = "given" if self.world is not None else "depth"
             frame, problem, carried = self._tracked_problem(frame)
-            estimator, best, status = self._track(problem, carried)
+            self._started = carried
+            estimator, best, status, lost = self._track(problem, carried)
+            return TrackedFrame(frame, problem, estimator, best, status, motion, lost)
         return TrackedFrame(frame, problem, estimator, best, status, motion)
 
     # ----------------------------------------------------------------------------------------------------- parts
@@ -165,9 +185,17 @@ class Tracker:
         return self.evaluator
 
     def _estimate(self, problem: Problem, desc: str) -> tuple[Estimator, np.ndarray]:
-        """From scratch, as ``estimate`` does."""
-        return run_estimator(Estimator(problem, self.config, self._use(problem)), desc, self.early_stop,
-                             show_progress=True)
+        """From scratch, as ``estimate`` does; its posterior's open ranges of headings filled with modes
+        (``carried_posterior.filled``), for the frames after it to decide among."""
+        estimator, best = run_estimator(Estimator(problem, self.config, self._use(problem)), desc, self.early_stop,
+                                        show_progress=True)
+        if estimator.posterior is not None:
+            f = estimator.filter
+            geometry = (estimator.search.geometry(f) if hasattr(estimator.search, "geometry")
+                        else SearchGeometry.of(problem, upright=estimator.config.state == "xyzyaw"))
+            estimator.posterior, _ = filled(problem, best, estimator.settled_loglik, estimator.posterior,
+                                            lambda scenes: f.evaluate(scenes, project=False).loglik, geometry.samples)
+        return estimator, best
 
     def _tracked_problem(self, frame: Frame) -> tuple[Frame, Problem, Carried]:
         """The frame in the sequence's table frame (the previous frame's, moved by the camera's motion), its
@@ -185,20 +213,56 @@ class Tracker:
         problem = problem_for_frame(frame, self.models, self.problem_config)
         return frame, problem, self.carried.moved(invert_pose(problem.camera.T_cam_world) @ expected)
 
-    def _track(self, problem: Problem, carried: Carried) -> tuple[Estimator, np.ndarray, str]:
+    def _track(self, problem: Problem, carried: Carried) -> tuple[Estimator, np.ndarray, str, np.ndarray | None]:
         """The short search from the carried state; objects it no longer explains re-searched, the frame
-        estimated from scratch when most are."""
+        estimated from scratch when most are -> (the estimator, its answer, the status, the objects still lost
+        (K,) bool, or None when re-initialised)."""
         t = self.track
         samples = carried.geometry.samples
         lost = lost_objects(object_badness(problem, carried.settled, samples), carried.badness, t.lost_badness,
                             t.lost_rise)
         if lost.sum() > t.reinit_share * problem.n_objects:
-            return *self._estimate(problem, f"scene {self.scene_id}: re-initialising"), "re-initialised"
+            return *self._estimate(problem, f"scene {self.scene_id}: re-initialising"), "re-initialised", None
         search = TrackSearch(problem, carried, np.flatnonzero(lost).tolist())
         estimator = Estimator(problem, t.frame_config(self.config, bool(lost.any())), self._use(problem), search)
         _, best = run_estimator(estimator, "tracking", early_stop=False)
-        still = lost_objects(object_badness(problem, best, samples), carried.badness, t.lost_badness, t.lost_rise)
-        return estimator, best, status_words(int(lost.sum()), int((lost & ~still).sum()))
+        still = lost & lost_objects(object_badness(problem, best, samples), carried.badness, t.lost_badness,
+                                    t.lost_rise)
+        recovered = 0 if carried.lost is None else int((carried.lost & ~lost).sum())
+        return estimator, best, status_words(int(lost.sum()), int((lost & ~still).sum()), recovered), still
+
+    def _without_depth(self, im_id: int) -> bool:
+        """Whether frame ``im_id``'s depth has readings on less than ``TrackConfig.min_depth_share`` of its pixels
+        (a dropped or blanked frame)."""
+        path = bop.scene_folder(self.dataset, self.scene_id, self.split) / "depth" / f"{im_id:06d}.png"
+        return float(np.mean(bop.read_depth_png(path) > 0)) < self.track.min_depth_share
+
+    def _lost_frame(self, im_id: int, t0: float) -> FrameResult:
+        """A frame without depth: nothing to search. The carried answer and posterior as they are, in the camera
+        where the given motion puts it (without one, where it was: there is no depth to register), as its rows;
+        the carried state is left as it was, for the next frame with depth (tracked from the last one)."""
+        self.after_gap = True
+        if self.carried is None:  # nothing carried yet: nothing to report, the next frame is estimated
+            seconds = time.perf_counter() - t0
+            return FrameResult([], NO_DEPTH, seconds, "", f"scene {self.scene_id} frame {im_id}: {NO_DEPTH} in "
+                                                          f"{seconds:.1f} s; nothing carried yet")
+        previous, prev_problem = self.previous
+        T_cam_world = prev_problem.camera.T_cam_world
+        if self.world is not None:
+            T_cam_world = given_motion(self.world[previous.im_id], self.world[im_id]) @ T_cam_world
+        problem = replace(prev_problem, camera=prev_problem.camera.with_pose(T_cam_world))
+        frame = replace(previous, im_id=im_id, camera=problem.camera, gt_T_cam_obj=None, rgb=None)
+        c = self.carried
+        seconds = time.perf_counter() - t0
+        if c.posterior is not None:
+            rows = posterior_rows(frame, problem, c.posterior, seconds)
+        else:
+            rows = result_rows(frame, problem, c.settled, object_confidence(problem, c.particles, c.weights, c.settled),
+                               seconds)
+        motion = "given" if self.world is not None else "unknown, taken as still"
+        line = f"scene {self.scene_id} frame {im_id}: {NO_DEPTH} in {seconds:.1f} s (camera motion {motion}); the " \
+               f"last answer carried"
+        return FrameResult(rows, NO_DEPTH, seconds, "given" if self.world is not None else "", line)
 
 
 def track_frames(tracker: Tracker, frames: list[int], done: set[int],
