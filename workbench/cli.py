@@ -157,36 +157,42 @@ def _cmd_track(args: argparse.Namespace) -> int:
     check_count(args.track_iterations, "--track-iterations", low=1)
     track = TrackConfig(particles=args.track_particles, iterations=args.track_iterations, motion=args.motion)
     track.validate()
-    frames = sequence_frames(args.dataset, args.scene, args.split, args.frames)
-    sequence_world(args.dataset, args.scene, args.split, args.motion, frames)  # the camera poses, if given, all there
+    ray = ray_config(args)
+    sequences = {}
+    for scene in dict.fromkeys(args.scene):  # each scene once, in the order given
+        sequences[scene] = sequence_frames(args.dataset, scene, args.split, args.frames)
+        # The camera poses, if given, all there.
+        sequence_world(args.dataset, scene, args.split, args.motion, sequences[scene])
     from workbench.runner import PosteriorFile, ResultsFile, check_resumed
-    from workbench.track.sequence import Tracker, track_frames
+    from workbench.track.run import track_sequences
 
     posterior = (None if args.posterior is None else
                  PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
     results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
-    tracker = None
+    failures = []
     try:
         check_resumed(results, args.dataset, args.split)
-        done = {i for s, i in results.done() if s == args.scene}
-        if done & set(frames):
-            print(f"resuming: {len(done & set(frames))} of {len(frames)} frame(s) already in {args.out}",
+        done = {s: {i for d, i in results.done() if d == s} & set(frames) for s, frames in sequences.items()}
+        kept = sum(len(d) for d in done.values())
+        if kept:
+            print(f"resuming: {kept} of {sum(len(f) for f in sequences.values())} frame(s) already in {args.out}",
                   file=sys.stderr)
-        tracker = Tracker(args.dataset, args.scene, frames, config, track, problem, args.workers, args.split,
-                          args.objects, not args.no_early_stop, args.max_retries)
 
         def write(result) -> None:
             results.add(result.rows)
             if posterior is not None:
                 posterior.add(result.rows)
 
-        tracked = track_frames(tracker, frames, done, write)
+        tracked = track_sequences(args.dataset, sequences, done, config, track, problem, args.workers, args.split,
+                                  args.objects, not args.no_early_stop, args.max_retries, write, ray,
+                                  failures.append)
     finally:
-        if tracker is not None:
-            tracker.close()
         results.close()
-    print(f"wrote {sum(len(r.rows) for r in tracked)} result rows for {len(tracked)} frame(s) to {args.out}",
-          file=sys.stderr)
+    print(f"wrote the result rows of {tracked} frame(s) to {args.out}", file=sys.stderr)
+    if failures:
+        print(f"workbench: error: {len(failures)} of {len(sequences)} sequence(s) failed (each named above); the "
+              f"others are in {args.out}. Fix them and run again with --resume to track only those.", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -425,7 +431,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("track", help="estimate the frames of one scene in order, each from the previous one")
     p.add_argument("dataset", type=Path, help="BOP dataset folder (root or split folder)")
     p.add_argument("--split", default=None, help="split folder (default: test, or the only one)")
-    p.add_argument("--scene", type=int, required=True, help="scene id: the sequence")
+    p.add_argument("--scene", type=int, nargs="+", required=True,
+                   help="scene id(s), each a sequence: one after another, or with --engine ray each one task, side by "
+                        "side")
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="image ids A to B, both included, every one present (default: all of the scene's)")
     p.add_argument("--objects", type=int, nargs="+", default=None, help="object ids present (default: scene_gt.json)")
@@ -445,8 +453,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--track-iterations", type=int, default=TRACK_DEFAULTS.iterations,
                    help=f"iterations of a tracked frame (default {TRACK_DEFAULTS.iterations})")
     _add_estimator_args(p)  # the first frame's, and a re-initialised frame's: as estimate's
+    _add_engine_args(p, "sequences one after another")
     p.add_argument("--max-retries", type=int, default=3,
-                   help="times a dead worker is started again, per batch (its part retried; default 3)")
+                   help="times a dead worker is started again: --engine local, per batch (its part retried); "
+                        "--engine ray, per sequence (tracked again from its first frame; default 3)")
     p.set_defaults(func=_cmd_track)
 
     p = sub.add_parser("score", help="score a BOP results CSV against the dataset's scene_gt.json")

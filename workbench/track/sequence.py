@@ -266,17 +266,18 @@ class Tracker:
 
 
 def track_frames(tracker: Tracker, frames: list[int], done: set[int],
-                 on_frame: Callable[[FrameResult], None]) -> list[FrameResult]:
+                 on_frame: Callable[[FrameResult], None], echo: bool = True) -> list[FrameResult]:
     """Step ``tracker`` over ``frames`` (image ids in order), skipping those in ``done`` (a resumed run's): the
     frame after a skipped one starts from scratch. Each frame's result goes to ``on_frame`` as soon as it is done,
-    and its line to stderr."""
+    and (``echo``) its line to stderr."""
     results = []
     for im_id in frames:
         if im_id in done:
             tracker.restart()
             continue
         result = tracker.step(im_id)
-        print(result.line, file=sys.stderr)
+        if echo:
+            print(result.line, file=sys.stderr)
         on_frame(result)
         results.append(result)
     return results
