@@ -527,6 +527,83 @@ def test_the_search_lays_a_heavy_mesh_on_a_reduced_hull_and_once_per_shape():
     assert again is first and not first.rotations.flags.writeable
 
 
+def test_loading_a_heavy_mesh_says_so_and_a_light_one_says_nothing(tmp_path, capfd, monkeypatch):
+    import time
+
+    from workbench import heavy
+    from workbench.io import bop
+
+    trimesh.creation.icosphere(3, radius=40.0).export(tmp_path / "obj_000006.ply")  # 1280 faces, mm
+    trimesh.creation.icosphere(1, radius=40.0).export(tmp_path / "obj_000005.ply")  # 80 faces
+    trimesh.creation.icosphere(3, radius=40.0).export(tmp_path / "scan.obj")
+    assert heavy.ply_faces(tmp_path / "obj_000006.ply") == 1280 and heavy.ply_faces(tmp_path / "scan.obj") is None
+    monkeypatch.setattr(heavy, "HEAVY_FACES", 1000)
+    monkeypatch.setattr(heavy, "FIRST_S", 0.1)
+    read = bop._read_mesh
+
+    def slow_read(path, scale):  # as a 1.3M-face PLY takes seconds to read and merge
+        time.sleep(1.0)
+        return read(path, scale)
+
+    monkeypatch.setattr(bop, "_read_mesh", slow_read)
+    mesh = bop.read_mesh(tmp_path / "obj_000006.ply", 0.001)
+    assert len(mesh.faces) == 1280 and np.allclose(mesh.extents, 0.08, atol=1e-3)
+    lines = capfd.readouterr().err.splitlines()
+    assert lines[0] == "workbench: loading obj_000006.ply (1280 faces) ..."
+    assert lines[-1].startswith("workbench: done loading obj_000006.ply (1280 faces) in ") and "cached" not in lines[-1]
+    bop.read_mesh(tmp_path / "obj_000005.ply", 0.001)  # as slow, but light: not a word, no announcing process
+    assert capfd.readouterr().err == ""
+    monkeypatch.setattr(heavy, "HEAVY_FILE_BYTES", 1000)  # no face count in its header: its size decides
+    bop.read_mesh(tmp_path / "scan.obj", 0.001)
+    assert capfd.readouterr().err.splitlines()[0].startswith("workbench: loading scan.obj (0 MB) ...")
+    with pytest.raises(bop.InputError):  # a failed load is not "done"
+        with heavy.announced("loading nothing", first_s=0.0):
+            time.sleep(0.2)
+            raise bop.InputError("x", "corrupt")
+    assert "done" not in capfd.readouterr().err
+
+
+def test_the_particles_of_a_heavy_mesh_start_from_its_lowest_point_without_its_hull(monkeypatch):
+    from workbench import heavy
+    from workbench.geometry import random_rotations
+    from workbench.inference import particles
+    from workbench.scene import ObjectModel, Table
+
+    rotations = random_rotations(np.random.default_rng(0), 50)
+    box = trimesh.creation.box(extents=(0.1, 0.06, 0.2))
+    box.vertices += (0.01, -0.02, 0.03)
+    exact = np.min(np.einsum("nij,vj->nvi", rotations, box.convex_hull.vertices)[..., 2], axis=1)
+    assert np.allclose(heavy.lowest_points(rotations, box.vertices), exact, atol=1e-12)
+    ball = trimesh.creation.icosphere(6, radius=0.05)  # 40,962 vertices, all on its hull
+    monkeypatch.setattr(heavy, "LOWEST_SAMPLE", 5000)
+    sampled = heavy.lowest_points(rotations, ball.vertices)
+    assert np.all(sampled >= -0.05) and np.all(sampled < -0.05 + 2e-4)  # 5,000 of them: within 0.2 mm
+    table = Table(-0.5, 0.5, -0.4, 0.4)
+    light = particles.initial_particles(np.random.default_rng(3), 40, [ObjectModel(6, ball)], table, "6dof")
+    monkeypatch.setattr(particles, "HEAVY_FACES", 1000)
+    monkeypatch.setattr(heavy, "LOWEST_SAMPLE", 50_000)
+    monkeypatch.setattr(trimesh.Trimesh, "convex_hull", property(lambda mesh: pytest.fail("hull computed")))
+    heavy_start = particles.initial_particles(np.random.default_rng(3), 40, [ObjectModel(6, ball)], table, "6dof")
+    assert np.allclose(heavy_start, light, atol=1e-12)  # every vertex searched: the hull's lowest point
+
+
+def test_a_heavy_model_is_named_where_a_frame_announces_it_and_a_light_frame_starts_nothing(monkeypatch, capfd):
+    import subprocess
+
+    from workbench import heavy
+    from workbench.scene import ObjectModel
+
+    ball = ObjectModel(6, trimesh.creation.icosphere(5), source=Path("models/obj_000006.ply"))  # 20,480 faces
+    box = ObjectModel(5, trimesh.creation.box())
+    assert heavy.heavy_models([ball, box]) == ""
+    monkeypatch.setattr(heavy, "HEAVY_FACES", 10_000)
+    assert heavy.heavy_models([box, ball]) == "obj_000006.ply (20k faces)"
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: pytest.fail("an announcing process for light models"))
+    with heavy.announced_if(heavy.heavy_models([box]), "estimating scene 0 frame 0"):
+        pass
+    assert capfd.readouterr().err == ""
+
+
 def test_a_pool_prepares_the_meshes_once_before_its_workers_start(monkeypatch):
     from workbench.evaluation import pool
 

@@ -23,8 +23,10 @@ from workbench.checks import check_workers
 from workbench.errors import InputError
 from workbench.estimators import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, WorkerCrashed, make_evaluator
+from workbench.evaluation.local import prepare_meshes
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.frames import Frame, FrameFailure, run_frames
+from workbench.heavy import announced_if, heavy_models
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.io.bop import ResultRow
@@ -54,10 +56,18 @@ def estimate_frame(
     has loaded (a bad frame fails before any bar)."""
     t0 = time.perf_counter()
     frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
-    evaluator = evaluator_for(problem)
+    # A frame with a model of over heavy.HEAVY_FACES faces says what it does while it does it: simplifying the model
+    # (once: cached), starting the workers (each takes the whole model) and estimating (on a terminal, its bar).
+    heavy = heavy_models(problem.models)
+    if heavy:
+        prepare_meshes(problem)  # announced on its own; the evaluators then read the cache
+    with announced_if(heavy, f"starting the evaluation of scene {scene_id} frame {im_id}"):
+        evaluator = evaluator_for(problem)
     try:
-        estimator, best = run_estimator(Estimator(problem, config, evaluator), f"scene {scene_id} frame {im_id}",
-                                        early_stop, show_progress)
+        with announced_if(heavy if not (show_progress and sys.stderr.isatty()) else "",
+                          f"estimating scene {scene_id} frame {im_id}"):
+            estimator, best = run_estimator(Estimator(problem, config, evaluator), f"scene {scene_id} frame {im_id}",
+                                            early_stop, show_progress)
     finally:
         evaluator.close()
     if estimator.posterior is not None:  # one line per frame: what the view leaves open

@@ -14,6 +14,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.geometry import random_rotations, rot_z
+from workbench.heavy import HEAVY_FACES, lowest_points
 from workbench.scene import ObjectModel, Table
 
 STATES = ("6dof", "xyzyaw")
@@ -52,8 +53,10 @@ def initial_particles(
     out[..., 3, 3] = 1.0
     for k, model in enumerate(models):
         R = random_rotations(rng, n) if state == "6dof" else rot_z(rng.uniform(-np.pi, np.pi, n))
-        # The lowest point is a hull vertex: the hull's few hundred, not a heavy mesh's million, are searched.
-        lowest = np.min(np.einsum("nij,vj->nvi", R, model.mesh.convex_hull.vertices)[..., 2], axis=1)  # (n,)
+        if len(model.mesh.faces) > HEAVY_FACES:  # its hull alone would take seconds (a sphere's: all its vertices)
+            lowest = lowest_points(R, model.mesh.vertices)
+        else:  # the lowest point is a hull vertex: the hull's few hundred, not the mesh's thousands, are searched
+            lowest = np.min(np.einsum("nij,vj->nvi", R, model.mesh.convex_hull.vertices)[..., 2], axis=1)  # (n,)
         out[:, k, :3, :3] = R
         out[:, k, 0, 3] = rng.uniform(table.region_min[0], table.region_max[0], n)
         out[:, k, 1, 3] = rng.uniform(table.region_min[1], table.region_max[1], n)

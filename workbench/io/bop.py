@@ -33,6 +33,7 @@ from PIL import Image, UnidentifiedImageError
 
 from workbench.errors import InputError
 from workbench.geometry import make_pose
+from workbench.heavy import loading
 from workbench.outputs import replace_file
 from workbench.scene import Camera, Frame, ObjectModel
 
@@ -269,6 +270,11 @@ def read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
     the file is unchanged) when not watertight, because its mass then comes from the convex hull."""
     if not path.is_file():
         raise InputError(path, "mesh file not found")
+    with loading(path):  # a heavy model (a 1.3M-face scan: seconds) says so while it loads
+        return _read_mesh(path, scale)
+
+
+def _read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # trimesh's loaders raise anything from IndexError to KeyError on corrupt files
