@@ -604,6 +604,32 @@ def test_a_heavy_model_is_named_where_a_frame_announces_it_and_a_light_frame_sta
     assert capfd.readouterr().err == ""
 
 
+def test_a_heavy_model_is_drawn_from_its_render_mesh_a_light_one_from_itself(monkeypatch):
+    from types import SimpleNamespace
+
+    from workbench.app import observation
+    from workbench.scene import ObjectModel
+
+    ball = trimesh.creation.icosphere(5, radius=0.05)  # 20,480 faces: "heavy" below
+    render = trimesh.creation.icosphere(2, radius=0.05)  # what the cache holds for it: 320 faces
+    box = trimesh.creation.box(extents=(0.1, 0.06, 0.02))
+    problem = SimpleNamespace(models=[ObjectModel(6, ball), ObjectModel(5, box)])
+    calls = []
+    monkeypatch.setattr(observation, "HEAVY_FACES", 10_000)
+    monkeypatch.setattr("workbench.evaluation.local.prepare_meshes", lambda pr: calls.append("prepare"))
+    monkeypatch.setattr("workbench.inference.context.search_mesh", lambda m, pr: calls.append(m.obj_id) or render)
+    drawn_ball, drawn_box = observation.object_meshes(problem)
+    assert calls == ["prepare", 6]  # simplified (or read from the cache) once, before anything is drawn
+    assert len(drawn_ball.faces) == 20_480 and len(drawn_ball.solid[1]) == 320  # never the model's faces
+    assert np.array_equal(drawn_ball.edges, observation.outline_edges(render.vertices, render.faces))
+    assert np.array_equal(drawn_ball.cloud_edges, observation.cloud_outline(render))
+    assert drawn_box.solid is None  # a light model as it always was
+    assert np.array_equal(drawn_box.edges, observation.outline_edges(box.vertices, box.faces))
+    calls.clear()
+    observation.object_meshes(SimpleNamespace(models=[ObjectModel(5, box)]))
+    assert calls == []
+
+
 def test_a_pool_prepares_the_meshes_once_before_its_workers_start(monkeypatch):
     from workbench.evaluation import pool
 

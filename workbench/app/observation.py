@@ -9,6 +9,7 @@ import numpy as np
 from workbench.app.colors import apply_map, robust_range
 from workbench.app.protocol import MeshData, ObservationView, PointSet
 from workbench.geometry import invert_pose, transform_points
+from workbench.heavy import HEAVY_FACES
 from workbench.problem import Problem
 from workbench.scene import Camera, Frame, display_names
 
@@ -141,6 +142,28 @@ def cloud_outline(mesh) -> np.ndarray:
     return np.asarray(box.vertices)[creases].astype(np.float32)
 
 
+def object_meshes(problem: Problem) -> list[MeshData]:
+    """Each object as drawn: its mesh, with its outlines and solid decimated from it; those of a model of over
+    ``heavy.HEAVY_FACES`` faces from its render mesh (a few thousand faces, made once and cached on disk by
+    ``evaluation.local.prepare_meshes``, which says so while it works), not from the model itself: three
+    decimations of a 1.3M-face sphere took 77 s here, in silence."""
+    heavy = [len(m.mesh.faces) > HEAVY_FACES for m in problem.models]
+    if any(heavy):
+        from workbench.evaluation.local import prepare_meshes
+        from workbench.inference.context import search_mesh
+
+        prepare_meshes(problem)
+    out = []
+    for name, m, is_heavy in zip(display_names(problem.models), problem.models, heavy):
+        drawn = search_mesh(m, problem) if is_heavy else m.mesh
+        solid = solid_mesh(drawn)
+        if is_heavy and solid is None:  # the render mesh is the solid (never the model's million faces)
+            solid = np.asarray(drawn.vertices, np.float32), np.asarray(drawn.faces, np.int32)
+        out.append(MeshData(name, np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32),
+                            outline_edges(drawn.vertices, drawn.faces), cloud_outline(drawn), solid))
+    return out
+
+
 def image_thumbnail(rgb: np.ndarray) -> np.ndarray:
     """(H, W, 3) -> (H', W', 3) uint8 no wider than MAX_IMAGE_WIDTH."""
     stride = max(1, int(np.ceil(rgb.shape[1] / MAX_IMAGE_WIDTH)))
@@ -227,12 +250,7 @@ def build_view(frame: Frame, problem: Problem, title: str, dataset=None, meshes:
         depth_range=drange,
         table=(t.x_min, t.x_max, t.y_min, t.y_max),
         region=region,
-        meshes=meshes if meshes is not None else [
-            MeshData(name, np.asarray(m.mesh.vertices, np.float32), np.asarray(m.mesh.faces, np.int32),
-                     outline_edges(m.mesh.vertices, m.mesh.faces),
-                     cloud_outline(m.mesh), solid_mesh(m.mesh))
-            for name, m in zip(display_names(problem.models), problem.models)
-        ],
+        meshes=meshes if meshes is not None else object_meshes(problem),
         T_world_cam=T_world_cam,
         K=np.asarray(camera.K, np.float64),
         image_size=(camera.width, camera.height),
