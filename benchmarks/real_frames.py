@@ -8,7 +8,7 @@ settling moved it from the search's projected estimate, how far physics moves th
 
     .venv/bin/python benchmarks/real_frames.py ../shared/datasets/ycbv-real-dev [--proposals default|paper]
         [--method pipf|mcpf] [--particles N] [--iterations K] [--workers W] [--frames S:I S:I ...]
-        [--likelihood robust|ssd] [--free-space F] [--weighting pixel|area]
+        [--likelihood robust|ssd] [--free-space F]
 """
 
 from __future__ import annotations
@@ -113,8 +113,6 @@ def main() -> None:
                     help="iterations between refits of the data-driven candidates")
     ap.add_argument("--frames", nargs="*", help="scene:frame pairs (default: all)")
     ap.add_argument("--likelihood", choices=("robust", "ssd"), default="robust")
-    ap.add_argument("--weighting", choices=("pixel", "area"), default=LikelihoodConfig.weighting,
-                    help="robust/ssd: what a pixel counts (LikelihoodConfig.weighting)")
     ap.add_argument("--free-space", type=float, default=LikelihoodConfig.free_space,
                     help="robust: a reading behind the predicted surface this many times less likely than one in "
                          "front (LikelihoodConfig.free_space)")
@@ -127,8 +125,7 @@ def main() -> None:
     results = []
     for scene_id, im_id in frames:
         r = run_frame(args.dataset, scene_id, im_id, config, args.workers, ProblemConfig(
-            likelihood=LikelihoodConfig(model=args.likelihood, free_space=args.free_space,
-                                        weighting=args.weighting)))
+            likelihood=LikelihoodConfig(model=args.likelihood, free_space=args.free_space)))
         results.append(r)
         line = json.dumps(r)
         print(line, flush=True)

@@ -82,17 +82,3 @@ def test_a_free_space_violation_costs_more_than_an_occluding_reading():
     assert scene_loglik(observed, background, through, cfg)[0] < \
         base + (scene_loglik(observed, background, through, LikelihoodConfig())[0]
                 - scene_loglik(observed, background, rendered[:1], LikelihoodConfig())[0])
-
-
-def test_area_weighting_counts_a_pixel_by_the_surface_it_samples():
-    """The same misfit at 0.5 m and at 1.0 m: counted alike per pixel, four times less near the camera by area."""
-    observed = np.array([[0.5, 1.0]], np.float32)
-    predicted = np.array([[[0.45, 0.95]]], np.float32)
-    pixel = pixel_loglik(observed, predicted, LikelihoodConfig())[0, 0]
-    area = pixel_loglik(observed, predicted, LikelihoodConfig(weighting="area", ref_depth=1.0))[0, 0]
-    assert pixel[0] == pytest.approx(pixel[1])
-    assert area[0] == pytest.approx(pixel[0] / 4) and area[1] == pytest.approx(pixel[1])
-    rendered = np.array([[[0.45, 0.95]]], np.float32)
-    background = np.zeros((1, 2), np.float32)
-    cfg = LikelihoodConfig(weighting="area", ref_depth=1.0)
-    assert scene_loglik(observed, background, rendered, cfg)[0] == pytest.approx(float(area.sum()), rel=1e-5)

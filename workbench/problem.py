@@ -7,7 +7,7 @@ The observation is cropped to a region of interest around the objects and reduce
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -124,17 +124,6 @@ def render_scale(depth: np.ndarray, camera: Camera, roi: tuple[int, int, int, in
     return min(1.0, max(scale, min(wanted, cap)))
 
 
-def with_reference_depth(config: ProblemConfig, observed: np.ndarray) -> ProblemConfig:
-    """``config`` with the area weighting's reference depth set to the median of ``observed`` (m, 0 = no reading),
-    where it weighs by area and has none yet: a pixel at the frame's typical depth then counts 1, so the
-    log-likelihood keeps about the scale of the pixel count (the posterior's temperature and the margins assume
-    it)."""
-    lik = config.likelihood
-    if lik.weighting != "area" or lik.ref_depth > 0 or not np.any(observed > 0):
-        return config
-    return replace(config, likelihood=replace(lik, ref_depth=float(np.median(observed[observed > 0]))))
-
-
 def build_problem(
     frame: Frame, models: list[ObjectModel], camera: Camera, table: Table, config: ProblemConfig = ProblemConfig()
 ) -> Problem:
@@ -148,7 +137,6 @@ def build_problem(
     scale = render_scale(frame.depth, camera, roi, models, config)
     render_camera = camera.cropped(*roi).scaled(scale)
     observed = sample_grid(frame.depth, roi, scale).astype(np.float32)
-    config = with_reference_depth(config, observed)
     return Problem(
         camera=camera,
         table=table,

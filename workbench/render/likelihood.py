@@ -29,11 +29,6 @@ class LikelihoodConfig:
     # robust only: the outlier density of a reading behind the predicted surface (seen through it) over that of a
     # reading in front of it (occluded). 1: the symmetric mixture.
     free_space: float = 1.0
-    # "pixel": every pixel counts alike (the paper's). "area": a pixel counts (z / ref_depth)^2, the surface it
-    # samples at its observed depth z, so an object gains by the area it explains, not by its pixels: a pixel-count
-    # likelihood favours laying an object on clutter near the camera, where the same surface covers more pixels.
-    weighting: str = "pixel"  # "pixel" | "area" (a str: sessions restore only plain types)
-    ref_depth: float = 0.0  # m; "area": the depth at which a pixel counts 1 (build_problem: the observed median)
 
     def validate(self) -> None:
         from workbench.errors import InputError
@@ -44,10 +39,6 @@ class LikelihoodConfig:
             raise InputError("likelihood.sigma", f"sigma must be a positive number of metres, got {self.sigma}")
         if not 0.0 < self.outlier_prob < 1.0:
             raise InputError("likelihood.outlier_prob", f"must lie in (0, 1), got {self.outlier_prob}")
-        if self.weighting not in ("pixel", "area"):
-            raise InputError("likelihood.weighting", f"unknown weighting {self.weighting!r}; use 'pixel' or 'area'")
-        if not (self.ref_depth >= 0 and np.isfinite(self.ref_depth)):
-            raise InputError("likelihood.ref_depth", f"must be a number of metres >= 0, got {self.ref_depth}")
         if not 0.0 < self.free_space <= 1.0:
             raise InputError("likelihood.free_space", f"must lie in (0, 1], got {self.free_space}")
 
@@ -73,19 +64,11 @@ def _loglik(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.n
     return np.log(np.where(pred > 0, inlier, 0.0) + outlier)
 
 
-def pixel_weights(observed: np.ndarray, config: LikelihoodConfig) -> np.ndarray | np.float32:
-    """What each pixel's log-likelihood counts: 1 ("pixel" weighting, or no reference depth yet), else
-    (z / ref_depth)^2 for the observed depth z. ``observed``: any shape, metres -> the same shape, float32."""
-    if config.weighting == "pixel" or config.ref_depth <= 0:
-        return np.float32(1.0)
-    return np.square(observed.astype(np.float32) / np.float32(config.ref_depth))
-
-
 def pixel_loglik(observed: np.ndarray, predicted: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
-    """Per-pixel log-likelihood, weighted (``pixel_weights``). ``observed``: (H, W); ``predicted``: (B, H, W)
+    """Per-pixel log-likelihood. ``observed``: (H, W); ``predicted``: (B, H, W)
     -> (B, H, W) float32, 0 where the observation has no reading."""
     obs = np.broadcast_to(observed.astype(np.float32)[None], predicted.shape)
-    ll = _loglik(obs, predicted.astype(np.float32), config) * pixel_weights(obs, config)
+    ll = _loglik(obs, predicted.astype(np.float32), config)
     return np.where(obs > 0, ll, 0.0).astype(np.float32)
 
 
@@ -101,8 +84,8 @@ def scene_loglik(
     obs = observed.astype(np.float32).ravel()
     bg = background.astype(np.float32).ravel()
     valid = obs > 0
-    table_ll = np.where(valid, _loglik(obs, bg, config) * pixel_weights(obs, config), 0.0)  # (P,)
+    table_ll = np.where(valid, _loglik(obs, bg, config), 0.0)  # (P,)
     flat = rendered.reshape(len(rendered), -1)
     b, p = np.nonzero((flat > 0) & valid[None])
-    delta = _loglik(obs[p], flat[b, p], config) * pixel_weights(obs[p], config) - table_ll[p]
+    delta = _loglik(obs[p], flat[b, p], config) - table_ll[p]
     return float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=delta, minlength=len(rendered))
