@@ -10,8 +10,8 @@ default search's hooks, narrowed:
   (``lost``) are drawn from data-driven candidates fitted to what the carried scene leaves unexplained.
 - ``propose``: the default search's, with the tracked frame's move mix (local moves; data moves when re-searching).
 - ``after_step``: the default search's polish only while re-searching lost objects.
-- ``finish``: the estimate settled within the settling region, each object kept at its last answer unless the
-  depth clearly moves it (``keep_still``), and the previous posterior weighed again on this
+- ``finish``: each object settled alone on this frame's depth from its last answer (``settle_each``) and kept
+  there unless the depth clearly moves it (a static scene stays still), and the previous posterior weighed again on this
   view, its evidence kept (``carried_posterior``: a mode this view decides is gone, one it favours clearly
   replaces the estimate); the default search's full finish (half turns, posterior sweep) when re-searching.
 """
@@ -36,22 +36,38 @@ from workbench.problem import Problem
 # (settle.TURN_MARGIN). The depth's noise alone moved settled objects by about a millimetre and a degree from frame
 # to frame on ycbv-real-seq (median), for gains of a few log-units; with this margin a still object stays still.
 STILL_MARGIN = settle.TURN_MARGIN
+# Rounds of each object's settling search on a tracked frame (two batches each; 2 mm and 2 degree steps, then 1):
+# its last answer is within a few millimetres. Unbounded, one object's walk set the number of round trips of all
+# (up to 13 rounds; 21 batches a frame on ycbv-real-seq scene 2, 12 with 4), with the same answers right.
+SETTLE_ROUNDS = 4
 
 
-def keep_still(scene: np.ndarray, loglik: float, last: np.ndarray, score: settle.Score, margin: float
-               ) -> tuple[np.ndarray, float, int]:
-    """The static-scene prior on a settled ``scene`` (K, 4, 4; ``loglik`` as given): each object whose last answer
-    ``last`` (K, 4, 4, same table frame) scores within ``margin`` log-units of its settled pose, the others as
-    settled, goes back to its last answer -> (the scene, its log-likelihood, scenes scored)."""
-    K = len(scene)
-    back = np.repeat(scene[None], K, axis=0)
-    back[np.arange(K), np.arange(K)] = last
-    still = score(back) >= loglik - margin
-    if not still.any():
-        return scene, loglik, K
-    out = scene.copy()
-    out[still] = last[still]
-    return out, float(score(out[None])[0]), K + 1
+def settle_each(found: np.ndarray, last: np.ndarray, score: settle.Score, max_shift_m: float, max_turn_deg: float,
+                margin: float) -> tuple[np.ndarray, float, int]:
+    """The static-scene prior and the light settle at once: each object of the last answer ``last`` (K, 4, 4)
+    fitted to this frame's depth alone, the others kept at their last answers, from the better of its last answer
+    and its pose in this frame's estimate ``found`` (K, 4, 4); the objects' searches run in lockstep (one batch per
+    round for all of them). An object whose fit gains more than ``margin`` log-units over its last answer takes it,
+    the others keep their last answers -> (the scene, its log-likelihood, scenes scored)."""
+    K = len(last)
+    probe = np.repeat(last[None], K + 1, axis=0)
+    probe[np.arange(1, K + 1), np.arange(K)] = found
+    ll = score(probe)
+    base, scored = float(ll[0]), K + 1
+    searches = []
+    for k in range(K):
+        start = probe[k + 1] if ll[k + 1] > base else last
+        searches.append(settle.search(start, step_m=settle.SETTLE_STEP / 2, step_deg=settle.SETTLE_DEGREES / 2,
+                                      min_step_m=0.001, max_rounds=SETTLE_ROUNDS, max_shift_m=max_shift_m,
+                                      max_turn_deg=max_turn_deg, objects=[k]))
+    out = last.copy()
+    for k, (T, fitted, n) in enumerate(settle.run(searches, score)):
+        scored += n
+        if fitted > base + margin:
+            out[k] = T[k]
+    if np.array_equal(out, last):
+        return out, base, scored
+    return out, float(score(out[None])[0]), scored + 1
 
 
 @dataclass(frozen=True)
@@ -151,24 +167,18 @@ class TrackSearch(DefaultSearch):
             super().after_step(filt)
 
     def finish(self, filt: ParticleFilter) -> Settled:
-        """Re-searching: the default search's finish. Tracked: the estimate settled on this frame's depth and the
-        carried posterior weighed again (none when the first frame had none)."""
+        """Re-searching: the default search's finish. Tracked: the last answer settled on this frame's depth, object
+        by object (``settle_each``), and the carried posterior weighed again (none when the first frame had
+        none)."""
         cfg = filt.config
         if self.lost or filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return super().finish(filt)
         score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
-        # From the better of this frame's estimate and the last answer (a static object's answer is still about
-        # right): fewer rounds, and a static object's answer changes less from frame to frame. Half the first
-        # steps: the answer is within a few millimetres.
-        starts = np.stack([filt.map, self.carried.settled])
-        start = starts[int(np.argmax(score(starts)))]
-        scene, loglik, scored = settle.pattern_search(
-            start, score, step_m=settle.SETTLE_STEP / 2, step_deg=settle.SETTLE_DEGREES / 2, min_step_m=0.001,
-            max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
-        scene, loglik, kept = keep_still(scene, loglik, self.carried.settled, score, STILL_MARGIN)
-        scored += kept
+        scene, loglik, scored = settle_each(filt.map, self.carried.settled, score, cfg.settle_shift, cfg.settle_turn,
+                                            STILL_MARGIN)
         if self.carried.posterior is None:
             return Settled(scene, loglik, [], scored)
+
         def refine(scene: np.ndarray, k: int) -> tuple[np.ndarray, float, int]:  # a mode that replaced the estimate
             return settle.pattern_search(
                 scene, score, step_m=settle.SETTLE_STEP / 2, step_deg=settle.SETTLE_DEGREES / 2, min_step_m=0.001,
