@@ -362,6 +362,17 @@ def test_plots_columns_and_acceptance_by_move_kind():
     assert "turn" in legend_html(charts["acceptance"], charts["acceptance"].lines(moves))
 
 
+def test_particles_drawn_by_default_share_one_budget_of_outlines():
+    """A frame of more objects draws fewer particles each until the user sets the count: software WebGL pays per
+    outline. The demo's two objects keep 32."""
+    from workbench.app.particle_display import DEFAULT_DISPLAY, MIN_DISPLAY, OUTLINE_BUDGET, default_drawn
+
+    assert default_drawn(1) == default_drawn(2) == DEFAULT_DISPLAY == 32
+    assert default_drawn(4) == 16 and 4 * default_drawn(4) == OUTLINE_BUDGET
+    assert default_drawn(6) == 10
+    assert default_drawn(50) == MIN_DISPLAY
+
+
 def test_expected_distinct_particles_matches_systematic_resampling():
     from workbench.app.particle_display import expected_distinct
     from workbench.inference.resampling import systematic_resample

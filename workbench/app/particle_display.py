@@ -13,6 +13,16 @@ from workbench.inference.moves import MoveKind
 # Particles per snapshot; the rest are the least likely and add haze. Their wireframes were about half of every
 # software-rendered frame's cost at 64.
 DEFAULT_DISPLAY = 32
+# Particle outlines drawn in all, over a frame's objects: a frame of K objects draws OUTLINE_BUDGET / K particles by
+# default (from MIN_DISPLAY to DEFAULT_DISPLAY). Software WebGL pays per outline: YCB-Video frame 1/1's four objects
+# at 32 particles each cost 1.2 times the demo's two objects at 32 a paused frame, at 16 each 0.9 times.
+OUTLINE_BUDGET = 64
+MIN_DISPLAY = 8
+
+
+def default_drawn(n_objects: int) -> int:
+    """The particles a frame of ``n_objects`` objects draws until the user chooses how many (``OUTLINE_BUDGET``)."""
+    return int(np.clip(OUTLINE_BUDGET // max(n_objects, 1), MIN_DISPLAY, DEFAULT_DISPLAY))
 
 
 def expected_distinct(weights: np.ndarray, n: int) -> float:

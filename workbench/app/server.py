@@ -26,6 +26,7 @@ from workbench.app.engine import DEMO_DIR
 from workbench.app.engine_process import EngineClient
 from workbench.app.labelling import Labelling
 from workbench.app.panel import Panel, build_panel, visibility_item
+from workbench.app.particle_display import default_drawn
 from workbench.app.quiet import Quiet
 from workbench.app.reporting import Reporter
 from workbench.app.run_display import RunDisplay
@@ -55,6 +56,7 @@ class App:
         self.quiet = Quiet()  # set while the server itself writes controls: their callbacks must not echo
         self.source: p.Source | None = None  # the last frame the engine loaded
         self.state = RunView()
+        self.drawn_by_user = False  # whether the user has set Particles drawn (else each frame gets its share)
         self.changed = threading.Condition(self.lock)  # notified on every engine message (tests wait on it)
         self.cameras = TabCameras(server, self.lock)
         self.panel: Panel = build_panel(server.gui, config, likelihood)
@@ -94,11 +96,16 @@ class App:
         P.scene_mode.on_update(lambda _: display.redraw_chosen())
         P.heatmap_mode.on_update(lambda _: display.heatmap_mode_changed())
         P.visibility.on_click(lambda event: self.toggle(event.target.value))
-        P.max_particles.on_update(lambda _: self.send(p.SetDisplay(int(P.max_particles.value))))
+        P.max_particles.on_update(self.drawn_changed)
         P.load.on_click(lambda _: self.load_typed())
         P.camera.on_click(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client))
         self.server.on_client_connect(self.cameras.client_connected)
         P.demo.on_click(lambda _: self.load(p.Source(demo=True)))
+
+    def drawn_changed(self, event) -> None:
+        """Particles drawn: the engine sends that many; once the user sets it (a client's event), frames keep it."""
+        self.drawn_by_user |= event.client is not None
+        self.send(p.SetDisplay(int(self.panel.max_particles.value)))
 
     def send(self, cmd) -> None:
         self.engine.send(cmd)
@@ -201,6 +208,8 @@ class App:
         with self.server.atomic():
             P.title.content = f"**workbench** · {view.title}"
             P.error.visible = False
+            if not self.drawn_by_user:  # the frame's share of the outlines drawn (sends SetDisplay)
+                P.max_particles.value = default_drawn(len(view.meshes))
             self.display.set_frame(view)
             self.labelling.set_frame(view)
             self.sessions.on_frame(view.title)
