@@ -136,14 +136,13 @@ def build_problem(
     roi = region_of_interest(camera, table, models)
     scale = render_scale(frame.depth, camera, roi, models, config)
     render_camera = camera.cropped(*roi).scaled(scale)
-    observed = sample_grid(frame.depth, roi, scale).astype(np.float32)
     return Problem(
         camera=camera,
         table=table,
         models=models,
         roi=roi,
         render_camera=render_camera,
-        observed=observed,
+        observed=sample_grid(frame.depth, roi, scale).astype(np.float32),
         background=table_depth(render_camera, table),
         config=config,
     )
