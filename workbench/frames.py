@@ -65,28 +65,34 @@ def run_frames(
         for frame in frames:
             on_result(frame, here(*frame))
     else:
-        _run_tasks(task, frames, args, ray, on_result, on_failure, desc)
+        run_ray_tasks(task, frames, args, ray, on_result, on_failure, desc, "frame",
+                      lambda frame: (frame, f"scene {frame[0]} frame {frame[1]}"))
 
 
-def _run_tasks(task: Callable[..., Result], frames: list[Frame], args: tuple, config: RayConfig,
-               on_result: Callable[[Frame, Result], None], on_failure: Callable[[FrameFailure], None],
-               desc: str) -> None:
-    """``run_frames`` on Ray."""
+def run_ray_tasks(task: Callable[..., Result], units: list[tuple], args: tuple, config: RayConfig,
+                  on_result: Callable[[tuple, Result], None], on_failure: Callable[[FrameFailure], None], desc: str,
+                  unit: str, named: Callable[[tuple], tuple[Frame, str]]) -> None:
+    """``task(*unit, *args)`` for every unit of work (a tuple of its own arguments: a frame's (scene_id, im_id), a
+    sequence's scene and frames) as a Ray task of one CPU, as many at once as the cluster has CPUs; each result to
+    ``on_result(unit, result)`` in the order the tasks finish, each unit that failed to ``on_failure`` (as the
+    ``FrameFailure`` of the frame ``named(unit)`` gives, with the name its line says) while the others go on. One
+    progress bar on stderr counts finished units; ``args`` are put into Ray's object store once."""
     ray = connect(config)
-    # Worker processes are reused across frames (Ray's default), so each imports the heavy libraries once.
+    # Worker processes are reused across tasks (Ray's default), so each imports the heavy libraries once.
     remote = ray.remote(num_cpus=1, max_retries=config.max_retries, retry_exceptions=False)(task)
     shared = [ray.put(a) for a in args]
-    pending = {remote.remote(scene_id, im_id, *shared): (scene_id, im_id) for scene_id, im_id in frames}
-    with tqdm(total=len(frames), desc=desc, unit="frame", file=sys.stderr, disable=None) as bar:  # terminals only
+    pending = {remote.remote(*u, *shared): u for u in units}
+    with tqdm(total=len(units), desc=desc, unit=unit, file=sys.stderr, disable=None) as bar:  # terminals only
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
-            frame = pending.pop(done[0])
+            u = pending.pop(done[0])
             try:
                 result = ray.get(done[0])
             except ray.exceptions.RayError as err:
+                frame, name = named(u)
                 failure = FrameFailure(frame, _frame_problem(ray, err, config.max_retries))
-                bar.write(f"workbench: scene {frame[0]} frame {frame[1]} failed: {failure.problem}", file=sys.stderr)
+                bar.write(f"workbench: {name} failed: {failure.problem}", file=sys.stderr)
                 on_failure(failure)
             else:
-                on_result(frame, result)
+                on_result(u, result)
             bar.update(1)

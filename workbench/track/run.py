@@ -19,8 +19,8 @@ from typing import Callable
 from tqdm import tqdm
 
 from workbench.evaluation import ChunkedEvaluator
-from workbench.evaluation.ray import RayConfig, connect  # imports Ray only when used
-from workbench.frames import FrameFailure, _frame_problem
+from workbench.evaluation.ray import RayConfig  # imports Ray only when used
+from workbench.frames import FrameFailure, run_ray_tasks
 from workbench.inference.config import EstimatorConfig
 from workbench.problem import Problem, ProblemConfig
 from workbench.track.config import TrackConfig
@@ -77,28 +77,16 @@ def track_sequences(dataset: Path, sequences: dict[int, list[int]], done: dict[i
             finally:
                 tracker.close()
         return count
-    module = connect(ray)
-    # Worker processes are reused across tasks (Ray's default), so each imports the heavy libraries once.
-    remote = module.remote(num_cpus=1, max_retries=ray.max_retries, retry_exceptions=False)(track_sequence_task)
-    shared = [module.put(a) for a in (Path(dataset).resolve(), config, track, problem_config, workers, split,
-                                      object_ids, early_stop)]
-    pending = {remote.remote(scene_id, frames, done.get(scene_id, set()), *shared): scene_id
-               for scene_id, frames in sequences.items()}
-    with tqdm(total=len(pending), desc="sequences", unit="sequence", file=sys.stderr, disable=None) as bar:
-        while pending:
-            ready, _ = module.wait(list(pending), num_returns=1)
-            scene_id = pending.pop(ready[0])
-            try:
-                results = module.get(ready[0])
-            except module.exceptions.RayError as err:
-                failure = FrameFailure((scene_id, sequences[scene_id][0]),
-                                       _frame_problem(module, err, ray.max_retries))
-                bar.write(f"workbench: scene {scene_id} failed: {failure.problem}", file=sys.stderr)
-                on_failure(failure)
-            else:
-                for result in results:
-                    bar.write(result.line, file=sys.stderr)
-                    on_frame(result)
-                count += len(results)
-            bar.update(1)
+
+    def finished(unit: tuple, results: list[FrameResult]) -> None:
+        nonlocal count
+        for result in results:
+            tqdm.write(result.line, file=sys.stderr)  # above the sequences' bar
+            on_frame(result)
+        count += len(results)
+
+    units = [(scene_id, frames, done.get(scene_id, set())) for scene_id, frames in sequences.items()]
+    shared = (Path(dataset).resolve(), config, track, problem_config, workers, split, object_ids, early_stop)
+    run_ray_tasks(track_sequence_task, units, shared, ray, finished, on_failure, "sequences", "sequence",
+                  lambda unit: ((unit[0], unit[1][0]), f"scene {unit[0]}"))
     return count
