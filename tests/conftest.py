@@ -58,3 +58,16 @@ def seeing():
         return replace(problem, observed=predicted_depth(rendered, problem.background)[0].astype(np.float32))
 
     return draw
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A one-node Ray cluster of 2 CPUs, as `ray start --head --num-cpus 2` would start -> its address (one per test
+    module that asks for it: tests/test_ray.py, tests/test_track_ray.py)."""
+    ray = pytest.importorskip("ray")
+    from ray.cluster_utils import Cluster
+
+    head = Cluster(initialize_head=True, head_node_args={"num_cpus": 2, "include_dashboard": False})
+    yield head.address
+    ray.shutdown()
+    head.shutdown()

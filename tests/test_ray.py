@@ -14,8 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import ray
-from ray.cluster_utils import Cluster
 
 from workbench.cli import main
 from workbench.evaluation import ChunkedEvaluator, PoolEvaluator, WorkerCrashed
@@ -27,15 +25,6 @@ pytestmark = pytest.mark.slow  # needs Ray, pybullet and OpenGL
 
 FAST = ("--particles", "16", "--iterations", "3", "--workers", "2")
 FRAMES = [(0, 0), (1, 0), (2, 0)]
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    """A one-node Ray cluster of 2 CPUs, as `ray start --head --num-cpus 2` would start -> its address."""
-    head = Cluster(initialize_head=True, head_node_args={"num_cpus": 2, "include_dashboard": False})
-    yield head.address
-    ray.shutdown()
-    head.shutdown()
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import pytest
 
-ray = pytest.importorskip("ray")
-from ray.cluster_utils import Cluster  # noqa: E402
+pytest.importorskip("ray")
 
 from workbench.cli import main  # noqa: E402
 from workbench.synth.sequence import make_sequences  # noqa: E402
@@ -17,15 +16,6 @@ from workbench.synth.sequence import make_sequences  # noqa: E402
 pytestmark = pytest.mark.slow  # needs Ray, pybullet and OpenGL
 
 FAST = ("--particles", "32", "--iterations", "4", "--workers", "2", "--track-particles", "24")
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    """A one-node Ray cluster of 2 CPUs, as `ray start --head --num-cpus 2` would start -> its address."""
-    head = Cluster(initialize_head=True, head_node_args={"num_cpus": 2, "include_dashboard": False})
-    yield head.address
-    ray.shutdown()
-    head.shutdown()
 
 
 @pytest.fixture(scope="module")
