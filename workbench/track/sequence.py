@@ -192,9 +192,6 @@ class Tracker:
         caches on them (6 MB a YCB-Video model, 35 MB for scene 2's six; 0.6 MB each without), the same vertices
         and faces, so the same collision shapes and render meshes (cached by their content). Sending the cached
         ones cost about 0.3 s of every tracked frame."""
-        import os
-        if os.environ.get("WB_LIGHT") == "0":
-            return problem
         models = []
         for m in problem.models:
             if id(m.mesh) not in self._light:  # the mesh itself kept, so that its id is not reused
