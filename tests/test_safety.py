@@ -133,6 +133,18 @@ def test_results_are_written_frame_by_frame_and_resume_skips_written_frames(two_
     assert {(r.scene_id, r.im_id) for r in bop.read_results_csv(out)} == {(0, 0), (1, 0)}
 
 
+def test_a_frame_estimated_into_a_log_file_says_how_far_it_is(demo, monkeypatch, capsys):
+    from workbench import runner
+    from workbench.inference.config import EstimatorConfig
+    from workbench.problem import ProblemConfig
+
+    monkeypatch.setattr(runner, "LOG_EVERY_S", 0.0)  # every step, not every 10 s
+    runner.estimate_frames(demo, [(0, 0)], EstimatorConfig(particles=6, iterations=2), ProblemConfig(), 1)
+    err = capsys.readouterr().err  # captured: not a terminal, so no progress bar
+    assert "scene 0 frame 0: step 1 of at most 3 after" in err
+    assert "\r" not in err
+
+
 def test_resume_refuses_a_file_that_is_not_ours(demo, tmp_path):
     mine = tmp_path / "mine.csv"
     mine.write_text("a,b\n1,2\n")

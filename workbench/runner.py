@@ -35,6 +35,10 @@ from workbench.pipeline import load_bop_problem, posterior_rows, result_rows
 from workbench.problem import Problem, ProblemConfig
 from workbench.scene import Frame as LoadedFrame
 
+# Where stderr is not a terminal (a log file), a frame's progress is one line at most this often (s): a six-object
+# frame takes about a minute, and a log that says nothing for that long looks stuck.
+LOG_EVERY_S = 10.0
+
 
 def estimate_frame(
     dataset: Path,
@@ -81,12 +85,21 @@ def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show
     """Run ``estimator`` to its iteration budget (or convergence, ``early_stop``) -> (it, its settled estimate
     (K, 4, 4) table frame). ``show_progress``: a progress bar named ``desc`` on stderr when stderr is a terminal."""
     # On a terminal only (disable=None): in a log file the bar's carriage returns would share lines with the
-    # messages after it.
+    # messages after it, so there a plain line says how far the frame is, at most every LOG_EVERY_S seconds.
+    t0 = last = time.perf_counter()
+    done = 0
     with tqdm(total=estimator.config.iterations + 1, desc=desc, file=sys.stderr, leave=False,
               disable=None if show_progress else True) as bar:
         def progress(report):
+            nonlocal last, done
+            done += 1
             bar.update(1)
             bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
+            now = time.perf_counter()
+            if show_progress and bar.disable and now - last >= LOG_EVERY_S:
+                last = now
+                print(f"{desc}: step {done} of at most {bar.total} after {now - t0:.0f} s "
+                      f"(best {report.best_loglik:.0f})", file=sys.stderr, flush=True)
         best = estimator.run(stop_on_convergence=early_stop, callback=progress)
     return estimator, best
 

@@ -5,6 +5,7 @@ All on the problem's pixel grid (``Problem.render_camera``, ``Problem.observed``
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,8 +40,15 @@ class ModelSamples:
 
 
 def model_samples(mesh: trimesh.Trimesh, n: int = 1500, seed: int = 0) -> ModelSamples:
-    """Evenly spread surface points of ``mesh`` with their face normals (seeded, so the same for every run)."""
-    points, faces = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
+    """Evenly spread surface points of ``mesh`` with their face normals (seeded, so the same for every run): about
+    ``n``; thin parts (scissors, a clamp) get fewer, which trimesh would log as a WARNING per model and frame."""
+    log = logging.getLogger("trimesh")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        points, faces = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
+    finally:
+        log.setLevel(level)
     return ModelSamples(np.asarray(points, dtype=np.float64), np.asarray(mesh.face_normals[faces], dtype=np.float64))
 
 

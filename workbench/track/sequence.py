@@ -275,10 +275,10 @@ class Tracker:
         else:
             rows = result_rows(frame, problem, c.settled, object_confidence(problem, c.particles, c.weights, c.settled),
                                seconds)
-        motion = "given" if self.world is not None else "unknown, taken as still"
-        line = f"scene {self.scene_id} frame {im_id}: {NO_DEPTH} in {seconds:.1f} s (camera motion {motion}); the " \
-               f"last answer carried"
-        return FrameResult(rows, NO_DEPTH, seconds, "given" if self.world is not None else "", line)
+        motion = "given" if self.world is not None else ""
+        line = f"scene {self.scene_id} frame {im_id}: {NO_DEPTH} in {seconds:.1f} s (camera motion " \
+               f"{motion or 'unknown, taken as still'}); the last answer carried"
+        return FrameResult(rows, NO_DEPTH, seconds, motion, line)
 
 
 def track_frames(tracker: Tracker, frames: list[int], done: set[int],
