@@ -187,6 +187,18 @@ def test_raised_objects_rest_on_the_box_above_the_table(dataset):
         assert lowest == pytest.approx(height, abs=3e-3), (m, i, lowest, height)
 
 
+def test_the_support_found_is_the_raised_box_where_the_objects_stand_on_it_and_the_table_elsewhere(dataset):
+    from workbench.pipeline import load_bop_problem
+
+    out, meta = dataset
+    for m in meta:  # at 160x120: a coarse depth, as a far sensor's
+        frame, problem = load_bop_problem(out, m["scene_id"], 0)
+        poses = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
+        lowest = [(MODELS[i].vertices @ T[:3, :3].T + T[:3, 3])[:, 2].min() for i, T in zip(m["obj_ids"], poses)]
+        # every object rests on the support found (z = 0 of the problem's table frame), within the plane's noise
+        assert np.min(lowest) == pytest.approx(0.0, abs=0.01), (m["category"], lowest)
+
+
 def test_shape_categories_need_fitting_models(models, tmp_path):
     with pytest.raises(InputError, match="--models"):
         make_scenes(tmp_path / "a", ["raised"], 1, seed=0, width=W, height=H)

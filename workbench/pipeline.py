@@ -17,9 +17,11 @@ from workbench.support import estimate_support
 
 
 def problem_for_frame(frame: Frame, models: dict[int, ObjectModel], config: ProblemConfig = ProblemConfig()) -> Problem:
-    """Find the table in the frame and assemble the problem for the objects the frame lists (in that order)."""
-    camera, table = estimate_support(frame)
-    return build_problem(frame, [models[i] for i in frame.object_ids], camera, table, config)
+    """Find the table (or the raised support the objects stand on) in the frame and assemble the problem for the
+    objects the frame lists (in that order)."""
+    listed = [models[i] for i in frame.object_ids]
+    camera, table = estimate_support(frame, objects_volume=sum(m.mass / m.density for m in listed))
+    return build_problem(frame, listed, camera, table, config)
 
 
 def load_bop_problem(

@@ -48,6 +48,16 @@ class SupportConfig:
     unseen_extension: float = 0.3
     border_near: float = 0.03  # a side is judged by what is seen this far beyond it
     unseen_share: float = 0.5  # of that line out of the image or on the table plane: the table may go on there
+    # A raised support (a large box's top, a shelf) parallel to the table and at least this big each way (larger
+    # than a handheld object's face) becomes the support when more of what stands stands on it than on the table.
+    raised_min_size: float = 0.2
+    raised_min_height: float = 0.03  # lower "planes" above the table are the table itself, unevenly fitted
+    raised_max_tilt_deg: float = 5.0
+    raised_planes: int = 3  # planes tried among the points above the table, largest first
+    # ... and it holds the objects: the volume seen above it (each cell filled from the top up to what is seen, so
+    # hidden far sides are missing) is at least this share of theirs (0.38-0.68 on generated raised boxes; a box
+    # with another stacked on it, unmodelled clutter as high beside it: 0.15).
+    raised_holds: float = 0.25
     seed: int = 0
 
 
@@ -295,6 +305,86 @@ def _object_region(
     return pts[keep, :2].min(0) - half, pts[keep, :2].max(0) + half
 
 
+def _raised_support(world: np.ndarray, z_cam: np.ndarray, outline: np.ndarray, cfg: SupportConfig,
+                    objects_volume: float | None = None) -> float | None:
+    """The height (m) above the table of a raised support the objects stand on, or None. ``world``: (N, 3) points
+    in the table frame, ``z_cam`` (N,) their depths, ``outline`` (V, 2) the table's.
+
+    A raised support is a plane among the points above the table, parallel to it (``raised_max_tilt_deg``), at
+    least ``raised_min_height`` above it, whose largest connected piece is at least ``raised_min_size`` across both
+    ways and fills at least half of its outline (a box's top, not the tops of several objects at one height), with
+    more of what stands above the table (voxels ``min_object_height`` or more above it) standing on it, within its
+    outline, than standing on the table beside it; and, where the objects' ``objects_volume`` (m^3, all of them) is
+    given, at least ``raised_holds`` of it seen above the top (each cell filled from the top up to what is seen):
+    a box with a small one stacked on it, next to unmodelled clutter as high, is a base object, not a support.
+    A frame of objects on a large box: the physics of the table
+    alone would drop them through the box, unmodelled, onto the table, where no hypothesis matches the depth.
+    Objects on both the table and the box keep the table (the box's objects are then lost: one support per
+    frame)."""
+    band = _noise_band(z_cam, cfg)
+    above = (world[:, 2] > band) & (world[:, 2] < cfg.max_height)
+    above[above] = _inside_hull(world[above, :2], outline, cfg.edge_margin)
+    if above.sum() < 100:
+        return None
+    pts, zc = world[above], z_cam[above]
+    threshold = max(cfg.ransac_threshold, 2.5 * float(depth_noise_sigma(np.median(zc))))
+    voxel = cfg.cluster_voxel
+    voxels = (np.unique(np.floor(pts / voxel).astype(int), axis=0) + 0.5) * voxel
+    standing = voxels[voxels[:, 2] > cfg.min_object_height]
+    rng = np.random.default_rng(cfg.seed)
+    remaining = np.arange(len(pts))
+    best = None
+    for _ in range(cfg.raised_planes):
+        if len(remaining) < 100:
+            break
+        n, d = ransac_plane(pts[remaining], threshold, cfg.ransac_iterations, rng)
+        inliers = remaining[np.abs(pts[remaining] @ n + d) < threshold]
+        remaining = np.setdiff1d(remaining, inliers)
+        height = float(np.median(pts[inliers, 2])) if len(inliers) else 0.0
+        if abs(n[2]) < np.cos(np.radians(cfg.raised_max_tilt_deg)) or height < cfg.raised_min_height:
+            continue
+        top = _largest_piece(pts[inliers, :2], cfg)
+        if top is None:
+            continue
+        piece, hull = top
+        size = piece.max(axis=0) - piece.min(axis=0)
+        if size.min() < cfg.raised_min_size or len(piece) * voxel ** 2 < 0.5 * _polygon_area(hull):
+            continue
+        beside = ~_inside_hull(standing[:, :2], hull, -cfg.edge_margin)  # the top's own sides stand within it
+        on_top = _inside_hull(standing[:, :2], hull, 0.0) & (standing[:, 2] > height + cfg.min_object_height)
+        held = standing[on_top]
+        cells = {}
+        for (x, y), z in zip(np.round(held[:, :2] / voxel).astype(int).tolist(), held[:, 2] - height):
+            cells[x, y] = max(cells.get((x, y), 0.0), z)
+        volume = sum(cells.values()) * voxel ** 2
+        holds = objects_volume is None or volume >= cfg.raised_holds * objects_volume
+        log.debug("raised plane %.3f m: %d voxels on it, %d beside, %.0f cm^3 above it", height, on_top.sum(),
+                  beside.sum(), volume * 1e6)
+        if on_top.sum() > beside.sum() and holds and (best is None or height > best):
+            best = height
+    return best
+
+
+def _largest_piece(xy: np.ndarray, cfg: SupportConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """The largest connected piece of points (N, 2) on a ``cluster_voxel`` grid -> (its voxel centres (M, 2), their
+    convex hull (V, 2)), or None when there is none of at least 3 voxels."""
+    cells = np.unique(np.floor(xy / cfg.cluster_voxel).astype(int), axis=0)
+    if len(cells) < 3:
+        return None
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.c_[cells * cfg.cluster_voxel, np.zeros(len(cells))]))
+    labels = np.asarray(cloud.cluster_dbscan(cfg.cluster_eps, min_points=3))
+    if not np.any(labels >= 0):
+        return None
+    piece = (cells[labels == np.argmax(np.bincount(labels[labels >= 0]))] + 0.5) * cfg.cluster_voxel
+    hull = _convex_hull_2d(piece, cfg.cluster_voxel)
+    return (piece, hull) if len(hull) >= 3 else None
+
+
+def _polygon_area(p: np.ndarray) -> float:
+    """Area (m^2) of a simple polygon (V, 2)."""
+    return 0.5 * abs(float(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1))))
+
+
 def _given_frame_fits(T_cam_world: np.ndarray, points: np.ndarray, cfg: SupportConfig) -> bool:
     """Whether the given table frame looks like one: the camera above z = 0 and enough points on it."""
     T_world_cam = invert_pose(T_cam_world)
@@ -302,8 +392,10 @@ def _given_frame_fits(T_cam_world: np.ndarray, points: np.ndarray, cfg: SupportC
     return T_world_cam[2, 3] > 0 and on.mean() >= cfg.min_plane_fraction
 
 
-def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig()) -> tuple[Camera, Table]:
-    """The camera with ``T_cam_world`` set and the ``Table`` (extent and object region) of ``frame``.
+def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects_volume: float | None = None
+                     ) -> tuple[Camera, Table]:
+    """The camera with ``T_cam_world`` set and the ``Table`` (extent and object region) of ``frame``: the table, or
+    a raised support the objects stand on (``_raised_support``; ``objects_volume``, m^3: the frame's objects').
 
     A given ``frame.camera.T_cam_world`` is kept (only extent and region are measured) unless the depth
     contradicts it (camera below the table, almost no point on z = 0); then a warning is logged and the table is
@@ -329,6 +421,12 @@ def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig()) -> tupl
 
     world = transform_points(invert_pose(T), points)
     outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
+    raised = _raised_support(world, points[:, 2], outline, cfg, objects_volume)
+    if raised is not None:  # the objects stand on a box or a shelf: its top is their support
+        log.info("%s: the objects stand on a raised support %.0f cm above the table", path, raised * 100)
+        T = T @ make_pose(np.eye(3), np.array([0.0, 0.0, raised]))
+        world = transform_points(invert_pose(T), points)
+        outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
     extent = _extend_unseen_sides(extent, depth, camera, T, cfg)
     lo, hi = _object_region(world, points[:, 2], outline, cfg, path)
     if estimated:
