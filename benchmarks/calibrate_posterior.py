@@ -8,7 +8,9 @@ dataset's scene_gt.json (metrics.is_right: 2 cm, 10 degrees, up to the model's s
 on a grid, it recomputes the probabilities (posterior.probabilities, with the estimator's turn margin) and reports
 the negative log-likelihood of the right modes, the expected calibration error of the top mode, coverage (the
 truth among the modes holding 95 %) and top-1 accuracy; the temperature of least negative log-likelihood is the
-fit, then broken down per dataset and (generated sets) category. It also counts how often the truth's heading lies
+fit, broken down per dataset and (generated sets) category. Then it fits the chance that the truth is among none
+of the modes (posterior.ELSEWHERE: a logistic in the share of the estimate the sensor sees through) and reports
+its own calibration error, and what the top modes' would be with it folded into them. It also counts how often the truth's heading lies
 inside a reported range of headings, and the posterior sweep's share of the frames' wall time. --data keeps the
 gaps and right flags (benchmarks/calibration/), so that the fit can be redone without estimating again; --png
 draws the reliability diagram at the fitted temperature.
@@ -41,7 +43,9 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
     models: dict = {}
     for f in document["frames"]:
         frame = bop.load_frame(dataset, f["scene_id"], f["im_id"])
-        for o in f["objects"]:
+        seen_through = ([o["seen_through"] for o in f["objects"]] if all("seen_through" in o for o in f["objects"])
+                        else estimate_seen_through(dataset, f))  # a JSON written before it was reported
+        for o, through in zip(f["objects"], seen_through):
             if o["obj_id"] not in models:
                 models[o["obj_id"]] = bop.load_models(dataset, [o["obj_id"]])[o["obj_id"]]
             truths = [T for i, T in zip(frame.object_ids, frame.gt_T_cam_obj) if i == o["obj_id"]]
@@ -58,17 +62,55 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
                         "yaw_range_deg": o["yaw_range_deg"],
                         "truth_heading_deg": heading_offset_deg(truth, poses[0], np.array(o["vertical_cam"]),
                                                                 symmetries),
-                        "frame_seconds": f.get("seconds"), "posterior_seconds": f.get("posterior_seconds")})
+                        "frame_seconds": f.get("seconds"), "posterior_seconds": f.get("posterior_seconds"),
+                        "seen_through": float(through)})
     return out
 
 
-def modes_at(records: list[dict], temperature: float) -> list[ObjectModes]:
+def estimate_seen_through(dataset: Path, frame_json: dict) -> np.ndarray:
+    """Per object of one frame of the posterior JSON (in its order, the problem's), the share of its estimate's
+    camera-facing surface that the sensor sees through (``scenepoints.object_badness``, all objects at their
+    estimates) -> (K,): high where the search put an object where the depth says there is none."""
+    from workbench.inference.scenepoints import model_samples, object_badness
+    from workbench.pipeline import load_bop_problem
+    from workbench.problem import ProblemConfig
+
+    ids = [o["obj_id"] for o in frame_json["objects"]]
+    _, problem = load_bop_problem(dataset, frame_json["scene_id"], frame_json["im_id"], None, ids, ProblemConfig())
+    T_world_cam = np.linalg.inv(problem.camera.T_cam_world)
+    scene = np.stack([T_world_cam @ np.vstack([np.hstack([np.reshape(o["modes"][0]["R"], (3, 3)),
+                                                           np.reshape(o["modes"][0]["t"], (3, 1)) / 1000.0]),
+                                                [0, 0, 0, 1]]) for o in frame_json["objects"]])
+    return object_badness(problem, scene, [model_samples(m.mesh) for m in problem.models])
+
+
+def modes_at(records: list[dict], temperature: float, elsewhere: tuple[float, float] | None = None
+             ) -> list[ObjectModes]:
+    """Each record's modes with probabilities at ``temperature``, scaled by the chance that the truth is among them
+    (the logistic ``elsewhere`` (intercept, slope) in ``seen_through``) where given."""
     out = []
     for r in records:
         p = probabilities(np.array(r["gaps"]), np.array(r["estimate"]), temperature)
+        if elsewhere is not None:
+            p = p / (1.0 + np.exp(-(elsewhere[0] + elsewhere[1] * r["seen_through"])))
         order = np.argsort(-p, kind="stable")
         out.append(ObjectModes(p[order], np.array(r["right"])[order]))
     return out
+
+
+def fit_elsewhere(records: list[dict]) -> tuple[float, float]:
+    """The logistic (intercept, slope) of "the truth is among the modes" in the share of the estimate the sensor
+    sees through, by maximum likelihood (``posterior.ELSEWHERE``)."""
+    from scipy.optimize import minimize
+
+    through = np.array([r["seen_through"] for r in records])
+    among = np.array([any(r["right"]) for r in records], dtype=np.float64)
+
+    def nll_of(ab: np.ndarray) -> float:
+        z = ab[0] + ab[1] * through
+        return float(np.sum(np.logaddexp(0.0, -z) * among + np.logaddexp(0.0, z) * (1.0 - among)))
+
+    return tuple(float(v) for v in minimize(nll_of, np.array([3.0, -20.0]), method="Nelder-Mead").x)
 
 
 def nll(objects: list[ObjectModes]) -> float:
@@ -112,17 +154,37 @@ def main(argv: list[str] | None = None) -> int:
         print(f"posterior sweep: {sweep.sum():.0f} s of {total.sum():.0f} s over {len(frames)} frames "
               f"({100 * sweep.sum() / total.sum():.1f} %; at most {100 * np.max(sweep / total):.1f} % of a frame)")
     best = min(fits)[1]
-    objects = modes_at(records, best)
-    print(f"fit: temperature {best:.1f}: nll {nll(objects):.4f}, ECE {expected_calibration_error(objects):.3f}, "
-          f"coverage {coverage(objects):.3f}, top-1 {top1(objects):.3f}")
-    print("at the fit, per dataset and category: objects, top-1, coverage95, ECE")
+    plain = modes_at(records, best)
+    print(f"fit: temperature {best:.1f}: nll {nll(plain):.4f}, ECE {expected_calibration_error(plain):.3f}, "
+          f"coverage {coverage(plain):.3f}, top-1 {top1(plain):.3f}")
+    doubt = fit_elsewhere(records)
+    folded = modes_at(records, best, doubt)
+    among = np.array([any(r["right"]) for r in records])
+    through = np.array([r["seen_through"] for r in records])
+    found = 1.0 / (1.0 + np.exp(-(doubt[0] + doubt[1] * through)))
+    # The chance of "found" on its own: a one-mode "posterior" per object, right when the truth is among the modes.
+    found_ece = expected_calibration_error([ObjectModes(np.array([p]), np.array([a])) for p, a in zip(found, among)])
+    print(f"fit: elsewhere (intercept, slope) ({doubt[0]:.2f}, {doubt[1]:.1f}) in the share seen through: its ECE "
+          f"{found_ece:.3f}; folded into the modes, their top-mode ECE {expected_calibration_error(folded):.3f} "
+          f"(without it {expected_calibration_error(plain):.3f})")
+    if among.any() and (~among).any():
+        print(f"seen through, median (90th percentile): truth among the modes {np.median(through[among]):.3f} "
+              f"({np.percentile(through[among], 90):.3f}), not {np.median(through[~among]):.3f} "
+              f"({np.percentile(through[~among], 90):.3f})")
+    objects = plain
+    print("at the fit, per dataset and category: objects, top-1, coverage95, ECE, ECE with elsewhere folded in")
     groups: dict[tuple[str, str], list[int]] = {}
     for i, r in enumerate(records):
         groups.setdefault((r["dataset"], r.get("category", "real")), []).append(i)
     for (name, cat), idx in sorted(groups.items()):
         part = [objects[i] for i in idx]
         print(f"  {name:24s} {cat:14s} {len(part):4d}  {top1(part):.3f}  {coverage(part):.3f}  "
-              f"{expected_calibration_error(part):.3f}")
+              f"{expected_calibration_error(part):.3f}  {expected_calibration_error([folded[i] for i in idx]):.3f}")
+    for name in sorted({r["dataset"] for r in records}):
+        idx = [i for i, r in enumerate(records) if r["dataset"] == name]
+        print(f"  {name:24s} {'all':14s} {len(idx):4d}  {top1([objects[i] for i in idx]):.3f}  "
+              f"{coverage([objects[i] for i in idx]):.3f}  {expected_calibration_error([objects[i] for i in idx]):.3f}"
+              f"  {expected_calibration_error([folded[i] for i in idx]):.3f}")
     if a.png:
         reliability_png(objects, a.png, f"temperature {best:.0f}, {len(objects)} objects")
     return 0

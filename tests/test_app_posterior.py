@@ -36,7 +36,7 @@ def posterior_by_hand() -> Posterior:
     return Posterior([
         ObjectPosterior(0, [Mode(np.eye(4), -10.0, 0.0, 0.62, "the estimate"),
                             Mode(turned, -20.0, -10.0, 0.38, "turned over its x axis")], 0.004),
-        ObjectPosterior(1, [Mode(np.eye(4), -10.0, 0.0, 1.0, "the estimate")], 0.001, (-60.0, 90.0)),
+        ObjectPosterior(1, [Mode(np.eye(4), -10.0, 0.0, 1.0, "the estimate")], 0.001, (-60.0, 90.0), 0.17, 0.62),
     ], 95.0)
 
 
@@ -45,11 +45,11 @@ def test_the_posterior_in_words():
     a, b = post.objects
     assert mode_label(a.modes[1]) == "p = 0.38 turned over its x axis"
     assert confidence_text(a) == "p = 0.62"
-    assert confidence_text(b) == "p = 1.00, heading open −60° … +90°"
+    assert confidence_text(b) == "p = 1.00, heading open −60° … +90°, elsewhere 0.62"
     assert mode_option(1, a.modes[1]) == "mode 2 · p = 0.38 · turned over its x axis"
     table = posterior_markdown(post, ["can", "mug"], 7)
-    assert "iteration 7" in table and "| can | 0.62 | 4.0 | — | p = 0.38 turned over its x axis |" in table
-    assert "| mug | 1.00 | 1.0 | −60° … +90° | — |" in table
+    assert "iteration 7" in table and "| can | 0.62 | 0.00 (0 %) | 4.0 | — | p = 0.38 turned over its x axis |" in table
+    assert "| mug | 1.00 | 0.62 (17 %) | 1.0 | −60° … +90° | — |" in table
     legend = view_legend_html(["can", "mug"], "height", confidences=[confidence_text(a), ""])
     assert '<span data-confidence="0">(p = 0.62)</span>' in legend and 'data-confidence="1"' not in legend
     scene = np.stack([np.eye(4), np.eye(4)])

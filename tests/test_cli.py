@@ -25,21 +25,24 @@ def test_estimate_writes_a_bop_results_csv(touching_dataset, tmp_path):
     header = out.read_text().splitlines()[0]
     assert header == "scene_id,im_id,obj_id,score,R,t,time"
     rows = read_results_csv(out)
-    # Each object's posterior modes as rows, the most likely first, their probabilities summing to 1.
+    # Each object's posterior modes as rows, the most likely first, their probabilities summing to 1 (given that it
+    # was found: the chance that it is elsewhere is in the posterior file).
     objects = sorted({r.obj_id for r in rows})
     assert objects == sorted(int(i) for i in _gt_ids(touching_dataset))
+    import json
+
+    (frame,) = json.loads(posterior.read_text())["frames"]
+    elsewhere = {o["obj_id"]: o["elsewhere"] for o in frame["objects"]}
     for obj_id in objects:
         scores = [r.score for r in rows if r.obj_id == obj_id]
         assert np.isclose(sum(scores), 1.0, atol=1e-5) and scores == sorted(scores, reverse=True)
+        assert 0.0 < elsewhere[obj_id] < 0.5  # the estimate is where the depth shows it: no doubt to speak of
     for r in rows:
         R = r.T_cam_obj[:3, :3]
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-5)
         assert 0.2 < r.T_cam_obj[2, 3] < 3.0  # in front of the camera, metres after reading mm
         assert 0.0 <= r.score <= 1.0 and r.time > 0
     # The posterior file: per frame its wall time and the sweep's share, per object the same modes as the rows.
-    import json
-
-    (frame,) = json.loads(posterior.read_text())["frames"]
     assert 0 < frame["posterior_seconds"] < frame["seconds"] == pytest.approx(rows[0].time, abs=2e-3)
     for o in frame["objects"]:
         scores = [r.score for r in rows if r.obj_id == o["obj_id"]]

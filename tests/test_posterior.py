@@ -10,10 +10,13 @@ import pytest
 from workbench import metrics
 from workbench.geometry import invert_pose, make_pose, rot_z
 from workbench.inference.posterior import (
+    DOUBTFUL,
     Mode,
     ObjectPosterior,
     Posterior,
+    doubted,
     face_turns,
+    found_probability,
     object_modes,
     probabilities,
     yaw_range,
@@ -88,6 +91,41 @@ def test_the_summary_names_only_what_is_uncertain(touching_models):
     assert line.startswith("1 of 2 objects uncertain: box b (about the vertical anywhere in [-75, +45] degrees)")
     twice = SimpleNamespace(models=[problem.models[1], problem.models[1]])  # one model, two instances
     assert "box b #2 (about the vertical" in Posterior([sure, open_heading]).summary(twice)
+
+
+def test_an_estimate_the_sensor_sees_through_is_probably_elsewhere_and_its_modes_keep_their_probabilities(
+        touching_models):
+    through = np.array([0.0, 0.02, 0.05, 0.1, 0.3, 1.0])
+    found = found_probability(through)
+    assert np.all(np.diff(found) < 0) and found[0] > 0.9 and found[-1] < 0.05
+    o = ObjectPosterior(0, [Mode(np.eye(4), 0.0, 0.0, 0.75, "the estimate"),
+                            Mode(np.eye(4), -9.0, -9.0, 0.25, "turned over its x axis")], 0.002)
+    for share in through:
+        d = doubted(o, share)
+        assert [m.probability for m in d.modes] == [0.75, 0.25]  # given that it was found
+        assert d.seen_through == share and np.isclose(d.elsewhere, 1.0 - found_probability(share))
+    sure = doubted(ObjectPosterior(0, [Mode(np.eye(4), 0.0, 0.0, 1.0, "the estimate")], 0.002), 0.0)
+    missed = doubted(ObjectPosterior(1, [Mode(np.eye(4), 0.0, 0.0, 1.0, "the estimate")], 0.002), 0.3)
+    assert sure.elsewhere < DOUBTFUL <= missed.elsewhere
+    assert Posterior([sure, sure]).summary(touching_models).startswith("all 2 objects certain")
+    line = Posterior([sure, missed]).summary(touching_models)
+    assert line.startswith("1 of 2 objects uncertain: box b (maybe elsewhere: the sensor sees through 30 % of it, "
+                           "p = 0.9")
+
+
+@pytest.mark.slow  # a generated frame (pybullet, OpenGL)
+def test_an_object_moved_off_its_place_is_seen_through(touching_dataset):
+    from workbench.inference.scenepoints import model_samples, object_badness
+    from workbench.pipeline import load_bop_problem
+
+    frame, problem = load_bop_problem(touching_dataset, 0, 0)
+    truth = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
+    samples = [model_samples(m.mesh) for m in problem.models]
+    moved = truth.copy()
+    moved[1, :3, 3] += [0.0, 0.0, 0.08]  # lifted 8 cm: the sensor sees the table, or the other box, through it
+    at_truth, off = object_badness(problem, truth, samples), object_badness(problem, moved, samples)
+    assert np.all(at_truth < 0.05) and off[1] > 0.5 and off[0] < 0.05
+    assert 1 - found_probability(at_truth).min() < DOUBTFUL < 1 - found_probability(off[1])
 
 
 def test_face_turns_lay_an_object_on_each_face_where_it_stands_on_whatever_supports_it():

@@ -376,11 +376,31 @@ def test_a_settled_session_restores_its_posterior_exactly(settled, loaded):
     a, b = saved_run.posterior, restored.current_posterior
     assert a.temperature == b.temperature and len(a.objects) == len(b.objects) == problem.n_objects
     for x, y in zip(a.objects, b.objects):
-        assert (x.obj, x.position_spread_m, x.yaw_range_deg) == (y.obj, y.position_spread_m, y.yaw_range_deg)
+        assert (x.obj, x.position_spread_m, x.yaw_range_deg, x.seen_through, x.elsewhere) == \
+            (y.obj, y.position_spread_m, y.yaw_range_deg, y.seen_through, y.elsewhere)
         assert len(x.modes) == len(y.modes)
         for m, n in zip(x.modes, y.modes):
             assert np.array_equal(m.T, n.T) and (m.loglik, m.gap, m.probability, m.what) == \
                 (n.loglik, n.gap, n.probability, n.what)
+
+
+def test_a_posterior_saved_before_elsewhere_was_reported_loads_without_doubt(settled, loaded, tmp_path):
+    folder, original, _ = settled
+    work = tmp_path / "sessions"
+    shutil.copytree(folder, work)
+    json_path = work / original.name
+    doc = json.loads(json_path.read_text())
+    for o in doc["estimator"]["answer"]["posterior"]["objects"]:  # as an older version wrote it
+        del o["seen_through"], o["elsewhere"]
+    json_path.write_text(json.dumps(doc))
+    _, problem, _ = loaded
+    evaluator = LocalEvaluator(problem)
+    try:
+        old = restore_estimator(load_session(json_path), problem, evaluator)
+    finally:
+        evaluator.close()
+    assert all(o.elsewhere == 0.0 and o.seen_through == 0.0 for o in old.current_posterior.objects)
+    assert all(np.isclose(sum(m.probability for m in o.modes), 1.0) for o in old.current_posterior.objects)
 
 
 def test_a_stale_or_missing_answer_loads_as_no_posterior(saved, settled, loaded, tmp_path):
@@ -431,6 +451,10 @@ BAD_ANSWERS = {
     "yaw range": (_answer_edit(lambda a: a["posterior"]["objects"][0].update(yaw_range_deg=[10.0, 5.0])),
                   r"yaw_range_deg"),
     "temperature": (_answer_edit(lambda a: a["posterior"].update(temperature=-1.0)), r"temperature must be > 0"),
+    "elsewhere over 1": (_answer_edit(lambda a: a["posterior"]["objects"][0].update(elsewhere=1.5)),
+                         r"objects\[0\]\.elsewhere and \.seen_through must lie in \[0, 1\]"),
+    "elsewhere without seen_through": (_answer_edit(lambda a: a["posterior"]["objects"][0].pop("seen_through")),
+                                       r"objects\[0\] must have exactly the entries"),
     "spread NaN": (_answer_edit(lambda a: a["posterior"]["objects"][0].update(position_spread_m=float("nan"))),
                    r"position_spread_m must be a finite number"),
     "no estimate": (_set(["estimator", "search", "map"], None), r"answer.*without an estimate"),

@@ -52,6 +52,8 @@ def posterior_json(posterior: Posterior) -> dict:
                        "probability": float(m.probability), "what": m.what} for m in o.modes],
             "position_spread_m": float(o.position_spread_m),
             "yaw_range_deg": None if o.yaw_range_deg is None else [float(v) for v in o.yaw_range_deg],
+            "seen_through": float(o.seen_through),
+            "elsewhere": float(o.elsewhere),
         } for o in posterior.objects],
     }
 
@@ -83,7 +85,14 @@ def parse_posterior(value, K: int, where: str = "posterior") -> Posterior:
 
 
 def _object(value, k: int, where: str) -> ObjectPosterior:
-    _keys(value, ("obj", "modes", "position_spread_m", "yaw_range_deg"), where)
+    keys = ("obj", "modes", "position_spread_m", "yaw_range_deg")
+    # Sessions saved before the chance of "elsewhere" was reported have neither entry: no doubt, as they showed.
+    _keys(value, keys + ("seen_through", "elsewhere") if "elsewhere" in value else keys, where)
+    elsewhere = _number(value.get("elsewhere", 0.0), f"{where}.elsewhere")
+    seen_through = _number(value.get("seen_through", 0.0), f"{where}.seen_through")
+    if not (0.0 <= elsewhere <= 1.0 and 0.0 <= seen_through <= 1.0):
+        raise ValueError(f"{where}.elsewhere and .seen_through must lie in [0, 1], got {elsewhere!r} and "
+                         f"{seen_through!r}")
     if value["obj"] != k or isinstance(value["obj"], bool):
         raise ValueError(f"{where}.obj must be {k} (objects in order), got {value['obj']!r}")
     modes = [_mode(m, f"{where}.modes[{j}]") for j, m in enumerate(_list(value["modes"], f"{where}.modes"))]
@@ -101,7 +110,7 @@ def _object(value, k: int, where: str) -> ObjectPosterior:
         if len(yaw) != 2 or not -180.0 <= yaw[0] <= 0.0 <= yaw[1] <= 180.0:
             raise ValueError(f"{where}.yaw_range_deg must be [lo, hi] degrees with -180 <= lo <= 0 <= hi <= 180, "
                              f"got {list(yaw)}")
-    return ObjectPosterior(k, modes, spread, yaw)
+    return ObjectPosterior(k, modes, spread, yaw, seen_through, elsewhere)
 
 
 def _mode(value, where: str) -> Mode:

@@ -75,7 +75,9 @@ def posterior_record(problem: Problem, posterior: Posterior) -> list[dict]:
     """Per object, its posterior in BOP's units and frame: each mode's pose in the camera frame (``R`` row-major,
     ``t`` mm), probability, log-likelihood and gap to the estimate (log-units) and what it is; the spread of its
     position (mm); the range of headings about the table's vertical (``vertical_cam``, a unit vector in the camera
-    frame) that the view leaves open (degrees about the estimate's, or null)."""
+    frame) that the view leaves open (degrees about the estimate's, or null); the share of its estimate's surface
+    the sensor sees through, and the chance that it is none of the modes (``elsewhere``: the modes and it sum to
+    1)."""
     T_cam_world = problem.camera.T_cam_world
     out = []
     for o in posterior.objects:
@@ -90,6 +92,7 @@ def posterior_record(problem: Problem, posterior: Posterior) -> list[dict]:
         out.append({"obj_id": model.obj_id, "name": model.name, "modes": modes,
                     "position_spread_mm": round(1000.0 * o.position_spread_m, 3),
                     "yaw_range_deg": None if o.yaw_range_deg is None else list(o.yaw_range_deg),
+                    "seen_through": round(o.seen_through, 4), "elsewhere": round(o.elsewhere, 6),
                     "vertical_cam": [round(float(v), 12) for v in T_cam_world[:3, 2]],
                     "temperature": posterior.temperature})
     return out

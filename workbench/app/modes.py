@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.app.markdown import escape
-from workbench.inference.posterior import Mode, ObjectPosterior, Posterior
+from workbench.inference.posterior import DOUBTFUL, Mode, ObjectPosterior, Posterior
 
 
 def mode_label(mode: Mode) -> str:
@@ -24,10 +24,12 @@ def yaw_text(o: ObjectPosterior) -> str:
 
 
 def confidence_text(o: ObjectPosterior) -> str:
-    """An object's confidence: its top mode's probability, and the open heading if any: "p = 0.84",
-    "p = 1.00, heading open −60° … +90°"."""
+    """An object's confidence: its top mode's probability, the open heading if any, and the chance that it is
+    elsewhere when that is at least ``posterior.DOUBTFUL``: "p = 0.84", "p = 1.00, heading open −60° … +90°",
+    "p = 1.00, elsewhere 0.62"."""
     yaw = yaw_text(o)
-    return f"p = {o.confidence:.2f}" + (f", {yaw}" if yaw else "")
+    doubt = f"elsewhere {o.elsewhere:.2f}" if o.elsewhere >= DOUBTFUL else ""
+    return ", ".join([f"p = {o.confidence:.2f}", *(t for t in (yaw, doubt) if t)])
 
 
 def confidences(posterior: Posterior | None, n_objects: int) -> list[str]:
@@ -57,13 +59,16 @@ def posterior_markdown(posterior: Posterior | None, names: list[str], iteration:
     for o in posterior.objects:
         name = escape(names[o.obj] if o.obj < len(names) else f"object {o.obj}")
         others = "; ".join(escape(mode_label(m)) for m in o.modes[1:]) or "—"
-        rows.append(f"| {name} | {o.confidence:.2f} | {o.position_spread_m * 1000:.1f} | "
-                    f"{yaw_text(o).removeprefix('heading open ') or '—'} | {others} |")
+        rows.append(f"| {name} | {o.confidence:.2f} | {o.elsewhere:.2f} ({100 * o.seen_through:.0f} %) | "
+                    f"{o.position_spread_m * 1000:.1f} | {yaw_text(o).removeprefix('heading open ') or '—'} | "
+                    f"{others} |")
     return (f"**Posterior** of the settled estimate · iteration {iteration}\n\n"
-            "| object | p (estimate) | spread (mm) | heading open | other modes |\n|---|---:|---:|---|---|\n"
+            "| object | p (estimate) | elsewhere (seen through) | spread (mm) | heading open | other modes |\n"
+            "|---|---:|---:|---:|---|---|\n"
             + "\n".join(rows)
             + f"\n\n<small>other modes are drawn as ghosts in the 3D view; probabilities at temperature "
-              f"{posterior.temperature:g}</small>")
+              f"{posterior.temperature:g}, given that the object was found; *elsewhere*: the chance that it is none "
+              f"of its modes, from the share of its surface the sensor sees through</small>")
 
 
 def scene_with_modes(scene: np.ndarray, posterior: Posterior | None, modes: tuple[int, ...],

@@ -27,9 +27,9 @@ from workbench.inference.context import SearchGeometry
 from workbench.inference.default_search import DefaultSearch
 from workbench.inference.filter import ParticleFilter, Settled
 from workbench.inference.moves import MoveKind
-from workbench.inference.posterior import Posterior
+from workbench.inference.posterior import Posterior, doubted
 from workbench.inference.resampling import systematic_resample
-from workbench.inference.scenepoints import observed_points
+from workbench.inference.scenepoints import object_badness, observed_points
 from workbench.problem import Problem
 
 # Log-units a settled object must gain over its last answer to move from it: the estimator's margin for a turn
@@ -187,4 +187,6 @@ class TrackSearch(DefaultSearch):
         posterior, scene, loglik, n = carried_posterior.rescored(
             self.problem, scene, loglik, self.carried.posterior, score, filt.particles.projected, filt.weights(),
             refine)
+        through = object_badness(self.problem, scene, self.geometry(filt).samples)
+        posterior = replace(posterior, objects=[doubted(o, through[o.obj]) for o in posterior.objects])
         return Settled(scene, loglik, [], scored + n, posterior)
