@@ -6,14 +6,14 @@ Each POSTERIOR.json is what `workbench estimate DATASET --posterior POSTERIOR.js
 every object it reads the modes' log-likelihood gaps to the estimate, and marks each mode right or not against the
 dataset's scene_gt.json (metrics.is_right: 2 cm, 10 degrees, up to the model's symmetries). Then, for temperatures
 on a grid, it recomputes the probabilities (posterior.probabilities, with the estimator's turn margin) and reports
-the negative log-likelihood of the right modes, the expected calibration error of the top mode, coverage (the
-truth among the modes holding 95 %) and top-1 accuracy; the temperature of least negative log-likelihood is the
-fit, broken down per dataset and (generated sets) category. Then it fits the chance that the truth is among none
-of the modes (posterior.ELSEWHERE: a logistic in the share of the estimate the sensor sees through) and reports
-its own calibration error, and what the top modes' would be with it folded into them. It also counts how often the truth's heading lies
-inside a reported range of headings, and the posterior sweep's share of the frames' wall time. --data keeps the
-gaps and right flags (benchmarks/calibration/), so that the fit can be redone without estimating again; --png
-draws the reliability diagram at the fitted temperature.
+the negative log-likelihood of the right modes, the expected calibration error of the top mode, coverage (the truth
+among the modes holding 95 %) and top-1 accuracy; the temperature of least negative log-likelihood is the fit,
+broken down per dataset and (generated sets) category. Then it fits the chance that the truth is among none of the
+modes (posterior.ELSEWHERE: a logistic in the share of the estimate the sensor sees through) and reports its own
+calibration error, and what the top modes' would be with it folded into them. It also counts how often the truth's
+heading lies inside a reported range of headings, and the posterior sweep's share of the frames' wall time. --data
+keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without estimating again;
+--png draws the reliability diagram at the fitted temperature.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from workbench.bench.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
-from workbench.inference.posterior import probabilities
+from workbench.inference.posterior import found_probability, probabilities
 from workbench.io import bop
 from workbench.metrics import heading_offset_deg, is_right
 
@@ -50,8 +50,7 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
                 models[o["obj_id"]] = bop.load_models(dataset, [o["obj_id"]])[o["obj_id"]]
             truths = [T for i, T in zip(frame.object_ids, frame.gt_T_cam_obj) if i == o["obj_id"]]
             modes = o["modes"]
-            poses = [np.vstack([np.hstack([np.reshape(m["R"], (3, 3)), np.reshape(m["t"], (3, 1)) / 1000.0]),
-                                [0, 0, 0, 1]]) for m in modes]
+            poses = [mode_pose(m) for m in modes]
             # With several instances of a model, the instance nearest the estimate is this object's truth.
             truth = min(truths, key=lambda T: np.linalg.norm(T[:3, 3] - poses[0][:3, 3]))
             symmetries = models[o["obj_id"]].symmetries
@@ -67,6 +66,12 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
     return out
 
 
+def mode_pose(mode: dict) -> np.ndarray:
+    """A mode of the posterior JSON (``R`` row-major, ``t`` mm, camera frame) -> T_cam_obj (4, 4), metres."""
+    return np.vstack([np.hstack([np.reshape(mode["R"], (3, 3)), np.reshape(mode["t"], (3, 1)) / 1000.0]),
+                      [0, 0, 0, 1]])
+
+
 def estimate_seen_through(dataset: Path, frame_json: dict) -> np.ndarray:
     """Per object of one frame of the posterior JSON (in its order, the problem's), the share of its estimate's
     camera-facing surface that the sensor sees through (``scenepoints.object_badness``, all objects at their
@@ -78,9 +83,7 @@ def estimate_seen_through(dataset: Path, frame_json: dict) -> np.ndarray:
     ids = [o["obj_id"] for o in frame_json["objects"]]
     _, problem = load_bop_problem(dataset, frame_json["scene_id"], frame_json["im_id"], None, ids, ProblemConfig())
     T_world_cam = np.linalg.inv(problem.camera.T_cam_world)
-    scene = np.stack([T_world_cam @ np.vstack([np.hstack([np.reshape(o["modes"][0]["R"], (3, 3)),
-                                                           np.reshape(o["modes"][0]["t"], (3, 1)) / 1000.0]),
-                                                [0, 0, 0, 1]]) for o in frame_json["objects"]])
+    scene = np.stack([T_world_cam @ mode_pose(o["modes"][0]) for o in frame_json["objects"]])
     return object_badness(problem, scene, [model_samples(m.mesh) for m in problem.models])
 
 
@@ -92,7 +95,7 @@ def modes_at(records: list[dict], temperature: float, elsewhere: tuple[float, fl
     for r in records:
         p = probabilities(np.array(r["gaps"]), np.array(r["estimate"]), temperature)
         if elsewhere is not None:
-            p = p / (1.0 + np.exp(-(elsewhere[0] + elsewhere[1] * r["seen_through"])))
+            p = p * found_probability(r["seen_through"], elsewhere)
         order = np.argsort(-p, kind="stable")
         out.append(ObjectModes(p[order], np.array(r["right"])[order]))
     return out
@@ -157,17 +160,21 @@ def main(argv: list[str] | None = None) -> int:
     plain = modes_at(records, best)
     print(f"fit: temperature {best:.1f}: nll {nll(plain):.4f}, ECE {expected_calibration_error(plain):.3f}, "
           f"coverage {coverage(plain):.3f}, top-1 {top1(plain):.3f}")
-    doubt = fit_elsewhere(records)
+    # Records saved before the seen-through share was reported (benchmarks/calibration/dev-generated-ycb-207.json)
+    # have none: no elsewhere to fit, the rest as before.
+    doubt = fit_elsewhere(records) if all("seen_through" in r for r in records) else None
     folded = modes_at(records, best, doubt)
     among = np.array([any(r["right"]) for r in records])
-    through = np.array([r["seen_through"] for r in records])
-    found = 1.0 / (1.0 + np.exp(-(doubt[0] + doubt[1] * through)))
-    # The chance of "found" on its own: a one-mode "posterior" per object, right when the truth is among the modes.
-    found_ece = expected_calibration_error([ObjectModes(np.array([p]), np.array([a])) for p, a in zip(found, among)])
-    print(f"fit: elsewhere (intercept, slope) ({doubt[0]:.2f}, {doubt[1]:.1f}) in the share seen through: its ECE "
-          f"{found_ece:.3f}; folded into the modes, their top-mode ECE {expected_calibration_error(folded):.3f} "
-          f"(without it {expected_calibration_error(plain):.3f})")
-    if among.any() and (~among).any():
+    through = np.array([r.get("seen_through", np.nan) for r in records])
+    if doubt is not None:
+        found = found_probability(through, doubt)
+        # The chance of "found" on its own: a one-mode "posterior" per object, right when the truth is among the modes.
+        found_ece = expected_calibration_error([ObjectModes(np.array([p]), np.array([a]))
+                                                for p, a in zip(found, among)])
+        print(f"fit: elsewhere (intercept, slope) ({doubt[0]:.2f}, {doubt[1]:.1f}) in the share seen through: its "
+              f"ECE {found_ece:.3f}; folded into the modes, their top-mode ECE "
+              f"{expected_calibration_error(folded):.3f} (without it {expected_calibration_error(plain):.3f})")
+    if doubt is not None and among.any() and (~among).any():
         print(f"seen through, median (90th percentile): truth among the modes {np.median(through[among]):.3f} "
               f"({np.percentile(through[among], 90):.3f}), not {np.median(through[~among]):.3f} "
               f"({np.percentile(through[~among], 90):.3f})")

@@ -76,8 +76,8 @@ def posterior_record(problem: Problem, posterior: Posterior) -> list[dict]:
     ``t`` mm), probability, log-likelihood and gap to the estimate (log-units) and what it is; the spread of its
     position (mm); the range of headings about the table's vertical (``vertical_cam``, a unit vector in the camera
     frame) that the view leaves open (degrees about the estimate's, or null); the share of its estimate's surface
-    the sensor sees through, and the chance that it is none of the modes (``elsewhere``: the modes and it sum to
-    1)."""
+    the sensor sees through, and the chance that it is none of the modes (``elsewhere``, beside the modes, whose
+    probabilities sum to 1)."""
     T_cam_world = problem.camera.T_cam_world
     out = []
     for o in posterior.objects:

@@ -71,10 +71,6 @@ RANGE_GAP = np.log(20.0)  # temperatures: a heading whose odds against the estim
 MAX_MODES = 8  # modes reported per object (the most likely)
 MIN_PROBABILITY = 1e-3  # a mode less likely than this is not reported
 HOPELESS = 1500.0  # log-units: a candidate this far below the estimate as given is not settled
-# m: a candidate's settling halves its steps down to this (angles alike), as settling's. 2 mm scored 30 % fewer
-# scenes with the same modes on the dev frames, but a hidden mug handle's headings then lost enough that its top mode
-# rose from about 0.5 to 0.8 (docs/benchmarks.md, "The posterior, third step").
-SWEEP_MIN_STEP = 5e-4
 # The logistic (intercept, slope) of the chance that the truth is among an object's modes, in the share of its
 # camera-facing surface that the sensor sees through: fitted by benchmarks/calibrate_posterior.py (maximum likelihood
 # of "the truth is among the modes") on 324 objects (docs/benchmarks.md, "The posterior, third step").
@@ -160,10 +156,11 @@ def probabilities(gaps: np.ndarray, is_estimate: np.ndarray, temperature: float,
     return w / w.sum()
 
 
-def found_probability(seen_through: np.ndarray | float) -> np.ndarray:
+def found_probability(seen_through: np.ndarray | float, coefficients: tuple[float, float] = ELSEWHERE) -> np.ndarray:
     """The chance that an object's truth is among its modes, from the share of its estimate's camera-facing surface
-    that the sensor sees through (``ELSEWHERE``'s logistic) -> the same shape, in (0, 1)."""
-    a, b = ELSEWHERE
+    that the sensor sees through (the logistic of ``coefficients``, intercept and slope) -> the same shape, in
+    (0, 1)."""
+    a, b = coefficients
     return 1.0 / (1.0 + np.exp(-(a + b * np.asarray(seen_through, dtype=np.float64))))
 
 
@@ -361,9 +358,10 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         again_ll = score(again)
         scored += len(again)
         found = [(k, f"turned {name}", again[i], float(again_ll[i])) for i, (k, name, _, _) in enumerate(half_turns)]
-    searches = [settle.search(s, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES, min_step_m=SWEEP_MIN_STEP,
-                              max_shift_m=max_shift_m, max_turn_deg=max_turn_deg, objects=[k])
-                for s, k in zip(starts, owners)]
+    # Down to settling's 0.5 mm steps: stopping at 2 mm scored 30 % fewer scenes, but a hidden mug handle's headings
+    # then lost enough that its top mode rose from about 0.5 to 0.8 (docs/benchmarks.md, "The posterior, third step").
+    searches = [settle.search(s, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES, max_shift_m=max_shift_m,
+                              max_turn_deg=max_turn_deg, objects=[k]) for s, k in zip(starts, owners)]
     for k, what, (T, ll, n) in zip(owners, whats, settle.run(searches, score)):
         found.append((k, what, T, ll))
         scored += n
