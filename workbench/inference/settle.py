@@ -56,15 +56,18 @@ class Tie:
         return f"{problem.models[self.obj].name} turned {self.turn} ({self.gap:+.1f} log-units)"
 
 
-def single_moves(T: np.ndarray, step_m: float, step_rad: float) -> np.ndarray:
+def single_moves(T: np.ndarray, step_m: float, step_rad: float, objects: np.ndarray | None = None) -> np.ndarray:
     """Every single-coordinate move of one object: +-step along the table's x, y, z, and +-step rotations about
-    table axes through the object's origin (as ``inference.gaussian``). (K, 4, 4) -> (K, 12, K, 4, 4)."""
+    table axes through the object's origin (as ``inference.gaussian``). (K, 4, 4) -> (K, 12, K, 4, 4); only the
+    ``objects`` (K,) bool that are True are moved (the others' moves are left as ``T``, not to be scored)."""
     K = len(T)
     out = np.broadcast_to(T, (K, 12, K, 4, 4)).copy()
-    for k in range(K):
-        for j, (axis, sign) in enumerate(itertools.product(range(3), (1.0, -1.0))):
+    axes = list(itertools.product(range(3), (1.0, -1.0)))
+    turns = [euler_to_matrix(np.eye(3)[axis] * sign * step_rad) for axis, sign in axes]  # the same for every object
+    for k in range(K) if objects is None else np.flatnonzero(objects):
+        for j, (axis, sign) in enumerate(axes):
             out[k, j, k, axis, 3] += sign * step_m
-            out[k, 6 + j, k, :3, :3] = euler_to_matrix(np.eye(3)[axis] * sign * step_rad) @ T[k, :3, :3]
+            out[k, 6 + j, k, :3, :3] = turns[j] @ T[k, :3, :3]
     return out
 
 
@@ -126,7 +129,7 @@ Search = Generator[np.ndarray, np.ndarray, tuple[np.ndarray, float, int]]
 
 def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_m: float = 5e-4,
            max_rounds: int = 80, max_shift_m: float = np.inf, max_turn_deg: float = np.inf,
-           objects: list[int] | None = None) -> Search:
+           objects: list[int] | None = None, give_up_below: float = -np.inf) -> Search:
     """One pattern search from the scene ``T`` (K, 4, 4), as a generator: it yields scenes (B, K, 4, 4) to score as
     given and is sent their log-likelihoods (B,); it returns (the fitted scene, its log-likelihood, how many scenes
     it scored). ``run`` drives it; ``pattern_search`` is the one-search shorthand.
@@ -136,7 +139,9 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
     object's ridge step; it keeps the best of all, and halves the steps when nothing improves, down to
     ``min_step_m`` (angles shrink alike). A move that takes an object more than ``max_shift_m`` or
     ``max_turn_deg`` from its pose in ``T`` is not tried; only the ``objects`` listed move (default: all). Local: it
-    refines a scene within about two steps of the optimum, it does not find one."""
+    refines a scene within about two steps of the optimum, it does not find one. A search whose best is still below
+    ``give_up_below`` (log-units) once it has converged at its first step stops there: the finer steps gain a few
+    log-units each, not what it lacks (the posterior's sweep gives up on candidates that could not become modes)."""
     origin = np.array(T, dtype=np.float64)
     T, K = origin.copy(), len(origin)
     movable = np.zeros(K, dtype=bool)
@@ -145,10 +150,10 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
     max_turn = np.radians(max_turn_deg)
     scale = 1.0
     for _ in range(max_rounds):
-        if step_m * scale < min_step_m:
+        if step_m * scale < min_step_m or (scale < 1.0 and best < give_up_below):
             break
         step, turn = step_m * scale, np.radians(step_deg) * scale
-        moves = single_moves(T, step, turn)  # (K, 12, K, 4, 4)
+        moves = single_moves(T, step, turn, movable)  # (K, 12, K, 4, 4)
         allowed = within(moves[np.arange(K), :, np.arange(K)], origin[:, None], max_shift_m, max_turn)  # (K, 12)
         allowed &= movable[:, None]
         ll = np.full((K, 12), -np.inf)
