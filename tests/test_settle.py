@@ -85,7 +85,7 @@ def test_searches_run_in_lockstep_give_what_each_gives_alone_in_fewer_calls():
     assert len(calls) < 0.7 * calls_alone
 
 
-def test_a_search_gives_up_below_its_floor_once_converged_at_its_first_step():
+def test_a_search_gives_up_below_its_floor_once_converged_at_its_first_two_steps():
     # The optimum is 40 mm away, beyond a 15 mm region: the search converges at the region's edge, far below 0.
     start = np.eye(4)[None]
     target = np.array([[0.040, 0.0, 0.0]])
@@ -94,11 +94,19 @@ def test_a_search_gives_up_below_its_floor_once_converged_at_its_first_step():
                             _quadratic(target))[0]
     assert best_full < -100.0 and best < -100.0
     assert n < n_full and best <= best_full  # fewer scenes, stopped before the finest steps
-    assert np.abs(given_up[0, 0, 3] - 0.012) < 1e-9  # converged at the first step: 3 steps of 4 mm, not 15 mm
+    assert np.abs(given_up[0, 0, 3] - 0.014) < 1e-9  # 3 steps of 4 mm, 1 of 2 mm: not the last 1 mm
     # Above the floor it changes nothing.
     near = np.array([[0.0071, -0.0033, 0.0012]])
     assert run([search(start, step_m=0.004, give_up_below=-100.0)], _quadratic(near))[0][2] == \
         pattern_search(start, _quadratic(near), step_m=0.004)[2]
+
+
+def test_a_search_stops_where_it_reaches_a_known_scene():
+    start = np.eye(4)[None]
+    target = np.array([[0.020, 0.0, 0.0]])
+    known = lambda T: T[0, 0, 3] >= 0.008  # noqa: E731
+    T, best, n = run([search(start, step_m=0.004, known=known)], _quadratic(target))[0]
+    assert np.isclose(T[0, 0, 3], 0.008) and n < pattern_search(start, _quadratic(target), step_m=0.004)[2]
 
 
 def test_unprojected_evaluation_scores_the_scene_as_given(frame_and_problem):

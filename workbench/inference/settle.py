@@ -129,7 +129,8 @@ Search = Generator[np.ndarray, np.ndarray, tuple[np.ndarray, float, int]]
 
 def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_m: float = 5e-4,
            max_rounds: int = 80, max_shift_m: float = np.inf, max_turn_deg: float = np.inf,
-           objects: list[int] | None = None, give_up_below: float = -np.inf) -> Search:
+           objects: list[int] | None = None, give_up_below: float = -np.inf,
+           known: Callable[[np.ndarray], bool] | None = None) -> Search:
     """One pattern search from the scene ``T`` (K, 4, 4), as a generator: it yields scenes (B, K, 4, 4) to score as
     given and is sent their log-likelihoods (B,); it returns (the fitted scene, its log-likelihood, how many scenes
     it scored). ``run`` drives it; ``pattern_search`` is the one-search shorthand.
@@ -139,9 +140,12 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
     object's ridge step; it keeps the best of all, and halves the steps when nothing improves, down to
     ``min_step_m`` (angles shrink alike). A move that takes an object more than ``max_shift_m`` or
     ``max_turn_deg`` from its pose in ``T`` is not tried; only the ``objects`` listed move (default: all). Local: it
-    refines a scene within about two steps of the optimum, it does not find one. A search whose best is still below
-    ``give_up_below`` (log-units) once it has converged at its first step stops there: the finer steps gain a few
-    log-units each, not what it lacks (the posterior's sweep gives up on candidates that could not become modes)."""
+    refines a scene within about two steps of the optimum, it does not find one.
+
+    Two early stops, for the posterior's sweep, which settles many candidates and keeps only what could be a mode of
+    its own: a search whose best is still below ``give_up_below`` (log-units) once it has converged at its first two
+    steps stops there (the finer steps gain a few log-units each, not what it lacks); a search that moves into a
+    scene that ``known`` (scene (K, 4, 4) -> bool) says is already a mode (the estimate's) stops there."""
     origin = np.array(T, dtype=np.float64)
     T, K = origin.copy(), len(origin)
     movable = np.zeros(K, dtype=bool)
@@ -150,7 +154,7 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
     max_turn = np.radians(max_turn_deg)
     scale = 1.0
     for _ in range(max_rounds):
-        if step_m * scale < min_step_m or (scale < 1.0 and best < give_up_below):
+        if step_m * scale < min_step_m or (scale < 0.5 and best < give_up_below):
             break
         step, turn = step_m * scale, np.radians(step_deg) * scale
         moves = single_moves(T, step, turn, movable)  # (K, 12, K, 4, 4)
@@ -184,6 +188,8 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
         i = int(np.argmax(values)) if values else -1
         if i >= 0 and values[i] > best:
             T, best = candidates[i], values[i]
+            if known is not None and known(T):
+                break
         else:
             scale /= 2.0
     return T, best, scored
