@@ -10,9 +10,11 @@ others kept where the estimate has them:
 - laid on each of its resting faces (``resting.resting_poses``) at every 30 degrees of heading where it stands
   (``face_turns``: a small box the search laid on the wrong face), scored as given, the best ``FACE_SWEEP`` distinct
   ones settled.
-A candidate counts only if physics, resting its scene, keeps it where it was fitted (``settle.within``). Candidates
-that are the same pose up to the model's symmetries (``metrics.is_right``: within 2 cm and 10 degrees) are one mode,
-scored by its best member.
+Settling a candidate stops early where it could not become a mode of its own: once it has converged at settling's
+first two steps, if it is still too far below the estimate to be reported (``MIN_PROBABILITY``) or has moved into the
+estimate's own mode. A candidate counts only if physics, resting its scene, keeps it where it was fitted
+(``settle.within``). Candidates that are the same pose up to the model's symmetries (``metrics.is_right``: within
+2 cm and 10 degrees) are one mode, scored by its best member.
 
 Probabilities: a depth likelihood sums thousands of correlated pixels, so raw likelihood ratios are far too
 confident. Each mode's log-likelihood gap to the estimate is divided by a temperature, and a mode other than the
@@ -362,8 +364,8 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     # then lost enough that its top mode rose from about 0.5 to 0.8 (docs/benchmarks.md, "The posterior, third step").
     # Two kinds of candidate stop early, since neither would be a mode of its own: one still too far below the
     # estimate to be reported once it has converged at settling's first two steps, and one that has moved into the
-    # estimate's own mode. On YCB-Video models lying free, 40 % of the sweep's scenes went into the latter and a
-    # quarter into the former's last millimetres (docs/benchmarks.md, "The posterior, fourth step").
+    # estimate's own mode after them. On YCB-Video models lying free, such candidates took most of the sweep's
+    # scenes, in their last millimetres (docs/benchmarks.md, "The posterior, fourth step").
     unreported = loglik - settle.TURN_MARGIN - temperature * np.log(1.0 / MIN_PROBABILITY)
     searches = [settle.search(s, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES, max_shift_m=max_shift_m,
                               max_turn_deg=max_turn_deg, objects=[k], give_up_below=unreported,

@@ -144,8 +144,10 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
 
     Two early stops, for the posterior's sweep, which settles many candidates and keeps only what could be a mode of
     its own: a search whose best is still below ``give_up_below`` (log-units) once it has converged at its first two
-    steps stops there (the finer steps gain a few log-units each, not what it lacks); a search that moves into a
-    scene that ``known`` (scene (K, 4, 4) -> bool) says is already a mode (the estimate's) stops there."""
+    steps stops there (the finer steps gain a few log-units each, not what it lacks); a search that, after its
+    first two steps, moves into a scene that ``known`` (scene (K, 4, 4) -> bool) says is already a mode (the
+    estimate's) stops there. Not before: at the first steps a search may pass through a mode on its way to another
+    (a mug's heading, 10 degrees from the estimate's and on)."""
     origin = np.array(T, dtype=np.float64)
     T, K = origin.copy(), len(origin)
     movable = np.zeros(K, dtype=bool)
@@ -188,7 +190,7 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
         i = int(np.argmax(values)) if values else -1
         if i >= 0 and values[i] > best:
             T, best = candidates[i], values[i]
-            if known is not None and known(T):
+            if scale < 0.5 and known is not None and known(T):
                 break
         else:
             scale /= 2.0
