@@ -474,3 +474,18 @@ def test_an_object_lying_on_another_gets_a_start_at_its_place():
     turned = np.degrees(np.abs((np.arctan2(S[:, 1, 0], S[:, 0, 0]) + np.pi / 4) % (np.pi / 2) - np.pi / 4))
     assert np.any(near & flat & (turned < 15))
     assert len(place) == len(starts)
+
+
+def test_every_listed_object_and_a_few_distractors_get_a_cluster(context, monkeypatch):
+    """build_library fits at least MAX_CLUSTERS clusters, and one per listed object plus DISTRACTOR_CLUSTERS: with
+    7-8 objects among clutter, a fixed 8 dropped the smallest objects' clusters."""
+    problem, ctx, _ = context
+    rng = np.random.default_rng(0)
+    groups = [np.array([0.1 * i, 0.0, 0.0]) + rng.uniform([0, 0, 0.02], [0.03, 0.03, 0.04], (40, 3)) for i in range(12)]
+    fitted = []
+    monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: fitted.append(cluster) or [])
+    monkeypatch.setattr(datadriven, "MAX_CLUSTERS", 1)
+    datadriven.build_library(problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
+    K = problem.n_objects
+    assert len(fitted) == (K + datadriven.DISTRACTOR_CLUSTERS) * K
+    assert all(any(f is g for g in groups[:K + datadriven.DISTRACTOR_CLUSTERS]) for f in fitted)  # the largest first

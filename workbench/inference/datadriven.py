@@ -31,7 +31,11 @@ from workbench.problem import Problem
 JITTER_POS = 0.005  # m
 JITTER_ANG = np.radians(3.0)
 PER_OBJECT = 12  # candidates kept per object
+# Clusters fitted per refit, largest first: at least this many, and one per listed object plus DISTRACTOR_CLUSTERS
+# more. With 7-8 objects among unmodelled clutter, 8 dropped the smallest objects' clusters (a potted meat can,
+# scissors, a banana), and those objects were placed elsewhere.
 MAX_CLUSTERS = 8
+DISTRACTOR_CLUSTERS = 3
 MAX_CENTRES = 3  # per cluster
 COARSE_POINTS = 60  # observed points per start in the cheap first fit
 REFINED_PER_PLACE = 8  # starts per place that go on to the full fit
@@ -188,7 +192,8 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
     same library either way."""
     K = len(rest)
     found: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(K)]
-    clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP][:MAX_CLUSTERS]
+    clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP]
+    clusters = clusters[:max(MAX_CLUSTERS, K + DISTRACTOR_CLUSTERS)]
     keys = [hashlib.sha1(np.ascontiguousarray(c, dtype=np.float64).tobytes()).hexdigest() for c in clusters]
     memo = {} if memo is None else memo
     # Every (cluster, object) fit not remembered, all at once: ``run`` may spread them over the workers.
