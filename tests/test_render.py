@@ -11,6 +11,7 @@ import trimesh
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
 from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
+from workbench.render.shared import common_poses, render_shared
 from workbench.scene import Camera
 
 pytestmark = pytest.mark.slow  # needs OpenGL
@@ -146,6 +147,57 @@ def test_two_objects_occlude(meshes):
     assert np.all(d_front[overlap] < d_back[overlap])
     expected = np.where(overlap, np.minimum(d_front, d_back), d_front + d_back)
     np.testing.assert_allclose(together, expected, atol=1e-5, rtol=0)
+
+
+def test_objects_left_out_are_not_drawn(renderer, meshes):
+    particles = random_particles(np.random.default_rng(2), 7, 2)
+    drawn = np.array([[True, True], [True, False], [False, True], [False, False], [True, False], [True, False],
+                      [False, True]])
+    depth = renderer.render(particles, drawn)
+    with DepthRenderer(CAMERA, meshes[:1]) as box, DepthRenderer(CAMERA, meshes[1:]) as ball:
+        boxes, balls = box.render(particles[:, :1]), ball.render(particles[:, 1:])
+    expected = [boxes[i] if d[0] and not d[1] else balls[i] if d[1] and not d[0] else None for i, d in enumerate(drawn)]
+    for i, e in enumerate(expected):
+        if e is not None:
+            assert_same_depth(depth[i], e)
+    assert np.all(depth[3] == 0.0)
+    assert_same_depth(depth[0], renderer.render(particles[:1])[0])
+    with pytest.raises(ValueError, match="drawn"):
+        renderer.render(particles, drawn[:, :1])
+
+
+def test_common_poses_find_what_scenes_share():
+    scenes = random_particles(np.random.default_rng(3), 5, 3)
+    scenes[:, 1] = scenes[0, 1]  # every scene has object 1 in one pose
+    scenes[2:4, 0] = scenes[4, 0]  # three of five have object 0 in one pose
+    common, shared = common_poses(scenes)
+    np.testing.assert_array_equal(shared, [[False, True, False], [False, True, False], [True, True, False],
+                                           [True, True, False], [True, True, False]])
+    np.testing.assert_array_equal(common[:2], [scenes[4, 0], scenes[0, 1]])
+
+
+def test_shared_poses_drawn_once_give_the_same_depth(meshes):
+    """Settling's batches: each scene moves one object of a common scene. Drawing the unmoved ones once per batch
+    gives each scene's depth, occlusions between moved and unmoved objects included."""
+    rng = np.random.default_rng(4)
+    base = np.stack([pose_from_xyz_rpy([0.0, -0.05, 0.06, 0.0, 0.0, 0.3]),  # the box in front of the ball
+                     pose_from_xyz_rpy([0.01, 0.05, 0.03, 0.0, 0.0, 0.0]),
+                     pose_from_xyz_rpy([-0.12, 0.02, 0.05, 0.2, 0.1, 0.0])])
+    scenes = np.repeat(base[None], 16, axis=0)
+    for i in range(15):  # the last scene is the common one itself
+        k = i % 3
+        scenes[i, k, :3, 3] += rng.normal(0.0, 0.03, 3)
+    scenes[3, 0, :3, 3] = [0.018, -0.075, 0.12]  # the box lifted between the camera and the ball
+    with DepthRenderer(CAMERA, [meshes[0], meshes[1], meshes[0]]) as r:
+        plain, shared = r.render(scenes), render_shared(r, scenes)
+        all_moved = random_particles(rng, 4, 3)  # nothing shared: drawn as they are
+        np.testing.assert_array_equal(render_shared(r, all_moved), r.render(all_moved))
+        box = r.render(scenes[3:4], np.array([[True, False, False]]))[0]
+        ball = r.render(scenes[3:4], np.array([[False, True, False]]))[0]
+    assert_same_depth(shared, plain)
+    hidden = (box > 0) & (ball > 0)  # the lifted box (moved) in front of the ball (shared)
+    assert hidden.sum() > 50 and np.all(box[hidden] < ball[hidden])
+    assert np.abs(shared[3][hidden] - box[hidden]).max() < 1e-5
 
 
 def test_empty_pixels_are_exactly_zero(renderer):

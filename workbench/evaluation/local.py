@@ -14,6 +14,7 @@ from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STAT
 from workbench.problem import Problem
 from workbench.render.depth import DepthRenderer
 from workbench.render.likelihood import pixel_loglik, predicted_depth, scene_loglik
+from workbench.render.shared import render_shared
 
 
 def prepare_meshes(problem: Problem) -> None:
@@ -59,7 +60,7 @@ class LocalEvaluator:
         status[outside] = STATUS_OUTSIDE
         ok &= ~outside
         loglik = np.full(len(hypotheses), -np.inf)
-        rendered = self.renderer.render(projected[ok]) if ok.any() else None
+        rendered = render_shared(self.renderer, projected[ok]) if ok.any() else None
         t2 = time.perf_counter()
         if rendered is not None:
             loglik[ok] = scene_loglik(

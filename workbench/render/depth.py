@@ -195,11 +195,13 @@ uniform mat4 projection;                 // OpenCV camera frame -> clip space of
 uniform ivec2 tile_size;                 // (W, H) pixels
 uniform int rows;                        // tiles per framebuffer column
 uniform vec2 framebuffer_size;           // pixels
+uniform int first_instance;              // the tile of this draw's first instance (a run of the pass's tiles)
 out float z_cam;
 void main() {
     vec4 p = T_cam_obj * vec4(position, 1.0);
     // Column-major tiles: each column of tiles reads back as consecutive (H, W) images.
-    ivec2 cell = ivec2(gl_InstanceID / rows, gl_InstanceID % rows);
+    int tile = first_instance + gl_InstanceID;
+    ivec2 cell = ivec2(tile / rows, tile % rows);
     vec2 offset = 2.0 * vec2(cell * tile_size) / framebuffer_size;  // NDC shift from tile 0 to this tile
     vec2 lo = offset - 1.0;                                          // this tile's rectangle in NDC
     vec2 hi = lo + 2.0 * vec2(tile_size) / framebuffer_size;
@@ -325,6 +327,21 @@ def _compile_program(GL, vertex_source: str, fragment_source: str) -> int:
     return program
 
 
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of consecutive True in ``mask`` (n,) bool -> [(first, last + 1), ...] in order."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], mask, [False]]).astype(np.int8)))
+    return list(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+
+
+def _vertex_attrib_pointer(*args) -> None:
+    """``glVertexAttribPointer`` without PyOpenGL's wrapper, which keeps every pointer it is given alive in a
+    per-context store: a third of a small batch's render time on llvmpipe, for an offset into a bound buffer that
+    needs no keeping."""
+    from OpenGL.raw.GL.VERSION.GL_2_0 import glVertexAttribPointer
+
+    glVertexAttribPointer(*args)
+
+
 class DepthRenderer:
     """Renders batches of particle scenes of fixed meshes from one camera.
 
@@ -365,7 +382,7 @@ class DepthRenderer:
         self._program = _compile_program(GL, _VERTEX_SHADER, _FRAGMENT_SHADER)
         self._uniforms = {
             name: GL.glGetUniformLocation(self._program, name)
-            for name in ("projection", "tile_size", "rows", "framebuffer_size")
+            for name in ("projection", "tile_size", "rows", "framebuffer_size", "first_instance")
         }
         self._instance_vbo = GL.glGenBuffers(1)
         # Drawn as decimated meshes within the depth bound: the cost of a batch grows with the faces drawn.
@@ -420,12 +437,18 @@ class DepthRenderer:
             raise RuntimeError(f"framebuffer {w}x{h} incomplete (status {status:#x})")
         self._fb_size = (w, h)
 
-    def render(self, T_world_obj: np.ndarray) -> np.ndarray:
-        """Object poses in the table frame (B, K, 4, 4) -> camera-z depth (B, H, W) float32, 0 = no object."""
+    def render(self, T_world_obj: np.ndarray, drawn: np.ndarray | None = None) -> np.ndarray:
+        """Object poses in the table frame (B, K, 4, 4) -> camera-z depth (B, H, W) float32, 0 = no object.
+        ``drawn`` (B, K) bool: which objects each scene draws (default all); an object left out is not drawn at
+        all (its pose is ignored), which costs nothing, so scenes that share objects can draw them once
+        (``render.shared``)."""
         T_world_obj = np.asarray(T_world_obj, dtype=np.float64)
         if T_world_obj.ndim != 4 or T_world_obj.shape[1:] != (self.n_objects, 4, 4):
             raise ValueError(f"poses must be (B, {self.n_objects}, 4, 4), got {T_world_obj.shape}")
         B = T_world_obj.shape[0]
+        drawn = np.ones((B, self.n_objects), dtype=bool) if drawn is None else np.asarray(drawn, dtype=bool)
+        if drawn.shape != (B, self.n_objects):
+            raise ValueError(f"drawn must be ({B}, {self.n_objects}), got {drawn.shape}")
         out = np.empty((B, self._height, self._width), dtype=np.float32)
         if B == 0:
             return out
@@ -437,12 +460,13 @@ class DepthRenderer:
         per_pass = self.particles_per_pass
         for start in range(0, B, per_pass):
             stop = min(start + per_pass, B)
-            self._render_pass(GL, np.ascontiguousarray(T_cam_obj[:, start:stop]), out[start:stop])
+            self._render_pass(GL, np.ascontiguousarray(T_cam_obj[:, start:stop]), drawn[start:stop],
+                              out[start:stop])
         return out
 
-    def _render_pass(self, GL, T_cam_obj: np.ndarray, out: np.ndarray) -> None:
-        """One framebuffer pass. ``T_cam_obj``: (K, n, 4, 4) transposed float32; ``out``: (n, H, W) contiguous,
-        filled in place."""
+    def _render_pass(self, GL, T_cam_obj: np.ndarray, drawn: np.ndarray, out: np.ndarray) -> None:
+        """One framebuffer pass. ``T_cam_obj``: (K, n, 4, 4) transposed float32; ``drawn``: (n, K) bool; ``out``:
+        (n, H, W) contiguous, filled in place."""
         n = T_cam_obj.shape[1]
         rows = self._max_rows
         columns = math.ceil(n / rows)
@@ -479,10 +503,14 @@ class DepthRenderer:
         for k, (vao, _, _, count) in enumerate(self._meshes):
             (GL.glEnable if self._cull[k] else GL.glDisable)(GL.GL_CULL_FACE)
             GL.glBindVertexArray(vao)
-            for column in range(4):
-                offset = k * block + column * 16
-                GL.glVertexAttribPointer(1 + column, 4, GL.GL_FLOAT, GL.GL_FALSE, 64, ctypes.c_void_p(offset))
-            GL.glDrawElementsInstanced(GL.GL_TRIANGLES, count, GL.GL_UNSIGNED_INT, None, n)
+            # One instanced draw per run of consecutive tiles that draw this object, its instances read from the
+            # run's first tile on.
+            for first, last in _runs(drawn[:, k]):
+                for column in range(4):
+                    offset = k * block + first * 64 + column * 16
+                    _vertex_attrib_pointer(1 + column, 4, GL.GL_FLOAT, GL.GL_FALSE, 64, ctypes.c_void_p(offset))
+                GL.glUniform1i(self._uniforms["first_instance"], first)
+                GL.glDrawElementsInstanced(GL.GL_TRIANGLES, count, GL.GL_UNSIGNED_INT, None, last - first)
         GL.glBindVertexArray(0)
         GL.glDisable(GL.GL_CULL_FACE)
 
