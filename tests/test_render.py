@@ -11,7 +11,8 @@ import trimesh
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
 from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
-from workbench.render.shared import common_poses, render_shared
+from workbench.render.likelihood import LikelihoodConfig, scene_loglik
+from workbench.render.shared import common_poses, draw_shared, drawn_loglik, render_shared
 from workbench.scene import Camera
 
 pytestmark = pytest.mark.slow  # needs OpenGL
@@ -198,6 +199,30 @@ def test_shared_poses_drawn_once_give_the_same_depth(meshes):
     hidden = (box > 0) & (ball > 0)  # the lifted box (moved) in front of the ball (shared)
     assert hidden.sum() > 50 and np.all(box[hidden] < ball[hidden])
     assert np.abs(shared[3][hidden] - box[hidden]).max() < 1e-5
+
+
+def test_shared_scenes_scored_by_their_own_pixels(meshes):
+    """Each scene's log-likelihood from its shared tile's and its own objects' pixels is the composite's."""
+    rng = np.random.default_rng(5)
+    base = np.stack([pose_from_xyz_rpy([0.0, -0.05, 0.02, 0.0, 0.0, 0.3]),
+                     pose_from_xyz_rpy([0.06, 0.05, 0.035, 0.0, 0.0, 0.0])])
+    scenes = np.repeat(base[None], 9, axis=0)
+    for i in range(8):
+        scenes[i, i % 2, :3, 3] += rng.normal(0.0, 0.01, 3)
+    config = LikelihoodConfig()
+    with DepthRenderer(CAMERA, meshes) as r:
+        truth = r.render(base[None])[0]
+        background = np.full((H, W), 0.75, dtype=np.float32)
+        observed = np.where(truth > 0, truth + rng.normal(0.0, 0.003, truth.shape), background).astype(np.float32)
+        observed[::7, ::5] = 0.0  # holes: no reading
+        drawn = draw_shared(r, scenes)
+        assert len(drawn.groups) == 3  # sharing the box, the ball, both (the common scene itself)
+        incremental = drawn_loglik(drawn, observed, background, config)
+        composite = scene_loglik(observed, background, render_shared(r, scenes), config)
+        plain = scene_loglik(observed, background, r.render(scenes), config)
+    np.testing.assert_allclose(incremental, composite, rtol=0, atol=1e-6 * np.abs(composite).max())
+    assert np.abs(incremental - plain).max() < 25.0  # a few edge pixels rasterised in another tile
+    assert np.argmax(incremental) == 8 and np.ptp(incremental) > 1000.0  # the truth wins, by far
 
 
 def test_empty_pixels_are_exactly_zero(renderer):

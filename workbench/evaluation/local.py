@@ -13,8 +13,8 @@ from workbench.evaluation.base import Done, Evaluation, check_sink, in_region, r
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
 from workbench.render.depth import DepthRenderer
-from workbench.render.likelihood import pixel_loglik, predicted_depth, scene_loglik
-from workbench.render.shared import render_shared
+from workbench.render.likelihood import pixel_loglik, predicted_depth
+from workbench.render.shared import draw_shared, drawn_loglik
 
 
 def prepare_meshes(problem: Problem) -> None:
@@ -60,12 +60,11 @@ class LocalEvaluator:
         status[outside] = STATUS_OUTSIDE
         ok &= ~outside
         loglik = np.full(len(hypotheses), -np.inf)
-        rendered = render_shared(self.renderer, projected[ok]) if ok.any() else None
+        drawn = draw_shared(self.renderer, projected[ok]) if ok.any() else None
         t2 = time.perf_counter()
-        if rendered is not None:
-            loglik[ok] = scene_loglik(
-                self.problem.observed, self.problem.background, rendered, self.problem.config.likelihood
-            )
+        if drawn is not None:
+            loglik[ok] = drawn_loglik(drawn, self.problem.observed, self.problem.background,
+                                      self.problem.config.likelihood)
         t3 = time.perf_counter()
         return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
 

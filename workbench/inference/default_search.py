@@ -139,7 +139,8 @@ class DefaultSearch:
             projected, weights = filt.particles.projected, filt.weights()
         found, swept, final, loglik = posterior.sweep(self.problem, scene, loglik, score, rest, half_turns, before,
                                                       self.geometry(filt), projected, weights,
-                                                      cfg.settle_shift, cfg.settle_turn)
+                                                      cfg.settle_shift, cfg.settle_turn,
+                                                      run=lambda fn, calls: self._run(filt, fn, calls))
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
         return Settled(final, loglik, ties, scored + turned + swept, found)
 

@@ -47,9 +47,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 
+from workbench.evaluation.base import run_here
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference import settle
 from workbench.inference.context import SearchGeometry
@@ -58,6 +60,8 @@ from workbench.inference.scenepoints import object_badness
 from workbench.metrics import is_right
 from workbench.problem import Problem
 from workbench.scene import display_names
+
+Run = Callable[[Callable, list[tuple]], list]  # Evaluator.map: run(fn, calls) -> [fn(problem, *args) for args in calls]
 
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on 207 objects: the 50 of ycbv-real-dev, 109 of 44 generated frames of every make-scenes category and
@@ -291,10 +295,15 @@ def distinct_poses(poses: np.ndarray, weights: np.ndarray, exclude: list[np.ndar
     return out
 
 
+def centre_call(problem: Problem, points: np.ndarray, vertical: np.ndarray) -> np.ndarray:
+    """``turn_centre`` as an ``Evaluator.map`` call (the problem is the workers' own, unused)."""
+    return turn_centre(points, vertical)
+
+
 def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Score, rest: settle.Rest,
           half_turns: list[settle.Turn], turns_scene: np.ndarray, geometry: SearchGeometry, projected: np.ndarray,
           weights: np.ndarray,
-          max_shift_m: float, max_turn_deg: float, temperature: float = TEMPERATURE
+          max_shift_m: float, max_turn_deg: float, temperature: float = TEMPERATURE, run: Run | None = None
           ) -> tuple[Posterior, int, np.ndarray, float]:
     """The posterior of the settled estimate ``scene`` (K, 4, 4), whose log-likelihood as given is ``loglik``.
     ``score``: scenes as given -> log-likelihoods; ``rest``: scenes -> at rest under physics. ``half_turns``:
@@ -304,8 +313,11 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     turns before). ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
     ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
     where they start. A candidate that beats the estimate by more than the turn margin, physics holding it,
-    replaces it (``settle.adopt``) -> (the posterior, scenes scored, the scene, its log-likelihood)."""
+    replaces it (``settle.adopt``) -> (the posterior, scenes scored, the scene, its log-likelihood). ``run``
+    (``Evaluator.map``; default: here) computes the objects' turn axes (``turn_centre``), on the evaluation workers,
+    which would otherwise wait meanwhile."""
     t0 = time.perf_counter()
+    run = run_here(problem) if run is None else run
     loglik_before = loglik
     samples, rest_poses, hulls = geometry.samples, geometry.rest, geometry.hulls
     # A heading is open when its odds against the estimate's are better than 1 : exp(RANGE_GAP) (``probabilities``).
@@ -314,9 +326,10 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     # Scored as given first: every object's turns about the vertical, its particles' own poses, and its other
     # resting faces at every heading.
     given, given_what, yaw, faces = [], [], {}, {}
+    # About the vertical, the table's z in each object's frame.
+    centres = run(centre_call, [(samples[k].points, scene[k, 2, :3]) for k in range(len(problem.models))])
     for k, model in enumerate(problem.models):
-        vertical = scene[k, 2, :3]  # the table's z in the object's frame
-        poses, angles = yaw_turns(scene[k], turn_centre(samples[k].points, vertical))
+        poses, angles = yaw_turns(scene[k], centres[k])
         yaw[k] = (angles, len(given), np.array([not is_right(scene[k], T, model.symmetries) for T in poses]))
         given += [(k, T) for T in poses]
         given_what += [f"turned {a:+.0f} degrees about the vertical" for a in angles]
@@ -399,8 +412,9 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         angles, at, distinct = yaw[k]
         headings[k] = (angles, [given[at + i][1] for i in range(len(angles))], given_ll[at:at + len(angles)],
                        distinct, loglik_before)
+    centres = dict(zip(kept, run(centre_call, [(samples[k].points, scene[k, 2, :3]) for k in kept])))
     for k in kept:
-        poses, angles = yaw_turns(scene[k], turn_centre(samples[k].points, scene[k, 2, :3]))
+        poses, angles = yaw_turns(scene[k], centres[k])
         turned = np.repeat(scene[None], len(poses), axis=0)
         turned[:, k] = poses
         distinct = np.array([not is_right(scene[k], T, problem.models[k].symmetries) for T in poses])

@@ -17,6 +17,7 @@ that score about as well are the estimate's near ties (``Tie``).
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 from typing import Callable, Generator
@@ -56,16 +57,27 @@ class Tie:
         return f"{problem.models[self.obj].name} turned {self.turn} ({self.gap:+.1f} log-units)"
 
 
+_AXES = list(itertools.product(range(3), (1.0, -1.0)))  # single_moves' order: +x, -x, +y, -y, +z, -z
+
+
+@functools.lru_cache(maxsize=64)
+def _axis_turns(step_rad: float) -> np.ndarray:
+    """The rotations by +-``step_rad`` about the table's x, y, z axes, in ``_AXES`` order -> (6, 3, 3), read-only.
+    A search asks for the same few steps thousands of times."""
+    turns = np.stack([euler_to_matrix(np.eye(3)[axis] * sign * step_rad) for axis, sign in _AXES])
+    turns.flags.writeable = False
+    return turns
+
+
 def single_moves(T: np.ndarray, step_m: float, step_rad: float, objects: np.ndarray | None = None) -> np.ndarray:
     """Every single-coordinate move of one object: +-step along the table's x, y, z, and +-step rotations about
     table axes through the object's origin (as ``inference.gaussian``). (K, 4, 4) -> (K, 12, K, 4, 4); only the
     ``objects`` (K,) bool that are True are moved (the others' moves are left as ``T``, not to be scored)."""
     K = len(T)
     out = np.broadcast_to(T, (K, 12, K, 4, 4)).copy()
-    axes = list(itertools.product(range(3), (1.0, -1.0)))
-    turns = [euler_to_matrix(np.eye(3)[axis] * sign * step_rad) for axis, sign in axes]  # the same for every object
+    turns = _axis_turns(float(step_rad))  # the same for every object
     for k in range(K) if objects is None else np.flatnonzero(objects):
-        for j, (axis, sign) in enumerate(axes):
+        for j, (axis, sign) in enumerate(_AXES):
             out[k, j, k, axis, 3] += sign * step_m
             out[k, 6 + j, k, :3, :3] = turns[j] @ T[k, :3, :3]
     return out

@@ -470,7 +470,9 @@ class DepthRenderer:
         n = T_cam_obj.shape[1]
         rows = self._max_rows
         columns = math.ceil(n / rows)
-        used_w, used_h = columns * self._width, rows * self._height
+        # Only the tiles in use are cleared and drawn: a small batch (settling's round trips) then costs little more
+        # than its own tiles.
+        used_w, used_h = columns * self._width, min(n, rows) * self._height
         self._ensure_framebuffer(GL, used_w, used_h)
         fb_w, fb_h = self._fb_size
 

@@ -89,3 +89,19 @@ def scene_loglik(
     b, p = np.nonzero((flat > 0) & valid[None])
     delta = _loglik(obs[p], flat[b, p], config) - table_ll[p]
     return float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=delta, minlength=len(rendered))
+
+
+def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.ndarray, own: np.ndarray,
+                      config: LikelihoodConfig) -> np.ndarray:
+    """How much each of the depth images ``own`` (n, H, W) changes the log-likelihood of ``base`` (H, W) when drawn
+    over it (the nearer surface kept per pixel; 0 = nothing drawn) -> (n,) float64: ``scene_loglik`` of each
+    composite is ``scene_loglik`` of ``base`` plus this. Only the pixels where ``own`` is the nearer surface are
+    computed, which for one object moved in a scene of several is a fraction of the covered pixels."""
+    obs = observed.astype(np.float32).ravel()
+    under = base.ravel()
+    before = np.where(under > 0, under, background.astype(np.float32).ravel())  # the prediction without ``own``
+    flat = own.reshape(len(own), -1)
+    b, p = np.nonzero((flat > 0) & (obs > 0)[None] & ((under == 0)[None] | (flat < under[None])))
+    delta = _loglik(obs[p], flat[b, p], config) - _loglik(obs[p], before[p], config)
+    return np.bincount(b, weights=delta, minlength=len(own))
+

@@ -10,9 +10,12 @@ YCB-Video objects a scene of one object moved renders in about half the time (do
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from workbench.render.depth import DepthRenderer
+from workbench.render.likelihood import LikelihoodConfig, drawn_over_loglik, scene_loglik
 
 
 def common_poses(T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,26 +45,63 @@ def keep_nearer(own: np.ndarray, shared: np.ndarray) -> None:
     a += 1
 
 
-def render_shared(renderer: DepthRenderer, T_world_obj: np.ndarray) -> np.ndarray:
-    """``renderer.render(T_world_obj)`` (B, K, 4, 4) table frame -> (B, H, W) float32 camera-z depth, 0 = no object,
-    drawing the poses that several scenes share (``common_poses``) once: each scene draws the objects it does not
-    share, in tiles grouped by which objects those are (so that each object is drawn in a few runs of tiles), one
-    more tile per group draws the shared ones, and each scene keeps the nearer surface of its tile and its group's
-    (``keep_nearer``)."""
+@dataclass
+class Drawn:
+    """A batch drawn with its shared poses once (``draw_shared``): ``order`` (B,) the scenes sorted by ``groups``
+    (G, K), which objects each group shares; ``starts`` (G + 1,) where each group's scenes begin in that order;
+    ``own`` (B, H, W) each scene's own objects, in that order; ``shared`` (G, H, W) each group's shared objects."""
+
+    order: np.ndarray
+    groups: np.ndarray
+    starts: np.ndarray
+    own: np.ndarray
+    shared: np.ndarray
+
+    def group(self, g: int) -> slice:
+        """Group ``g``'s scenes in ``order`` (and in ``own``)."""
+        return slice(int(self.starts[g]), int(self.starts[g + 1]))
+
+
+def draw_shared(renderer: DepthRenderer, T_world_obj: np.ndarray) -> Drawn:
+    """The scenes ``T_world_obj`` (B, K, 4, 4) table frame drawn with the poses that several share
+    (``common_poses``) once: each scene draws the objects it does not share, in tiles grouped by which objects
+    those are (so that each object is drawn in a few runs of tiles), and one more tile per group draws the shared
+    ones. Where nothing is shared (or one scene, or one object), one group of every scene drawn whole."""
     T_world_obj = np.asarray(T_world_obj, dtype=np.float64)
     B, K = T_world_obj.shape[:2]
-    if B < 2 or K < 2:
-        return renderer.render(T_world_obj)
-    common, shared = common_poses(T_world_obj)
+    common, shared = common_poses(T_world_obj) if B >= 2 and K >= 2 else (None, np.zeros((B, K), dtype=bool))
     if not shared.any():
-        return renderer.render(T_world_obj)
+        depth = renderer.render(T_world_obj)
+        return Drawn(np.arange(B), np.zeros((1, K), dtype=bool), np.array([0, B]), depth,
+                     np.zeros((1, *depth.shape[1:]), dtype=depth.dtype))
     groups, group = np.unique(shared, axis=0, return_inverse=True)  # (G, K) which objects a group shares
     order = np.argsort(group.ravel(), kind="stable")
     scenes = np.concatenate([T_world_obj[order], np.repeat(common[None], len(groups), axis=0)])
     depth = renderer.render(scenes, np.concatenate([~shared[order], groups]))
     starts = np.searchsorted(group.ravel()[order], np.arange(len(groups) + 1))
-    for g in range(len(groups)):  # each group's scenes are consecutive in ``order``
-        keep_nearer(depth[starts[g]:starts[g + 1]], depth[B + g])
-    out = np.empty((B, *depth.shape[1:]), dtype=depth.dtype)
-    out[order] = depth[:B]
+    return Drawn(order, groups, starts, depth[:B], depth[B:])
+
+
+def render_shared(renderer: DepthRenderer, T_world_obj: np.ndarray) -> np.ndarray:
+    """``renderer.render(T_world_obj)`` (B, K, 4, 4) table frame -> (B, H, W) float32 camera-z depth, 0 = no object,
+    drawn by ``draw_shared``: each scene keeps the nearer surface of its own tile and its group's
+    (``keep_nearer``)."""
+    drawn = draw_shared(renderer, T_world_obj)
+    for g in np.flatnonzero(drawn.groups.any(axis=1)):
+        keep_nearer(drawn.own[drawn.group(g)], drawn.shared[g])
+    out = np.empty_like(drawn.own)
+    out[drawn.order] = drawn.own
+    return out
+
+
+def drawn_loglik(drawn: Drawn, observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig
+                 ) -> np.ndarray:
+    """``scene_loglik`` of each scene of ``drawn`` -> (B,) float64, in the batch's order: each group's shared tile
+    scored whole, and each scene by how much its own objects change that (``drawn_over_loglik``), which computes
+    only their pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums."""
+    base = scene_loglik(observed, background, drawn.shared, config)  # (G,)
+    out = np.empty(len(drawn.order))
+    for g in range(len(drawn.groups)):
+        out[drawn.order[drawn.group(g)]] = base[g] + drawn_over_loglik(observed, background, drawn.shared[g],
+                                                                       drawn.own[drawn.group(g)], config)
     return out
