@@ -104,4 +104,3 @@ def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.nda
     b, p = np.nonzero((flat > 0) & (obs > 0)[None] & ((under == 0)[None] | (flat < under[None])))
     delta = _loglik(obs[p], flat[b, p], config) - _loglik(obs[p], before[p], config)
     return np.bincount(b, weights=delta, minlength=len(own))
-
