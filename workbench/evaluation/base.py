@@ -109,7 +109,10 @@ def split_batch(hypotheses: np.ndarray, parts: int, sink: np.ndarray | None = No
     return [(h, s) for h, s in zip(np.array_split(hypotheses, parts), np.array_split(sink, parts)) if len(h)]
 
 
-def run_here(problem: Problem) -> Callable[[Callable, list[tuple]], list]:
+Run = Callable[[Callable, list[tuple]], list]  # Evaluator.map: run(fn, calls) -> [fn(problem, *args) for args in calls]
+
+
+def run_here(problem: Problem) -> Run:
     """``Evaluator.map`` done in this process: ``run(fn, calls)`` -> ``[fn(problem, *args) for args in calls]``."""
     return lambda fn, calls: [fn(problem, *args) for args in calls]
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from workbench.geometry import invert_pose, make_pose
+from workbench.geometry import invert_pose
 from workbench.inference.datadriven import Library
 from workbench.inference.scenepoints import ModelSamples
 from workbench.problem import Problem
@@ -87,13 +87,13 @@ def conflicts(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:
     return out
 
 
-def candidate_depths(renderer: DepthRenderer, camera_pose: np.ndarray, poses: np.ndarray, k: int) -> np.ndarray:
+def candidate_depths(renderer: DepthRenderer, poses: np.ndarray, k: int) -> np.ndarray:
     """Depth images (C, H, W) of object k alone at each of ``poses`` (C, 4, 4), table frame: the other objects are
-    put behind the camera (``camera_pose``: the camera in the table frame, (4, 4)), where nothing is drawn."""
-    behind = camera_pose @ make_pose(np.eye(3), np.array([0.0, 0.0, -100.0]))
-    scenes = np.repeat(behind[None, None], len(poses), axis=0).repeat(renderer.n_objects, axis=1)
-    scenes[:, k] = poses
-    return renderer.render(scenes)
+    not drawn."""
+    scenes = np.repeat(poses[:, None], renderer.n_objects, axis=1)  # the others' poses are ignored
+    drawn = np.zeros((len(poses), renderer.n_objects), dtype=bool)
+    drawn[:, k] = True
+    return renderer.render(scenes, drawn)
 
 
 def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, solids: list[Solid],
@@ -106,8 +106,7 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
     if not ks:
         return np.zeros((0,) + base.shape)
     poses = [_unique(library.poses[k]) for k in ks]
-    camera_pose = invert_pose(problem.render_camera.T_cam_world)
-    depths = [candidate_depths(renderer, camera_pose, P, k).reshape(len(P), -1) for P, k in zip(poses, ks)]
+    depths = [candidate_depths(renderer, P, k).reshape(len(P), -1) for P, k in zip(poses, ks)]
     # Only pixels some candidate covers can change the score; elsewhere every assignment predicts the table.
     cover = np.nonzero(np.any(np.concatenate(depths) > 0, axis=0))[0]
     depths = [d[:, cover] for d in depths]

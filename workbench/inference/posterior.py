@@ -47,11 +47,10 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import numpy as np
 
-from workbench.evaluation.base import run_here
+from workbench.evaluation.base import Run, run_here
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference import settle
 from workbench.inference.context import SearchGeometry
@@ -60,8 +59,6 @@ from workbench.inference.scenepoints import object_badness
 from workbench.metrics import is_right
 from workbench.problem import Problem
 from workbench.scene import display_names
-
-Run = Callable[[Callable, list[tuple]], list]  # Evaluator.map: run(fn, calls) -> [fn(problem, *args) for args in calls]
 
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on 207 objects: the 50 of ycbv-real-dev, 109 of 44 generated frames of every make-scenes category and

@@ -98,10 +98,15 @@ def drawn_loglik(drawn: Drawn, observed: np.ndarray, background: np.ndarray, con
                  ) -> np.ndarray:
     """``scene_loglik`` of each scene of ``drawn`` -> (B,) float64, in the batch's order: each group's shared tile
     scored whole, and each scene by how much its own objects change that (``drawn_over_loglik``), which computes
-    only their pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums."""
-    base = scene_loglik(observed, background, drawn.shared, config)  # (G,)
+    only their pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums. A group that
+    shares nothing (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit."""
     out = np.empty(len(drawn.order))
-    for g in range(len(drawn.groups)):
-        out[drawn.order[drawn.group(g)]] = base[g] + drawn_over_loglik(observed, background, drawn.shared[g],
-                                                                       drawn.own[drawn.group(g)], config)
+    for g, shares in enumerate(drawn.groups.any(axis=1)):
+        own = drawn.own[drawn.group(g)]
+        if shares:
+            base = scene_loglik(observed, background, drawn.shared[g][None], config)[0]
+            ll = base + drawn_over_loglik(observed, background, drawn.shared[g], own, config)
+        else:
+            ll = scene_loglik(observed, background, own, config)
+        out[drawn.order[drawn.group(g)]] = ll
     return out
