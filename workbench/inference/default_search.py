@@ -119,9 +119,9 @@ class DefaultSearch:
 
     def finish(self, filt: ParticleFilter) -> Settled:
         """The estimate fitted to the observed depth without physics (``settle.pattern_search``), each object
-        within ``settle_shift`` and ``settle_turn`` of its pose in the estimate, restarted a few degrees away
-        (``settle.hop``), then each object's half turns (``settle.turn_over``), and the posterior of what it
-        settled on (``posterior.sweep``). The estimate itself, with no posterior, when settling is off."""
+        within ``settle_shift`` and ``settle_turn`` of its pose in the estimate, then each object's half turns
+        (``settle.turn_over``), and the posterior of what it settled on (``posterior.sweep``). The estimate itself,
+        with no posterior, when settling is off."""
         cfg = filt.config
         if filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return Settled(filt.best.copy(), filt.map_loglik)
@@ -130,8 +130,6 @@ class DefaultSearch:
             filt.map, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
             max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
         rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
-        scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, cfg.settle_shift,
-                                           cfg.settle_turn)
         before = scene
         scene, loglik, turned, ties, half_turns = settle.turn_over(self.problem, scene, loglik, score, rest,
                                                                    cfg.settle_shift, cfg.settle_turn)
@@ -144,7 +142,7 @@ class DefaultSearch:
                                                       cfg.settle_shift, cfg.settle_turn,
                                                       run=lambda fn, calls: self._run(filt, fn, calls))
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
-        return Settled(final, loglik, ties, scored + hopped + turned + swept, found)
+        return Settled(final, loglik, ties, scored + turned + swept, found)
 
     # -------------------------------------------------------------------------------------------------- parts
     @staticmethod

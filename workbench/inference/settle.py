@@ -7,8 +7,6 @@ projected scene, a few millimetres and degrees from what the depth shows. Settli
 pattern search on the likelihood of the scene as given, each object kept within a small trust region around its
 pose in the estimate, so the physics that chose the scene (support, stacking, what hides what) still holds to
 within that region. An object the camera does not see gains nothing from any move and stays where physics put it.
-The pattern search stops in the first shallow optimum along the table's axes; ``hop`` restarts each object a few
-degrees away, where the depth often has a better one (a banana tilted and turned at once).
 ``half_turns`` gives the turns that the depth can hardly tell apart (a can upside down, a bottle facing the other
 way): the search compares them only after physics, where the same few millimetres of mismatch decide them, so the
 estimator settles them too and keeps a turn that wins clearly (``turn_over``); the turns it does not keep but
@@ -39,8 +37,6 @@ SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
 # log-units: turning over a symmetric box, which changes nothing the camera sees, and settling it again gained up to
 # 24 on the YCB-Video dev frames (docs/benchmarks.md, "Settling").
 TURN_MARGIN = 30.0
-# Settled objects restart this many degrees away about each table axis (``hop``).
-HOP_DEGREES = 8.0
 
 
 @dataclass(frozen=True)
@@ -255,11 +251,31 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
     kept together if that scene scores at least as well as the best one alone -> (scene, log-likelihood, scenes
     scored, the ties left, every settled turn as (object, name, scene, log-likelihood): the posterior's half
     turns when no turn was kept)."""
-    names = [name for k in range(len(scene)) for name in half_turn_names(scene[k])]
-    owners, found, best = settle_alone(problem, scene, loglik, score, max_shift_m, max_turn_deg, half_turns)
+    owners, names, searches = [], [], []
+    for k, model in enumerate(problem.models):
+        names += half_turn_names(scene[k])
+        for pose in half_turns(scene[k], model.mesh.bounds.mean(axis=0)):
+            start = scene.copy()
+            start[k] = pose
+            owners.append(k)
+            searches.append(search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=max_shift_m,
+                                   max_turn_deg=max_turn_deg, objects=[k]))
+    found = run(searches, score)
     scored = sum(n for _, _, n in found)
-    kept, result, n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
-    scored += n
+    best: dict[int, tuple[np.ndarray, float]] = {}
+    for k, (T, ll, _) in zip(owners, found):
+        if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
+            best[k] = (T, ll)
+    kept: dict[int, float] = {}  # object -> the log-likelihood of its kept turn alone
+    result = scene, loglik
+    if best:
+        turned = list(best)
+        rested = rest(np.stack([best[k][0] for k in turned]))
+        held = [k for i, k in enumerate(turned)
+                if within(rested[i, k], best[k][0][k], max_shift_m, np.radians(max_turn_deg))]
+        if held:
+            kept, result, n = adopt(scene, {k: best[k] for k in held}, score)
+            scored += n
     final = result[0]
     ties = []
     for k, name, (T, ll, _) in zip(owners, names, found):
@@ -269,75 +285,6 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
             ties.append(Tie(k, name, T[k].copy(), float(gap)))
     turns = [(k, name, T, ll) for k, name, (T, ll, _) in zip(owners, names, found)]
     return final, float(result[1]), scored, ties, turns
-
-
-def small_turns(T: np.ndarray, centre: np.ndarray, degrees: float) -> np.ndarray:
-    """One object's pose ``T`` (4, 4) turned by +-``degrees`` about the table's x, y and z axes through its
-    ``centre`` (3,) (object frame, m) -> (6, 4, 4), in ``_AXES`` order."""
-    c = T[:3, :3] @ centre + T[:3, 3]
-    out = np.repeat(T[None], len(_AXES), axis=0)
-    for i, R in enumerate(_axis_turns(float(np.radians(degrees)))):
-        out[i, :3, :3] = R @ T[:3, :3]
-        out[i, :3, 3] = R @ (T[:3, 3] - c) + c
-    return out
-
-
-def hop(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: Rest, max_shift_m: float,
-        max_turn_deg: float, degrees: float = HOP_DEGREES) -> tuple[np.ndarray, float, int]:
-    """Each object of the settled ``scene`` (K, 4, 4) restarted from its ``small_turns`` and settled alone, the
-    others kept: the pattern search stops in the first shallow optimum along the table's axes, and a few degrees
-    away the depth often has a better one (a banana, tilted and turned at once; a bottle's lean). Every object's
-    restarts are searched together, in lockstep (``run``). An object's best restart is kept as ``turn_over``'s
-    turns are: when the scene as given gains more than TURN_MARGIN over ``loglik`` (landings of settling a few
-    tenths of a millimetre apart differ by tens of log-units, so a smaller gain is the grid's noise, not the
-    depth's) and physics (``rest``), resting that scene, keeps the object within the settling region; several
-    objects' restarts together when that scores at least as well -> (scene, log-likelihood, scenes scored)."""
-    _, found, best = settle_alone(problem, scene, loglik, score, max_shift_m, max_turn_deg,
-                                  lambda T, centre: small_turns(T, centre, degrees))
-    _, (scene, loglik), n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
-    return scene, float(loglik), sum(n for _, _, n in found) + n
-
-
-def settle_alone(problem: Problem, scene: np.ndarray, loglik: float, score: Score, max_shift_m: float,
-                 max_turn_deg: float, starts: Callable[[np.ndarray, np.ndarray], np.ndarray]
-                 ) -> tuple[list[int], list[tuple[np.ndarray, float, int]], dict[int, tuple[np.ndarray, float]]]:
-    """Each object of ``scene`` (K, 4, 4), of log-likelihood ``loglik``, moved to each of its ``starts`` (its pose
-    (4, 4) and centre (3,), object frame -> poses (S, 4, 4)) and settled alone, the others kept; every search in
-    lockstep (``run``) -> (each search's object, each search's (scene, log-likelihood, scenes scored), object ->
-    its best settled scene and log-likelihood where that gains more than TURN_MARGIN over ``loglik``)."""
-    owners, searches = [], []
-    for k, model in enumerate(problem.models):
-        for pose in starts(scene[k], model.mesh.bounds.mean(axis=0)):
-            start = scene.copy()
-            start[k] = pose
-            owners.append(k)
-            searches.append(search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=max_shift_m,
-                                   max_turn_deg=max_turn_deg, objects=[k]))
-    found = run(searches, score)
-    best: dict[int, tuple[np.ndarray, float]] = {}
-    for k, (T, ll, _) in zip(owners, found):
-        if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
-            best[k] = (T, ll)
-    return owners, found, best
-
-
-def keep_held(scene: np.ndarray, loglik: float, best: dict[int, tuple[np.ndarray, float]], score: Score,
-              rest: Rest, max_shift_m: float, max_turn_deg: float
-              ) -> tuple[dict[int, float], tuple[np.ndarray, float], int]:
-    """``scene`` (K, 4, 4), of log-likelihood ``loglik``, with those objects of ``best`` (object -> a scene where
-    only it changed, and that scene's log-likelihood, which beats ``loglik``) that physics, resting their scenes
-    (``rest``), keeps within ``max_shift_m`` and ``max_turn_deg`` of where they were fitted, as ``adopt`` takes them
-    -> (object -> its new pose's log-likelihood alone, for those kept; (the scene, its log-likelihood); scenes
-    scored)."""
-    if not best:
-        return {}, (scene, loglik), 0
-    changed = list(best)
-    rested = rest(np.stack([best[k][0] for k in changed]))
-    held = [k for i, k in enumerate(changed)
-            if within(rested[i, k], best[k][0][k], max_shift_m, np.radians(max_turn_deg))]
-    if not held:
-        return {}, (scene, loglik), 0
-    return adopt(scene, {k: best[k] for k in held}, score)
 
 
 def adopt(scene: np.ndarray, better: dict[int, tuple[np.ndarray, float]], score: Score
