@@ -101,11 +101,14 @@ def drawn_loglik(drawn: Drawn, observed: np.ndarray, background: np.ndarray, con
     only their pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums. A group that
     shares nothing (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit."""
     out = np.empty(len(drawn.order))
-    for g, shares in enumerate(drawn.groups.any(axis=1)):
+    shares = drawn.groups.any(axis=1)  # (G,)
+    base = np.zeros(len(shares))
+    if shares.any():  # every sharing group's tile in one pass over the image's empty-table term
+        base[shares] = scene_loglik(observed, background, drawn.shared[shares], config)
+    for g in range(len(shares)):
         own = drawn.own[drawn.group(g)]
-        if shares:
-            base = scene_loglik(observed, background, drawn.shared[g][None], config)[0]
-            ll = base + drawn_over_loglik(observed, background, drawn.shared[g], own, config)
+        if shares[g]:
+            ll = base[g] + drawn_over_loglik(observed, background, drawn.shared[g], own, config)
         else:
             ll = scene_loglik(observed, background, own, config)
         out[drawn.order[drawn.group(g)]] = ll
