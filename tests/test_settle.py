@@ -11,11 +11,13 @@ from workbench.inference.settle import (
     TURN_MARGIN,
     half_turn_names,
     half_turns,
+    hop,
     pattern_search,
     ridge_moves,
     run,
     search,
     single_moves,
+    small_turns,
     within,
 )
 from workbench.metrics import position_error, rotation_error
@@ -161,6 +163,76 @@ def test_settling_fits_the_estimate_to_a_scene_physics_cannot_rest(frame_and_pro
     assert within(settled, estimate, EstimatorConfig.settle_shift, np.radians(EstimatorConfig.settle_turn)).all()
     assert estimator.settle() is estimator.settled  # computed once per estimate
     assert np.array_equal(unsettled, estimate)  # the paper's search returns its projected estimate as it is
+
+
+def _two_headings(scenes: np.ndarray) -> np.ndarray:
+    """A score of object 0's heading (deg) with a shallow optimum at 0 and a higher one at 12: from 0 every step of
+    a pattern search (4 degrees and less) loses."""
+    yaw = np.degrees(np.arctan2(scenes[:, 0, 1, 0], scenes[:, 0, 0, 0]))
+    return 10.0 * np.exp(-(yaw / 3.0) ** 2) + 50.0 * np.exp(-((yaw - 12.0) / 3.0) ** 2)
+
+
+def test_small_turns_turn_about_the_centre_by_the_angle_asked():
+    from workbench.geometry import pose_from_xyz_rpy, rotation_angle
+
+    T = pose_from_xyz_rpy([0.1, 0.2, 0.05, 0.3, -0.2, 1.0])
+    centre = np.array([0.01, -0.02, 0.03])
+    turns = small_turns(T, centre, 8.0)
+    c = T[:3, :3] @ centre + T[:3, 3]
+    assert turns.shape == (6, 4, 4)
+    for i, H in enumerate(turns):
+        assert np.allclose(H[:3, :3] @ centre + H[:3, 3], c)  # the centre stays where it was
+        assert np.isclose(np.degrees(rotation_angle(T[:3, :3].T @ H[:3, :3])), 8.0)
+        axis = np.eye(3)[i // 2]  # about the table's x, x, y, y, z, z
+        assert np.allclose((H[:3, :3] @ T[:3, :3].T) @ axis, axis)
+
+
+def test_hop_leaves_a_shallow_optimum_for_a_better_one_physics_holds():
+    from types import SimpleNamespace
+
+    import trimesh
+
+    box = trimesh.creation.box([0.04, 0.06, 0.08])
+    problem = SimpleNamespace(models=[SimpleNamespace(mesh=box), SimpleNamespace(mesh=box)])
+    scene = np.tile(np.eye(4), (2, 1, 1))
+    scene[1, :3, 3] = [0.2, 0.0, 0.0]
+    start_ll = float(_two_headings(scene[None])[0])
+    stuck, stuck_ll, _ = pattern_search(scene, _two_headings, step_m=0.004, step_deg=4.0)
+    assert np.isclose(stuck_ll, start_ll)  # the pattern search alone stays at the shallow optimum
+    hopped, ll, scored = hop(problem, scene, start_ll, _two_headings, lambda s: s, scene, 0.015, 12.0, [0, 1])
+    yaw = np.degrees(np.arctan2(hopped[0, 1, 0], hopped[0, 0, 0]))
+    assert abs(yaw - 12.0) < 1.0 and ll > 49.0 and scored > 12
+    assert np.array_equal(hopped[1], scene[1])  # nothing to gain: left as it was
+    # Physics that rolls the turned object away keeps it where it was.
+    def roll(scenes):
+        out = scenes.copy()
+        out[:, 0, :3, 3] += [0.05, 0.0, 0.0]
+        return out
+    held, held_ll, _ = hop(problem, scene, start_ll, _two_headings, roll, scene, 0.015, 12.0, [0, 1])
+    assert np.array_equal(held, scene) and held_ll == start_ll
+    # The restarts stay within the region of where physics put the object, not of their own start: with physics'
+    # pose at -3 degrees and a region of 12, the better optimum at 12 is out of reach (a restart from +8 stops at
+    # +9, short of the turn's margin), and the object stays.
+    origin = scene.copy()
+    origin[0, :3, :3] = rot_z(np.radians(-3.0))
+    capped, capped_ll, _ = hop(problem, scene, start_ll, _two_headings, lambda s: s, origin, 0.015, 12.0, [0])
+    assert np.array_equal(capped, scene) and capped_ll == start_ll
+    # Only the objects asked for restart.
+    untouched, untouched_ll, _ = hop(problem, scene, start_ll, _two_headings, lambda s: s, scene, 0.015, 12.0, [1])
+    assert np.array_equal(untouched, scene) and untouched_ll == start_ll
+
+
+def test_a_search_keeps_to_the_region_it_is_given_not_its_start():
+    scene = np.tile(np.eye(4), (2, 1, 1))
+    scene[1, :3, 3] = [0.2, 0.0, 0.0]
+    start = scene.copy()
+    start[0, :3, :3] = rot_z(np.radians(8.0))
+    region = scene.copy()
+    region[0, :3, :3] = rot_z(np.radians(-3.0))
+    free, _, _ = pattern_search(start, _two_headings, step_m=0.004, step_deg=4.0, max_turn_deg=12.0)
+    (held, _, _), = run([search(start, step_m=0.004, step_deg=4.0, max_turn_deg=12.0, region=region)], _two_headings)
+    assert abs(np.degrees(np.arctan2(free[0, 1, 0], free[0, 0, 0])) - 12.0) < 1.0  # 4 from its start: allowed
+    assert np.degrees(np.arctan2(held[0, 1, 0], held[0, 0, 0])) <= 9.0 + 1e-6  # 12 from the region's -3
 
 
 def test_half_turns_keep_the_centre_and_undo_themselves():

@@ -120,8 +120,9 @@ class DefaultSearch:
     def finish(self, filt: ParticleFilter) -> Settled:
         """The estimate fitted to the observed depth without physics (``settle.pattern_search``), each object
         within ``settle_shift`` and ``settle_turn`` of its pose in the estimate, then each object's half turns
-        (``settle.turn_over``), and the posterior of what it settled on (``posterior.sweep``). The estimate itself,
-        with no posterior, when settling is off."""
+        (``settle.turn_over``), each object not turned restarted a few degrees away in the same region
+        (``settle.hop``), and the posterior of what it settled on (``posterior.sweep``). The estimate itself, with no
+        posterior, when settling is off."""
         cfg = filt.config
         if filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return Settled(filt.best.copy(), filt.map_loglik)
@@ -133,6 +134,12 @@ class DefaultSearch:
         before = scene
         scene, loglik, turned, ties, half_turns = settle.turn_over(self.problem, scene, loglik, score, rest,
                                                                    cfg.settle_shift, cfg.settle_turn)
+        # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its half turn
+        # then no longer does. A turned object was settled from a fresh start; the others restart where physics
+        # put them.
+        kept = [k for k in range(len(scene)) if np.array_equal(scene[k], before[k])]
+        scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, filt.map, cfg.settle_shift,
+                                           cfg.settle_turn, kept)
         if filt.particles is None:  # settled before any step (a label fitted, a test): no particles to spread
             projected, weights = np.zeros((0, *scene.shape)), np.zeros(0)
         else:
@@ -142,7 +149,7 @@ class DefaultSearch:
                                                       cfg.settle_shift, cfg.settle_turn,
                                                       run=lambda fn, calls: self._run(filt, fn, calls))
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
-        return Settled(final, loglik, ties, scored + turned + swept, found)
+        return Settled(final, loglik, ties, scored + turned + hopped + swept, found)
 
     # -------------------------------------------------------------------------------------------------- parts
     @staticmethod

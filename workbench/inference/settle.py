@@ -10,7 +10,9 @@ within that region. An object the camera does not see gains nothing from any mov
 ``half_turns`` gives the turns that the depth can hardly tell apart (a can upside down, a bottle facing the other
 way): the search compares them only after physics, where the same few millimetres of mismatch decide them, so the
 estimator settles them too and keeps a turn that wins clearly (``turn_over``); the turns it does not keep but
-that score about as well are the estimate's near ties (``Tie``).
+that score about as well are the estimate's near ties (``Tie``). The pattern search stops in the first shallow
+optimum along the table's axes; ``hop`` restarts each object a few degrees away, within the same region, where the
+depth often has a better one (a banana tilted and turned at once).
 
 ``pattern_search`` is also how a ground-truth label is fitted to the depth (``labels.fit_label``, no region).
 """
@@ -37,6 +39,8 @@ SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
 # log-units: turning over a symmetric box, which changes nothing the camera sees, and settling it again gained up to
 # 24 on the YCB-Video dev frames (docs/benchmarks.md, "Settling").
 TURN_MARGIN = 30.0
+# Settled objects restart this many degrees away about each table axis (``hop``).
+HOP_DEGREES = 8.0
 
 
 @dataclass(frozen=True)
@@ -142,7 +146,7 @@ Search = Generator[np.ndarray, np.ndarray, tuple[np.ndarray, float, int]]
 def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_m: float = 5e-4,
            max_rounds: int = 80, max_shift_m: float = np.inf, max_turn_deg: float = np.inf,
            objects: list[int] | None = None, give_up_below: float = -np.inf,
-           known: Callable[[np.ndarray], bool] | None = None) -> Search:
+           known: Callable[[np.ndarray], bool] | None = None, region: np.ndarray | None = None) -> Search:
     """One pattern search from the scene ``T`` (K, 4, 4), as a generator: it yields scenes (B, K, 4, 4) to score as
     given and is sent their log-likelihoods (B,); it returns (the fitted scene, its log-likelihood, how many scenes
     it scored). ``run`` drives it; ``pattern_search`` is the one-search shorthand.
@@ -151,8 +155,8 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
     object's ``ridge_moves`` step, and the combinations of every improving object's best single move and of every
     object's ridge step; it keeps the best of all, and halves the steps when nothing improves, down to
     ``min_step_m`` (angles shrink alike). A move that takes an object more than ``max_shift_m`` or
-    ``max_turn_deg`` from its pose in ``T`` is not tried; only the ``objects`` listed move (default: all). Local: it
-    refines a scene within about two steps of the optimum, it does not find one.
+    ``max_turn_deg`` from its pose in ``region`` (K, 4, 4; default ``T``) is not tried; only the ``objects`` listed
+    move (default: all). Local: it refines a scene within about two steps of the optimum, it does not find one.
 
     Two early stops, for the posterior's sweep, which settles many candidates and keeps only what could be a mode of
     its own: a search whose best is still below ``give_up_below`` (log-units) once it has converged at its first two
@@ -160,8 +164,8 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
     first two steps, moves into a scene that ``known`` (scene (K, 4, 4) -> bool) says is already a mode (the
     estimate's) stops there. Not before: at the first steps a search may pass through a mode on its way to another
     (a mug's heading, 10 degrees from the estimate's and on)."""
-    origin = np.array(T, dtype=np.float64)
-    T, K = origin.copy(), len(origin)
+    T = np.array(T, dtype=np.float64)
+    origin, K = np.array(T if region is None else region, dtype=np.float64), len(T)
     movable = np.zeros(K, dtype=bool)
     movable[np.arange(K) if objects is None else objects] = True
     best, scored = float((yield T[None])[0]), 1
@@ -266,16 +270,8 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
     for k, (T, ll, _) in zip(owners, found):
         if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
             best[k] = (T, ll)
-    kept: dict[int, float] = {}  # object -> the log-likelihood of its kept turn alone
-    result = scene, loglik
-    if best:
-        turned = list(best)
-        rested = rest(np.stack([best[k][0] for k in turned]))
-        held = [k for i, k in enumerate(turned)
-                if within(rested[i, k], best[k][0][k], max_shift_m, np.radians(max_turn_deg))]
-        if held:
-            kept, result, n = adopt(scene, {k: best[k] for k in held}, score)
-            scored += n
+    kept, result, n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
+    scored += n
     final = result[0]
     ties = []
     for k, name, (T, ll, _) in zip(owners, names, found):
@@ -285,6 +281,68 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
             ties.append(Tie(k, name, T[k].copy(), float(gap)))
     turns = [(k, name, T, ll) for k, name, (T, ll, _) in zip(owners, names, found)]
     return final, float(result[1]), scored, ties, turns
+
+
+def small_turns(T: np.ndarray, centre: np.ndarray, degrees: float) -> np.ndarray:
+    """One object's pose ``T`` (4, 4) turned by +-``degrees`` about the table's x, y and z axes through its
+    ``centre`` (3,) (object frame, m) -> (6, 4, 4), in ``_AXES`` order."""
+    c = T[:3, :3] @ centre + T[:3, 3]
+    out = np.repeat(T[None], len(_AXES), axis=0)
+    for i, R in enumerate(_axis_turns(float(np.radians(degrees)))):
+        out[i, :3, :3] = R @ T[:3, :3]
+        out[i, :3, 3] = R @ (T[:3, 3] - c) + c
+    return out
+
+
+def hop(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: Rest, region: np.ndarray,
+        max_shift_m: float, max_turn_deg: float, objects: list[int], degrees: float = HOP_DEGREES
+        ) -> tuple[np.ndarray, float, int]:
+    """Each of the ``objects`` of the settled ``scene`` (K, 4, 4), of log-likelihood ``loglik``, restarted from its
+    ``small_turns`` and settled alone, the others kept: the pattern search stops in the first shallow optimum along
+    the table's axes, and a few degrees away the depth often has a better one (a banana tilted and turned at once,
+    a bottle's lean). The restarts stay within ``max_shift_m`` and ``max_turn_deg`` of ``region`` (K, 4, 4: where
+    physics put each object, the region settling searched), not of their own start, so that an object is never
+    fitted further from physics' pose than settling may fit it; a restart that begins outside it is not tried.
+    Every restart is searched in lockstep (``run``); an object's best one is kept on a turn's terms: the scene as
+    given gains more than TURN_MARGIN (landings of settling a few tenths of a millimetre apart differ by tens of
+    log-units, so a smaller gain is the grid's, not the depth's) and physics (``rest``) keeps it within the region
+    -> (scene, log-likelihood, scenes scored)."""
+    owners, searches = [], []
+    turn = np.radians(max_turn_deg)
+    for k in objects:
+        starts = small_turns(scene[k], problem.models[k].mesh.bounds.mean(axis=0), degrees)
+        for pose in starts[within(starts, region[k], max_shift_m, turn)]:
+            start = scene.copy()
+            start[k] = pose
+            owners.append(k)
+            searches.append(search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=max_shift_m,
+                                   max_turn_deg=max_turn_deg, objects=[k], region=region))
+    found = run(searches, score)
+    best: dict[int, tuple[np.ndarray, float]] = {}
+    for k, (T, ll, _) in zip(owners, found):
+        if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
+            best[k] = (T, ll)
+    _, (scene, loglik), n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
+    return scene, float(loglik), sum(n for _, _, n in found) + n
+
+
+def keep_held(scene: np.ndarray, loglik: float, best: dict[int, tuple[np.ndarray, float]], score: Score,
+              rest: Rest, max_shift_m: float, max_turn_deg: float
+              ) -> tuple[dict[int, float], tuple[np.ndarray, float], int]:
+    """``scene`` (K, 4, 4), of log-likelihood ``loglik``, with those objects of ``best`` (object -> a scene where
+    only it changed, and that scene's log-likelihood, which beats ``loglik``) that physics, resting their scenes
+    (``rest``), keeps within ``max_shift_m`` and ``max_turn_deg`` of where they were fitted, as ``adopt`` takes them
+    -> (object -> its new pose's log-likelihood alone, for those kept; (the scene, its log-likelihood); scenes
+    scored)."""
+    if not best:
+        return {}, (scene, loglik), 0
+    changed = list(best)
+    rested = rest(np.stack([best[k][0] for k in changed]))
+    held = [k for i, k in enumerate(changed)
+            if within(rested[i, k], best[k][0][k], max_shift_m, np.radians(max_turn_deg))]
+    if not held:
+        return {}, (scene, loglik), 0
+    return adopt(scene, {k: best[k] for k in held}, score)
 
 
 def adopt(scene: np.ndarray, better: dict[int, tuple[np.ndarray, float]], score: Score
