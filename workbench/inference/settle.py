@@ -100,14 +100,20 @@ def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     horizontal axes, through its ``centre`` (3,) (object frame, m) -> (3, 4, 4). These are the depth's near ties:
     a can upside down, a potted meat can or a mustard bottle facing the other way, a marker end for end."""
     R = T[:3, :3]
-    c = R @ centre + T[:3, 3]
     axes = R[:, _level_axes(R)].T.copy()
     axes[:, 2] = 0.0
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    out = np.repeat(T[None], 3, axis=0)
-    for i, axis in enumerate([np.array([0.0, 0.0, 1.0]), *axes]):
-        H = 2.0 * np.outer(axis, axis) - np.eye(3)  # the half turn about a unit axis
-        out[i, :3, :3] = H @ R
+    # the half turn about a unit axis
+    return _turned(T, centre, [2.0 * np.outer(axis, axis) - np.eye(3) for axis in [np.array([0.0, 0.0, 1.0]), *axes]])
+
+
+def _turned(T: np.ndarray, centre: np.ndarray, rotations) -> np.ndarray:
+    """One object's pose ``T`` (4, 4) turned by each of ``rotations`` (n of (3, 3), table frame) about its
+    ``centre`` (3,) (object frame, m), which stays where it is -> (n, 4, 4)."""
+    c = T[:3, :3] @ centre + T[:3, 3]
+    out = np.repeat(T[None], len(rotations), axis=0)
+    for i, H in enumerate(rotations):
+        out[i, :3, :3] = H @ T[:3, :3]
         out[i, :3, 3] = H @ (T[:3, 3] - c) + c
     return out
 
@@ -255,21 +261,12 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
     kept together if that scene scores at least as well as the best one alone -> (scene, log-likelihood, scenes
     scored, the ties left, every settled turn as (object, name, scene, log-likelihood): the posterior's half
     turns when no turn was kept)."""
-    owners, names, searches = [], [], []
-    for k, model in enumerate(problem.models):
-        names += half_turn_names(scene[k])
-        for pose in half_turns(scene[k], model.mesh.bounds.mean(axis=0)):
-            start = scene.copy()
-            start[k] = pose
-            owners.append(k)
-            searches.append(search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=max_shift_m,
-                                   max_turn_deg=max_turn_deg, objects=[k]))
-    found = run(searches, score)
+    names = [name for k in range(len(scene)) for name in half_turn_names(scene[k])]
+    starts = [(k, pose) for k, model in enumerate(problem.models)
+              for pose in half_turns(scene[k], model.mesh.bounds.mean(axis=0))]
+    owners = [k for k, _ in starts]
+    found, best = settle_alone(scene, loglik, score, starts, max_shift_m, max_turn_deg)
     scored = sum(n for _, _, n in found)
-    best: dict[int, tuple[np.ndarray, float]] = {}
-    for k, (T, ll, _) in zip(owners, found):
-        if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
-            best[k] = (T, ll)
     kept, result, n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
     scored += n
     final = result[0]
@@ -286,12 +283,7 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
 def small_turns(T: np.ndarray, centre: np.ndarray, degrees: float) -> np.ndarray:
     """One object's pose ``T`` (4, 4) turned by +-``degrees`` about the table's x, y and z axes through its
     ``centre`` (3,) (object frame, m) -> (6, 4, 4), in ``_AXES`` order."""
-    c = T[:3, :3] @ centre + T[:3, 3]
-    out = np.repeat(T[None], len(_AXES), axis=0)
-    for i, R in enumerate(_axis_turns(float(np.radians(degrees)))):
-        out[i, :3, :3] = R @ T[:3, :3]
-        out[i, :3, 3] = R @ (T[:3, 3] - c) + c
-    return out
+    return _turned(T, centre, _axis_turns(float(np.radians(degrees))))
 
 
 def hop(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: Rest, region: np.ndarray,
@@ -307,23 +299,35 @@ def hop(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: 
     given gains more than TURN_MARGIN (landings of settling a few tenths of a millimetre apart differ by tens of
     log-units, so a smaller gain is the grid's, not the depth's) and physics (``rest``) keeps it within the region
     -> (scene, log-likelihood, scenes scored)."""
-    owners, searches = [], []
-    turn = np.radians(max_turn_deg)
+    starts = []
     for k in objects:
-        starts = small_turns(scene[k], problem.models[k].mesh.bounds.mean(axis=0), degrees)
-        for pose in starts[within(starts, region[k], max_shift_m, turn)]:
-            start = scene.copy()
-            start[k] = pose
-            owners.append(k)
-            searches.append(search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=max_shift_m,
-                                   max_turn_deg=max_turn_deg, objects=[k], region=region))
-    found = run(searches, score)
-    best: dict[int, tuple[np.ndarray, float]] = {}
-    for k, (T, ll, _) in zip(owners, found):
-        if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
-            best[k] = (T, ll)
+        turns = small_turns(scene[k], problem.models[k].mesh.bounds.mean(axis=0), degrees)
+        starts += [(k, pose) for pose in turns[within(turns, region[k], max_shift_m, np.radians(max_turn_deg))]]
+    found, best = settle_alone(scene, loglik, score, starts, max_shift_m, max_turn_deg, region)
     _, (scene, loglik), n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
     return scene, float(loglik), sum(n for _, _, n in found) + n
+
+
+def settle_alone(scene: np.ndarray, loglik: float, score: Score, starts: list[tuple[int, np.ndarray]],
+                 max_shift_m: float, max_turn_deg: float, region: np.ndarray | None = None
+                 ) -> tuple[list[tuple[np.ndarray, float, int]], dict[int, tuple[np.ndarray, float]]]:
+    """``scene`` (K, 4, 4), of log-likelihood ``loglik``, with one object moved to each of ``starts`` (object,
+    pose (4, 4)) and settled alone, the others kept, within ``max_shift_m`` and ``max_turn_deg`` of ``region``
+    (default: each start); every search in lockstep (``run``) -> (each start's (scene, log-likelihood, scenes
+    scored), object -> its best settled scene and log-likelihood where that gains more than TURN_MARGIN over
+    ``loglik``)."""
+    searches = []
+    for k, pose in starts:
+        start = scene.copy()
+        start[k] = pose
+        searches.append(search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=max_shift_m,
+                               max_turn_deg=max_turn_deg, objects=[k], region=region))
+    found = run(searches, score)
+    best: dict[int, tuple[np.ndarray, float]] = {}
+    for (k, _), (T, ll, _) in zip(starts, found):
+        if ll > loglik + TURN_MARGIN and (k not in best or ll > best[k][1]):
+            best[k] = (T, ll)
+    return found, best
 
 
 def keep_held(scene: np.ndarray, loglik: float, best: dict[int, tuple[np.ndarray, float]], score: Score,
