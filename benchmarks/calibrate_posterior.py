@@ -1,6 +1,7 @@
 """Fit the posterior's temperature (inference.posterior.TEMPERATURE) on frames with ground truth.
 
 usage: calibrate_posterior.py DATASET POSTERIOR.json [DATASET POSTERIOR.json ...] [--data OUT.json] [--png OUT.png]
+                             [--temperature T]
 
 Each POSTERIOR.json is what `workbench estimate DATASET --posterior POSTERIOR.json` wrote (default settings). For
 every object it reads the modes' log-likelihood gaps to the estimate, and marks each mode right or not against the
@@ -13,7 +14,7 @@ modes (posterior.ELSEWHERE: a logistic in the share of the estimate the sensor s
 calibration error, and what the top modes' would be with it folded into them. It also counts how often the truth's
 heading lies inside a reported range of headings, and the posterior sweep's share of the frames' wall time. --data
 keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without estimating again;
---png draws the reliability diagram at the fitted temperature.
+--png draws the reliability diagram at the fitted temperature, or at --temperature (the one the product uses).
 """
 
 from __future__ import annotations
@@ -127,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("pairs", nargs="*", help="DATASET POSTERIOR.json, repeated")
     ap.add_argument("--data", type=Path, help="write the gaps and right flags here (JSON)")
     ap.add_argument("--from-data", type=Path, nargs="*", default=[], help="add records saved by --data before")
-    ap.add_argument("--png", type=Path, help="the reliability diagram at the fitted temperature")
+    ap.add_argument("--png", type=Path, help="the reliability diagram at the fitted temperature (or --temperature)")
+    ap.add_argument("--temperature", type=float, help="draw the diagram at this temperature, not the fit")
     a = ap.parse_args(argv)
     if len(a.pairs) % 2:
         ap.error("give DATASET POSTERIOR.json pairs")
@@ -193,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{coverage([objects[i] for i in idx]):.3f}  {expected_calibration_error([objects[i] for i in idx]):.3f}"
               f"  {expected_calibration_error([folded[i] for i in idx]):.3f}")
     if a.png:
-        reliability_png(objects, a.png, f"temperature {best:.0f}, {len(objects)} objects")
+        drawn = best if a.temperature is None else a.temperature
+        reliability_png(modes_at(records, drawn), a.png, f"temperature {drawn:.0f}, {len(objects)} objects")
     return 0
 
 

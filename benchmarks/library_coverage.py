@@ -37,7 +37,7 @@ def main() -> None:
         gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
         g = SearchGeometry.of(problem, upright=False)
         t0 = time.perf_counter()
-        library = datadriven.build_library(problem, clusters(g.points.points), g.points.points, g.rest, g.samples,
+        library = datadriven.build_library(problem, clusters(g.points.points), g.points, g.rest, g.samples,
                                            g.hulls)
         seconds += time.perf_counter() - t0
         row = [any(is_right(gt[k], T, m.symmetries) for T in library.poses[k]) for k, m in enumerate(problem.models)]

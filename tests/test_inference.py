@@ -80,7 +80,7 @@ def test_icp_move_without_its_correction_proposes_the_same_scenes(frame_and_prob
     frame, _ = frame_and_problem
     problem, ctx, _ = context
     parents = np.repeat(_truth(frame, problem)[None], 12, axis=0)
-    args = (parents, ctx.points.points, ctx.samples, ctx.reach, np.ones(problem.n_objects), ctx.points.viewpoint)
+    args = (parents, ctx.points, ctx.samples, ctx.reach, np.ones(problem.n_objects))
     full = refine.propose_icp(np.random.default_rng(5), *args)
     cheap = refine.propose_icp(np.random.default_rng(5), *args, log_q=False)
     assert np.array_equal(full.hypotheses, cheap.hypotheses)
@@ -111,7 +111,7 @@ def test_batched_icp_fits_each_start_as_alone_and_pulls_back_a_displaced_object(
     starts = np.repeat(truth[k][None], 4, axis=0)
     starts[:, :2, 3] += rng.normal(scale=0.02, size=(4, 2))
     starts[:, :3, :3] = rot_z(rng.normal(scale=np.radians(8), size=4)) @ starts[:, :3, :3]
-    crops = refine.crops(ctx.points.points, starts[:, :3, 3], ctx.reach[k] + 0.02)
+    crops = [ctx.points.points[i] for i in refine.crops(ctx.points.points, starts[:, :3, 3], ctx.reach[k] + 0.02)]
     crops[3] = crops[3][:5]  # too few points: this start must stay where it is
     batch, inliers = refine.icp_batch(crops, ctx.samples[k], starts)
     for s in range(4):
@@ -143,16 +143,14 @@ def test_polish_variants_change_objects_or_exchange_two(frame_and_problem, conte
     frame, _ = frame_and_problem
     problem, ctx, library = context
     truth = _truth(frame, problem)
-    scenes = polish.variants(truth, library, ctx.points.points, ctx.samples, ctx.reach, ctx.radius,
-                             ctx.points.viewpoint)
+    scenes = polish.variants(truth, library, ctx.points, ctx.samples, ctx.reach, ctx.radius)
     K = problem.n_objects
     assert scenes.ndim == 4 and scenes.shape[1:] == (K, 4, 4) and np.all(np.isfinite(scenes))
     assert np.allclose(scenes[:, :, :3, :3] @ np.swapaxes(scenes[:, :, :3, :3], 2, 3), np.eye(3), atol=1e-9)
     changed = np.any(np.abs(scenes - truth[None]) > 1e-12, axis=(2, 3)).sum(axis=1)
     pairs = K * (K - 1) // 2
     assert np.all(changed[-pairs:] == 2) and np.all(changed[:-pairs] >= 1)
-    assert np.array_equal(scenes, polish.variants(truth, library, ctx.points.points, ctx.samples, ctx.reach,
-                                                 ctx.radius, ctx.points.viewpoint))
+    assert np.array_equal(scenes, polish.variants(truth, library, ctx.points, ctx.samples, ctx.reach, ctx.radius))
 
 
 def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_problem, context):
@@ -175,7 +173,7 @@ def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_probl
     target, shared = places[-1], places[0]
     fresh = datadriven.Library([np.stack([target, shared])] + [np.zeros((0, 4, 4))] * (K - 1),
                                [np.array([0.5, 0.5])] + [np.zeros(0)] * (K - 1))
-    args = (ctx.points.points, ctx.samples, ctx.reach, ctx.radius, ctx.points.viewpoint)
+    args = (ctx.points, ctx.samples, ctx.reach, ctx.radius)
     without = polish.variants(truth, merged, *args)
     with_fresh = polish.variants(truth, merged, *args, unexplained=fresh)
 
@@ -400,7 +398,7 @@ def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_a
     a call without it; a cluster it has not seen is still fitted."""
     problem, ctx, _ = context
     groups = clusters(ctx.points.points)
-    args = (problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
+    args = (problem, groups, ctx.points, ctx.rest, ctx.samples, ctx.hulls)
     plain = datadriven.build_library(*args)
     memo: dict = {}
     first = datadriven.build_library(*args, memo)
@@ -416,6 +414,33 @@ def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_a
     shifted = [g + np.array([0.001, 0.0, 0.0]) for g in groups[:1]]
     datadriven.build_library(problem, shifted, *args[2:], memo)
     assert len(calls) == problem.n_objects
+
+
+def test_observed_normals_face_the_camera_and_keep_a_thin_object_off_a_neighbours_side():
+    """A thin slab lying flat (scissors) and, 2.5 cm beyond its end, a box's vertical side: the observed normals
+    are the top's (up) and the side's (towards the camera), and ICP from the slab's true pose, matching only
+    points whose normals agree with the model's, stays there; matching every point near it, it slides 20 cm onto
+    the side (the generated scissors went 14 cm so)."""
+    import trimesh
+
+    from workbench.geometry import make_pose
+    from workbench.inference.scenepoints import model_samples, point_normals
+
+    T = make_pose(np.eye(3), np.array([0.0, 0.0, 0.008]))
+    eye = np.array([0.0, -0.5, 0.6])
+    x, y = np.meshgrid(np.linspace(-0.095, 0.095, 30), np.linspace(-0.02, 0.02, 7))
+    top = np.stack([x.ravel(), y.ravel(), np.full(x.size, 0.016)], axis=1)
+    y, z = np.meshgrid(np.linspace(-0.06, 0.06, 25), np.linspace(0.007, 0.08, 25))
+    side = np.stack([np.full(y.size, 0.125), y.ravel(), z.ravel()], axis=1)
+    points = np.concatenate([top, side])
+    normals = point_normals(points, eye)
+    np.testing.assert_allclose(normals[:len(top)], [[0.0, 0.0, 1.0]] * len(top), atol=1e-9)
+    np.testing.assert_allclose(normals[len(top):], [[-1.0, 0.0, 0.0]] * len(side), atol=1e-9)
+    samples = model_samples(trimesh.creation.box((0.20, 0.05, 0.016)))
+    blind, _ = refine.icp_batch([points], samples, T[None], viewpoint=eye)
+    oriented, inliers = refine.icp_batch([points], samples, T[None], viewpoint=eye, normals=[normals])
+    assert np.linalg.norm(blind[0, :3, 3] - T[:3, 3]) > 0.05
+    assert np.linalg.norm(oriented[0, :3, 3] - T[:3, 3]) < 0.001 and inliers[0] > 0
 
 
 def test_icp_matches_only_the_side_the_camera_sees():
@@ -485,7 +510,7 @@ def test_every_listed_object_and_a_few_distractors_get_a_cluster(context, monkey
     fitted = []
     monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: fitted.append(cluster) or [])
     monkeypatch.setattr(datadriven, "MAX_CLUSTERS", 1)
-    datadriven.build_library(problem, groups, ctx.points.points, ctx.rest, ctx.samples, ctx.hulls)
+    datadriven.build_library(problem, groups, ctx.points, ctx.rest, ctx.samples, ctx.hulls)
     K = problem.n_objects
     assert len(fitted) == (K + datadriven.DISTRACTOR_CLUSTERS) * K
     assert all(any(f is g for g in groups[:K + datadriven.DISTRACTOR_CLUSTERS]) for f in fitted)  # the largest first

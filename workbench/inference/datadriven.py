@@ -25,7 +25,7 @@ from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, crops, icp_batch
 from workbench.inference.resting import RestingPoses, height
-from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, viewpoint
+from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, ScenePoints
 from workbench.problem import Problem
 
 JITTER_POS = 0.005  # m
@@ -50,6 +50,11 @@ LEVEL_BIN = 0.01  # m; heights of a cluster's horizontal surfaces are found in b
 MIN_LEVEL = 40  # observed points that make a horizontal surface
 MAX_LEVELS = 2  # per cluster
 LEVEL_HEADINGS = 12  # headings tried on a horizontal surface, 30 degrees apart
+# Headings tried at a cluster's centre and spread points, 30 degrees apart from its principal axis. A thin object
+# lying flat (scissors, a clamp) barely turns under ICP: its top pins the tilt, and only its low rim the heading.
+# With 4 headings (90 degrees apart), the best start of a generated frame's scissors was 17 degrees off, and ICP
+# took it to 31 (docs/benchmarks.md, "Observed normals").
+CENTRE_HEADINGS = 12
 PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally) are at one place
 
 
@@ -175,17 +180,17 @@ def _in_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (b[at] == a) if len(b) else np.zeros(len(a), dtype=bool)
 
 
-def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.ndarray,
+def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoints,
                   rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray],
                   memo: dict | None = None, run: Callable | None = None) -> Library:
     """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
-    ``all_points`` (P, 3) near each start. -> Library.
+    all observed points ``cloud`` near each start. -> Library.
 
     Coarse to fine: every start gets a few cheap ICP steps on a few points and is scored; only the best
     ``REFINED_PER_PLACE`` of each place go on to the full ICP. On the real dev frames this keeps as many right
     candidates as fitting every start fully (21 against 22 of 50 objects) at a sixth of the time.
 
-    ``memo``: a dict kept by the caller across calls with the same problem, ``all_points`` and models. A cluster's
+    ``memo``: a dict kept by the caller across calls with the same problem, ``cloud`` and models. A cluster's
     candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
     explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
     without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``evaluation.run_here``), the
@@ -199,7 +204,7 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
     # Every (cluster, object) fit not remembered, all at once: ``run`` may spread them over the workers.
     new = list(dict.fromkeys(key for key in keys if key not in memo))
     first = {key: clusters[keys.index(key)] for key in new}
-    fits = (run or run_here(problem))(cluster_candidates, [(first[key], all_points, rest[k], samples[k], hulls[k])
+    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k])
                                                            for key in new for k in range(K)])
     for i, key in enumerate(new):
         memo[key] = fits[i * K:(i + 1) * K]
@@ -224,25 +229,25 @@ def build_library(problem: Problem, clusters: list[np.ndarray], all_points: np.n
     return Library(poses, weights)
 
 
-def cluster_candidates(problem: Problem, cluster: np.ndarray, all_points: np.ndarray, rest: RestingPoses,
+def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints, rest: RestingPoses,
                        samples: ModelSamples, hull: np.ndarray) -> list[tuple[float, np.ndarray]]:
-    """One object's scored candidates (score, pose (4, 4)) fitted at one ``cluster`` (P, 3): the best
-    PER_CENTRE distinct ones of each start place (``icp_starts``), place by place."""
+    """One object's scored candidates (score, pose (4, 4)) fitted at one ``cluster`` (P, 3) to the observed points
+    ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place."""
     reach = float(np.max(np.linalg.norm(hull[:, :2], axis=1)))
     starts, place = icp_starts(cluster, rest, hull, reach)
     if not starts:
         return []
     starts = np.stack(starts)
-    near = crops(all_points, starts[:, :3, 3], reach + NEAR)
-    eye = viewpoint(problem)
-    rough, _ = icp_batch(near, samples, starts, iterations=3, max_points=COARSE_POINTS, stages=STAGES[:1],
-                         viewpoint=eye)
+    near = crops(cloud.points, starts[:, :3, 3], reach + NEAR)
+    points, normals = [cloud.points[i] for i in near], [cloud.normals[i] for i in near]
+    rough, _ = icp_batch(points, samples, starts, iterations=3, max_points=COARSE_POINTS, stages=STAGES[:1],
+                         viewpoint=cloud.viewpoint, normals=normals)
     rough_score = fit_scores(problem, rough, samples)
     place = np.asarray(place)
     chosen = np.concatenate([np.nonzero(place == p)[0][np.argsort(-rough_score[place == p], kind="stable")
                                                         [:REFINED_PER_PLACE]] for p in np.unique(place)])
-    fitted, inliers = icp_batch([near[i] for i in chosen], samples, rough[chosen], max_points=FIT_POINTS,
-                                viewpoint=eye)
+    fitted, inliers = icp_batch([points[i] for i in chosen], samples, rough[chosen], max_points=FIT_POINTS,
+                                viewpoint=cloud.viewpoint, normals=[normals[i] for i in chosen])
     ok = (inliers >= 10) & np.all(np.isfinite(fitted), axis=(1, 2))
     scored = [(float(sc), T, p) for sc, T, p in zip(fit_scores(problem, fitted[ok], samples), fitted[ok],
                                                      place[chosen][ok])]
@@ -259,8 +264,8 @@ def icp_starts(cluster: np.ndarray, rest: RestingPoses, hull: np.ndarray, reach:
             ) -> tuple[list[np.ndarray], list[int]]:
     """One object's ICP starts (4, 4) at one ``cluster`` (P, 3), and the start place of each:
     - at the cluster's centroid and spread points, on every face on which the object is no taller than the
-      cluster, in four headings from the cluster's principal axis; where the cluster is clearly taller than the
-      object, also on top, its upper face at the cluster's top;
+      cluster, in CENTRE_HEADINGS headings from the cluster's principal axis; where the cluster is clearly taller
+      than the object, also on top, its upper face at the cluster's top;
     - on top of something: at each of the cluster's horizontal surfaces (``_levels``), the object's upper face
       there, in LEVEL_HEADINGS headings from the surface's minimum-area rectangle (one more place each)."""
     starts: list[np.ndarray] = []
@@ -283,7 +288,7 @@ def icp_starts(cluster: np.ndarray, rest: RestingPoses, hull: np.ndarray, reach:
     bases = [(f, 0.0) for f in (faces if len(faces) else [int(np.argmin(heights))])]
     # Where the cluster is clearly taller, the object may stand on something, so it also starts on top.
     bases += [(f, top - heights[f]) for f in faces if top > heights[f] + 0.02]
-    add(spread_centres(cluster, 1.2 * reach, MAX_CENTRES), bases, principal_heading(cluster), 4)
+    add(spread_centres(cluster, 1.2 * reach, MAX_CENTRES), bases, principal_heading(cluster), CENTRE_HEADINGS)
     # An object on top of another shows as a horizontal surface of their joint cluster (many points at one
     # height), which the cluster's centre and rim miss when the cluster also holds objects beside them:
     # YCB-Video's pudding box lies on the wood block, which touches the can and the banana, and no start

@@ -180,7 +180,7 @@ class DefaultSearch:
         g = self.geometry(filt)
         loose = unexplained(self.problem, g.points, filt.map if scene is None else scene, g.samples)
         groups = clusters(g.points.points[loose])
-        fresh = datadriven.build_library(self.problem, groups, g.points.points, g.rest, g.samples, g.hulls,
+        fresh = datadriven.build_library(self.problem, groups, g.points, g.rest, g.samples, g.hulls,
                                          self._cluster_memo, partial(self._run, filt))
         self.library = fresh if self.library is None else self.library.merged(fresh)
         self.unexplained = fresh
@@ -204,8 +204,7 @@ class DefaultSearch:
         if filt.map is None or self.library is None:
             return
         g, estimate = self.geometry(filt), filt.map
-        parts = [polish.variants(estimate, self.library, g.points.points, g.samples, g.reach, g.radius,
-                                 g.points.viewpoint, self.unexplained),
+        parts = [polish.variants(estimate, self.library, g.points, g.samples, g.reach, g.radius, self.unexplained),
                  polish.stacked(self.problem, estimate, self.library, self.unexplained, g.rest, g.hulls, g.samples,
                                 g.radius, self._base_memo, partial(self._run, filt)),
                  self._assemblies(filt, estimate)]

@@ -70,8 +70,7 @@ class Icp(Move):
 
     def propose(self, rng, parents, ctx):
         g = ctx.geometry
-        return refine.propose_icp(rng, parents, g.points.points, g.samples, g.reach, ctx.choose, g.points.viewpoint,
-                           log_q=ctx.method == "mcpf")
+        return refine.propose_icp(rng, parents, g.points, g.samples, g.reach, ctx.choose, log_q=ctx.method == "mcpf")
 
 
 class Relocate(Move):

@@ -20,7 +20,7 @@ from workbench.geometry import rot_z, rotation_angle
 from workbench.inference.datadriven import Library, overlaps, place_order
 from workbench.inference.refine import refit
 from workbench.inference.resting import RestingPoses, highest_point, lowest_point
-from workbench.inference.scenepoints import ModelSamples
+from workbench.inference.scenepoints import ModelSamples, ScenePoints
 from workbench.inference.stacking import BASE_MIN, bases_under
 from workbench.problem import Problem
 
@@ -32,12 +32,11 @@ SAME_M, SAME_RAD = 0.01, np.radians(10.0)
 LIFT = 0.005  # m; exchanged objects start this far above their old height, and physics sets them down
 
 
-def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples: list[ModelSamples],
-             reach: np.ndarray, radii: np.ndarray, viewpoint: np.ndarray, unexplained: Library | None = None
-             ) -> np.ndarray:
+def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples: list[ModelSamples],
+             reach: np.ndarray, radii: np.ndarray, unexplained: Library | None = None) -> np.ndarray:
     """Variants of the estimate (K, 4, 4):
     - one object turned by 90, 180 or 270 degrees about the vertical through its centre and refitted by ICP to the
-      observed points ``points`` (P, 3) near it, seen from ``viewpoint`` (3,) (``refine.refit``; ``reach`` (K,) m);
+      observed points ``cloud`` near it (``refine.refit``; ``reach`` (K,) m);
     - one object put on its best library candidate at one of its ``PER_OBJECT`` best places
       (``datadriven.place_order``), for every object and candidate that differs from its pose in the estimate,
       the objects it would sit inside moved out of its way (``seat``; ``radii`` (K,) m); the candidates of
@@ -50,7 +49,7 @@ def variants(estimate: np.ndarray, library: Library, points: np.ndarray, samples
     for k in range(K):
         turned = np.repeat(estimate[k][None], 3, axis=0)
         turned[:, :3, :3] = rot_z(np.pi / 2 * np.arange(1, 4)) @ estimate[k, :3, :3]
-        for T in refit(points, samples[k], reach[k], turned, viewpoint):
+        for T in refit(cloud, samples[k], reach[k], turned):
             scene = estimate.copy()
             scene[k] = T
             out.append(scene)

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from workbench.geometry import euler_to_matrix, invert_pose, make_pose, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
-from workbench.inference.scenepoints import ModelSamples
+from workbench.inference.scenepoints import ModelSamples, ScenePoints
 
 STAGES = (0.04, 0.02, 0.01)  # m; correspondence distances, coarse to fine
 JITTER_POS = 0.003  # m
@@ -23,6 +23,10 @@ PROPOSAL_POINTS = 200  # per ICP move: a refinement from near the object needs f
 NEAR = 0.02  # m; an object is fitted to the observed points within its horizontal reach plus this
 STILL_M, STILL_RAD = 1e-4, 1e-3  # a step this small (0.1 mm, 0.06 degrees) ends a stage
 JITTER_ANG = np.radians(1.5)
+# A scene point and a model sample whose normals differ by more than 60 degrees are no correspondence: a box's
+# vertical side beside a pair of scissors lying flat is not their top. Without it, ICP from the true pose of the
+# generated frames' scissors went 14 cm away, pulled by a neighbour's side (docs/benchmarks.md, "Observed normals").
+NORMAL_AGREEMENT = np.cos(np.radians(60.0))
 
 
 def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations: int = 8
@@ -36,7 +40,8 @@ def icp(scene: np.ndarray, samples: ModelSamples, T_init: np.ndarray, iterations
 
 def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarray, iterations: int = 8,
               max_points: int = MAX_POINTS, stages: tuple[float, ...] = STAGES,
-              viewpoint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              viewpoint: np.ndarray | None = None, normals: list[np.ndarray] | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """Fit one model (samples in its object frame) from S starts at once: start s at ``T_init[s]`` (4, 4, table
     frame) against its observed points ``scenes[s]`` (P_s, 3). Scene-to-model point-to-plane ICP, coarse to
     fine over the correspondence distances ``stages`` (m); a start leaves a stage when its step is negligible and
@@ -51,21 +56,27 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
     ``viewpoint`` (3,), the camera centre in the table frame: a scene point matched to the model's far side (a
     surface facing away from the camera, which the sensor cannot have seen) is no correspondence. Without it, an
     object lying on another pulls its hidden bottom onto the other's top: from its true pose, YCB-Video's pudding
-    box on the wood block slid 6 cm and turned 74 degrees."""
+    box on the wood block slid 6 cm and turned 74 degrees.
+
+    ``normals``: per scene, the observed surface's unit normals at its points (P_s, 3), table frame
+    (``ScenePoints.normals``): a scene point whose normal differs from its model sample's by more than 60 degrees
+    is no correspondence either (``NORMAL_AGREEMENT``)."""
     S = len(scenes)
     if S == 0:
         return np.zeros((0, 4, 4)), np.zeros(0, dtype=int)
     # Scene points are moved into the object frame; the model (its k-d tree) stays put.
     T_obj_world = invert_pose(np.asarray(T_init, dtype=np.float64)).reshape(S, 4, 4)
     # Evenly thinned: a few hundred points pin a pose down as well as thousands.
-    thin = [sc[np.linspace(0, len(sc) - 1, max_points).astype(int)] if len(sc) > max_points else sc
-            for sc in scenes]
+    every = [np.linspace(0, len(sc) - 1, max_points).astype(int) if len(sc) > max_points else slice(None)
+             for sc in scenes]
+    thin = [sc[i] for sc, i in zip(scenes, every)]
     sizes = np.array([len(sc) for sc in thin])
     inliers = np.zeros(S, dtype=int)
     alive = sizes >= 10  # fewer points cannot pin a pose: such starts stay where they are
     if not alive.any():
         return invert_pose(T_obj_world), inliers
     points = np.concatenate(thin)
+    scene_normals = None if normals is None else np.concatenate([n[i] for n, i in zip(normals, every)])
     owner = np.repeat(np.arange(S), sizes)
     tree = cKDTree(samples.points)
     for dist in stages:
@@ -79,10 +90,13 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
             p = np.einsum("nij,nj->ni", R, points[sel]) + t
             d, j = tree.query(p, distance_upper_bound=dist)
             ok = np.isfinite(d)
+            jj = np.where(ok, j, 0)
             if viewpoint is not None:
                 eye = np.einsum("nij,j->ni", R, viewpoint) + t  # the camera centre in the object frame
-                jj = np.where(ok, j, 0)
                 ok &= np.einsum("nd,nd->n", samples.normals[jj], eye - samples.points[jj]) > 0
+            if scene_normals is not None:
+                n_obj = np.einsum("nij,nj->ni", R, scene_normals[sel])  # the scene's normals in the object frame
+                ok &= np.einsum("nd,nd->n", samples.normals[jj], n_obj) > NORMAL_AGREEMENT
             count = np.bincount(own[ok], minlength=S)
             inliers[moving] = count[moving]
             lost = moving & (count < 6)
@@ -132,24 +146,24 @@ def jitter(rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
 
 
 def crops(points: np.ndarray, centres: np.ndarray, radius: float) -> list[np.ndarray]:
-    """For each centre (S, 3), the points (P, 3) within ``radius`` of it horizontally, in their original order
-    -> S arrays (Q_s, 3)."""
+    """For each centre (S, 3), the indices of the points (P, 3) within ``radius`` of it horizontally, in their
+    original order -> S arrays (Q_s,) int."""
     tree = cKDTree(points[:, :2])
-    return [points[i] for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
+    return [np.asarray(i, dtype=int) for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
 
 
-def refit(points: np.ndarray, samples: ModelSamples, reach: float, T: np.ndarray, viewpoint: np.ndarray
-          ) -> np.ndarray:
+def refit(cloud: ScenePoints, samples: ModelSamples, reach: float, T: np.ndarray) -> np.ndarray:
     """Poses T (S, 4, 4) of one object of horizontal ``reach`` (m), each refined by ICP on PROPOSAL_POINTS of
-    the observed points ``points`` (P, 3) near it, seen from ``viewpoint`` (3,) -> (S, 4, 4)."""
-    return icp_batch(crops(points, T[:, :3, 3], reach + NEAR), samples, T, max_points=PROPOSAL_POINTS,
-                     viewpoint=viewpoint)[0]
+    the observed points ``cloud`` near it, with their normals, seen from its viewpoint -> (S, 4, 4)."""
+    near = crops(cloud.points, T[:, :3, 3], reach + NEAR)
+    return icp_batch([cloud.points[i] for i in near], samples, T, max_points=PROPOSAL_POINTS,
+                     viewpoint=cloud.viewpoint, normals=[cloud.normals[i] for i in near])[0]
 
 
-def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarray, samples: list[ModelSamples],
-                reach: np.ndarray, weights: np.ndarray, viewpoint: np.ndarray, log_q: bool = True) -> Proposal:
-    """One object per particle (drawn by ``weights`` (K,)) is fitted by ICP to the observed points ``points``
-    (P, 3) near it, seen from ``viewpoint`` (3,) (``refit``; ``reach`` (K,) m), then jittered.
+def propose_icp(rng: np.random.Generator, parents: np.ndarray, cloud: ScenePoints, samples: list[ModelSamples],
+                reach: np.ndarray, weights: np.ndarray, log_q: bool = True) -> Proposal:
+    """One object per particle (drawn by ``weights`` (K,)) is fitted by ICP to the observed points ``cloud`` near
+    it (``refit``; ``reach`` (K,) m), then jittered.
     (B, K, 4, 4) -> Proposal.
 
     All particles that move the same object are fitted as one ``icp_batch``. The log-q correction needs a second
@@ -162,7 +176,7 @@ def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarra
     fitted = np.empty_like(T0)
     for k in np.unique(picks):
         sel = picks == k
-        fitted[sel] = refit(points, samples[k], reach[k], T0[sel], viewpoint)
+        fitted[sel] = refit(cloud, samples[k], reach[k], T0[sel])
     new = jitter(rng, fitted)
     out = parents.copy()
     out[rows, picks] = new
@@ -171,5 +185,5 @@ def propose_icp(rng: np.random.Generator, parents: np.ndarray, points: np.ndarra
     back = np.empty_like(T0)
     for k in np.unique(picks):
         sel = picks == k
-        back[sel] = refit(points, samples[k], reach[k], new[sel], viewpoint)
+        back[sel] = refit(cloud, samples[k], reach[k], new[sel])
     return Proposal(out, _log_kernel(T0, back) - _log_kernel(new, fitted))

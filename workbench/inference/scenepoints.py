@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from workbench.geometry import invert_pose, transform_points
 from workbench.problem import Problem
@@ -18,16 +19,19 @@ from workbench.problem import Problem
 MIN_HEIGHT = 0.006  # m; lower points are the table (noise, unevenness)
 EXPLAINED = 0.015  # m; an observed depth this close to a scene's surface is explained by it
 SEEN_THROUGH = 0.02  # m; an observed depth this far behind an object's surface sees through where it should be
+NORMAL_NEIGHBOURS = 12  # observed points whose plane gives a point's normal (a patch of about 5 mm at 1 m)
 
 
 @dataclass(frozen=True)
 class ScenePoints:
     """``points``: (P, 3) observed points above the table, table frame; ``pixels``: (P, 2) their (row, col) on the
-    problem grid; ``viewpoint``: (3,) the camera centre they were seen from, table frame."""
+    problem grid; ``viewpoint``: (3,) the camera centre they were seen from, table frame; ``normals``: (P, 3) unit
+    normals of the observed surface at each point, facing the viewpoint (``point_normals``)."""
 
     points: np.ndarray
     pixels: np.ndarray
     viewpoint: np.ndarray
+    normals: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -65,7 +69,23 @@ def observed_points(problem: Problem, max_height: float = 0.45) -> ScenePoints:
     keep = ((world[:, 2] > MIN_HEIGHT) & (world[:, 2] < max_height)
             & (world[:, 0] >= tb.x_min) & (world[:, 0] <= tb.x_max)
             & (world[:, 1] >= tb.y_min) & (world[:, 1] <= tb.y_max))
-    return ScenePoints(world[keep], np.stack([rows[keep], cols[keep]], axis=1), viewpoint(problem))
+    eye = viewpoint(problem)
+    return ScenePoints(world[keep], np.stack([rows[keep], cols[keep]], axis=1), eye, point_normals(world[keep], eye))
+
+
+def point_normals(points: np.ndarray, eye: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> np.ndarray:
+    """Unit normals (P, 3) of the surface through ``points`` (P, 3): the least-variance direction of each point's
+    ``neighbours`` nearest points, turned to face ``eye`` (3,), the camera centre (a sensor sees only surfaces that
+    face it). Where fewer points are given than ``neighbours``, all of them."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    _, idx = cKDTree(points).query(points, k=min(neighbours, len(points)))
+    near = points[idx.reshape(len(points), -1)]
+    near = near - near.mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("pki,pkj->pij", near, near))
+    n = vectors[:, :, 0]  # eigh sorts ascending: the first is the least-variance direction
+    n[np.einsum("pd,pd->p", n, eye - points) < 0] *= -1.0
+    return n
 
 
 def viewpoint(problem: Problem) -> np.ndarray:
