@@ -25,16 +25,16 @@ VIEWPORT = {"width": 1000, "height": 700}
 
 
 @pytest.fixture(scope="module")
-def workbench(tmp_path_factory):
+def workbench(tmp_path_factory, hidden_handle_dataset):
     from workbench.app.server import serve
     from workbench.inference.config import EstimatorConfig
 
-    # Three steps finish the run; at this seed the demo then has an object with a second mode.
-    handle = serve(demo=True, block=False, port=free_port(), workers=1,
+    # Three steps finish the run; the mug's hidden handle then leaves its heading open: several modes.
+    handle = serve(hidden_handle_dataset, block=False, port=free_port(), workers=1,
                    config=EstimatorConfig(particles=16, iterations=2),
                    sessions_dir=tmp_path_factory.mktemp("sessions"))
     try:
-        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the demo did not load"
+        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the frame did not load"
         assert handle.app.state.view is not None, handle.app.state.failures
         yield handle
         assert not handle.app.state.display_errors
