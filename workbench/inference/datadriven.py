@@ -23,7 +23,7 @@ from scipy.spatial import ConvexHull, QhullError
 from workbench.evaluation import run_here
 from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
 from workbench.inference.proposal import Proposal, pick_objects
-from workbench.inference.refine import NEAR, STAGES, crops, icp_batch
+from workbench.inference.refine import NEAR, STAGES, icp_batch, near
 from workbench.inference.resting import RestingPoses, height
 from workbench.inference.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, ScenePoints
 from workbench.problem import Problem
@@ -238,8 +238,7 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints
     if not starts:
         return []
     starts = np.stack(starts)
-    near = crops(cloud.points, starts[:, :3, 3], reach + NEAR)
-    points, normals = [cloud.points[i] for i in near], [cloud.normals[i] for i in near]
+    points, normals = near(cloud, starts[:, :3, 3], reach + NEAR)
     rough, _ = icp_batch(points, samples, starts, iterations=3, max_points=COARSE_POINTS, stages=STAGES[:1],
                          viewpoint=cloud.viewpoint, normals=normals)
     rough_score = fit_scores(problem, rough, samples)

@@ -152,12 +152,19 @@ def crops(points: np.ndarray, centres: np.ndarray, radius: float) -> list[np.nda
     return [np.asarray(i, dtype=int) for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
 
 
+def near(cloud: ScenePoints, centres: np.ndarray, radius: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """For each centre (S, 3), the observed points of ``cloud`` within ``radius`` (m) of it horizontally and their
+    normals, as ``icp_batch`` takes them -> (S arrays (Q_s, 3), S arrays (Q_s, 3))."""
+    crop = crops(cloud.points, centres, radius)
+    return [cloud.points[i] for i in crop], [cloud.normals[i] for i in crop]
+
+
 def refit(cloud: ScenePoints, samples: ModelSamples, reach: float, T: np.ndarray) -> np.ndarray:
     """Poses T (S, 4, 4) of one object of horizontal ``reach`` (m), each refined by ICP on PROPOSAL_POINTS of
     the observed points ``cloud`` near it, with their normals, seen from its viewpoint -> (S, 4, 4)."""
-    near = crops(cloud.points, T[:, :3, 3], reach + NEAR)
-    return icp_batch([cloud.points[i] for i in near], samples, T, max_points=PROPOSAL_POINTS,
-                     viewpoint=cloud.viewpoint, normals=[cloud.normals[i] for i in near])[0]
+    points, normals = near(cloud, T[:, :3, 3], reach + NEAR)
+    return icp_batch(points, samples, T, max_points=PROPOSAL_POINTS, viewpoint=cloud.viewpoint,
+                     normals=normals)[0]
 
 
 def propose_icp(rng: np.random.Generator, parents: np.ndarray, cloud: ScenePoints, samples: list[ModelSamples],
