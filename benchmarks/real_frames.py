@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from workbench.estimators import Estimator
+from workbench.cli import clutter_floor_arg
 from workbench.evaluation import LocalEvaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
@@ -116,6 +117,8 @@ def main() -> None:
     ap.add_argument("--free-space", type=float, default=LikelihoodConfig.free_space,
                     help="robust: a reading behind the predicted surface this many times less likely than one in "
                          "front (LikelihoodConfig.free_space)")
+    ap.add_argument("--clutter-floor", type=clutter_floor_arg, default=LikelihoodConfig.clutter_floor,
+                    help="robust: what an uncovered reading in front of the table scores at least; 'none': off")
     ap.add_argument("--out", type=Path, help="JSON lines, one per frame")
     args = ap.parse_args()
     frames = ([tuple(map(int, f.split(":"))) for f in args.frames] if args.frames
@@ -125,7 +128,8 @@ def main() -> None:
     results = []
     for scene_id, im_id in frames:
         r = run_frame(args.dataset, scene_id, im_id, config, args.workers, ProblemConfig(
-            likelihood=LikelihoodConfig(model=args.likelihood, free_space=args.free_space)))
+            likelihood=LikelihoodConfig(model=args.likelihood, free_space=args.free_space,
+                                      clutter_floor=args.clutter_floor)))
         results.append(r)
         line = json.dumps(r)
         print(line, flush=True)

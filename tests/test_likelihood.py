@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from workbench.errors import InputError
-from workbench.render.likelihood import LikelihoodConfig, pixel_loglik, predicted_depth, scene_loglik
+from workbench.render.likelihood import LikelihoodConfig, pixel_loglik, scene_loglik
 
 
 def _scene():
@@ -25,30 +25,31 @@ def test_the_true_scene_is_more_likely(model):
 
 
 @pytest.mark.parametrize("model", ["robust", "ssd"])
-def test_sparse_scene_loglik_equals_the_dense_sum(model):
+@pytest.mark.parametrize("floor", [None, 2.0])
+def test_sparse_scene_loglik_equals_the_dense_sum(model, floor):
     rng = np.random.default_rng(0)
     observed = rng.uniform(0.5, 1.0, (20, 30)).astype(np.float32)
     observed[rng.random((20, 30)) < 0.1] = 0.0
     background = np.where(rng.random((20, 30)) < 0.8, 1.0, 0.0).astype(np.float32)
     rendered = np.where(rng.random((5, 20, 30)) < 0.3, rng.uniform(0.5, 1.0, (5, 20, 30)), 0.0).astype(np.float32)
-    cfg = LikelihoodConfig(model=model)
-    dense = pixel_loglik(observed, predicted_depth(rendered, background), cfg).sum(axis=(1, 2), dtype=np.float64)
+    cfg = LikelihoodConfig(model=model, clutter_floor=floor)
+    dense = pixel_loglik(observed, background, rendered, cfg).sum(axis=(1, 2), dtype=np.float64)
     assert np.allclose(scene_loglik(observed, background, rendered, cfg), dense, rtol=1e-5)
 
 
 def test_pixels_without_a_reading_are_ignored():
     observed, background, rendered = _scene()
-    pred = predicted_depth(rendered, background)
-    pred[:, 0, :] = 5.0  # whatever is predicted where the sensor saw nothing must not matter
-    ll = pixel_loglik(observed, pred, LikelihoodConfig())
+    rendered[:, 0, :] = 5.0  # whatever is drawn where the sensor saw nothing must not matter
+    ll = pixel_loglik(observed, background, rendered, LikelihoodConfig())
     assert np.all(ll[:, 0, :] == 0)
 
 
 def test_robust_model_bounds_the_cost_of_an_outlier_pixel():
     cfg = LikelihoodConfig()
     observed = np.array([[1.0, 1.0]], np.float32)
-    near = pixel_loglik(observed, np.array([[[1.0, 1.5]]], np.float32), cfg)
-    far = pixel_loglik(observed, np.array([[[1.0, 50.0]]], np.float32), cfg)
+    table = np.zeros_like(observed)
+    near = pixel_loglik(observed, table, np.array([[[1.0, 1.5]]], np.float32), cfg)
+    far = pixel_loglik(observed, table, np.array([[[1.0, 50.0]]], np.float32), cfg)
     assert np.isclose(near[0, 0, 1], far[0, 0, 1])  # both are pure outliers
     assert near[0, 0, 0] > near[0, 0, 1]
 
@@ -60,6 +61,8 @@ def test_bad_settings_are_named():
         LikelihoodConfig(model="l1").validate()
     with pytest.raises(InputError, match="free_space"):
         LikelihoodConfig(free_space=0.0).validate()
+    with pytest.raises(InputError, match="clutter_floor"):
+        LikelihoodConfig(clutter_floor=float("nan")).validate()
 
 
 def test_a_free_space_violation_costs_more_than_an_occluding_reading():
@@ -67,9 +70,10 @@ def test_a_free_space_violation_costs_more_than_an_occluding_reading():
     unmodelled occluder): the symmetric mixture scores them alike, the free-space term lowers the first."""
     observed = np.array([[1.1, 0.9]], np.float32)
     predicted = np.array([[[1.0, 1.0]]], np.float32)
-    symmetric = pixel_loglik(observed, predicted, LikelihoodConfig(free_space=1.0))[0, 0]
+    table = np.zeros_like(observed)
+    symmetric = pixel_loglik(observed, table, predicted, LikelihoodConfig(free_space=1.0))[0, 0]
     assert np.isclose(symmetric[0], symmetric[1])
-    free = pixel_loglik(observed, predicted, LikelihoodConfig(free_space=0.1))[0, 0]
+    free = pixel_loglik(observed, table, predicted, LikelihoodConfig(free_space=0.1))[0, 0]
     assert free[1] == pytest.approx(symmetric[1])
     assert free[0] == pytest.approx(symmetric[0] + np.log(0.1), abs=1e-3)
     # The same in a scene: an object drawn over a hole in it (the table seen through it) loses, one drawn where
@@ -82,3 +86,24 @@ def test_a_free_space_violation_costs_more_than_an_occluding_reading():
     assert scene_loglik(observed, background, through, cfg)[0] < \
         base + (scene_loglik(observed, background, through, LikelihoodConfig())[0]
                 - scene_loglik(observed, background, rendered[:1], LikelihoodConfig())[0])
+
+
+def test_an_object_gains_on_unmodelled_clutter_only_where_its_surface_fits_it():
+    """A 10 cm distractor nobody modelled, and three hypotheses: nothing drawn on it, an object whose top is 3 cm
+    off the distractor's, and one whose top is 5 mm off. Without the clutter floor, covering the distractor badly
+    still beats leaving it (an unexplained reading is an outlier); with it, only the close fit gains, and the
+    pixels off the distractor (the table) score as before."""
+    observed = np.full((20, 30), 1.0, np.float32)
+    observed[5:10, 5:10] = 0.9  # the distractor
+    background = np.full((20, 30), 1.0, np.float32)
+    rendered = np.zeros((3, 20, 30), np.float32)
+    rendered[1, 5:10, 5:10] = 0.93
+    rendered[2, 5:10, 5:10] = 0.905
+    plain = scene_loglik(observed, background, rendered, LikelihoodConfig())
+    floor = scene_loglik(observed, background, rendered, LikelihoodConfig(clutter_floor=2.0))
+    assert plain[1] > plain[0] and plain[2] > plain[1]
+    assert floor[1] < floor[0] < floor[2]
+    assert floor[0] > plain[0]  # the distractor's pixels now score the floor, not the outlier term
+    pixels = pixel_loglik(observed, background, rendered[:1], LikelihoodConfig(clutter_floor=2.0))[0]
+    assert np.allclose(pixels[5:10, 5:10], 2.0)
+    assert np.allclose(pixels[12:], pixel_loglik(observed, background, rendered[:1], LikelihoodConfig())[0, 12:])

@@ -101,7 +101,7 @@ def test_session_before_the_first_step_and_every_setting_roundtrip(loaded, tmp_p
         max_render_pixels=4000,
         physics=PhysicsConfig(timestep=1 / 500, max_steps=321, cone_friction=False,
                               shape_overrides=((problem.models[0].obj_id, "convex"),)),
-        likelihood=LikelihoodConfig(model="ssd", sigma=0.007),
+        likelihood=LikelihoodConfig(model="ssd", sigma=0.007, clutter_floor=1.5),
         render=RenderConfig(max_framebuffer=1024, max_depth_error=2e-3))
     config = EstimatorConfig(method="mcpf", particles=24, iterations=9, sigma=Sigma(roll=0.1), state="xyzyaw",
                              seed=3, target_ess=0.5, converge_patience=5)
@@ -237,19 +237,42 @@ def test_damaged_session_is_refused_and_nothing_changes(saved, tmp_path, case):
         assert listed["base"].problem
 
 
+def _copied(saved, tmp_path):
+    """The saved session copied to a folder of its own -> the copy's JSON path."""
+    folder, original = saved
+    shutil.copytree(folder, tmp_path / "sessions")
+    return tmp_path / "sessions" / original.name
+
+
 def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
-    folder, original = saved
-    work = tmp_path / "sessions"
-    shutil.copytree(folder, work)
-    json_path = work / original.name
+    json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 3 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == 4 and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
     json_path.write_text(json.dumps(doc))  # a format-2 or later file must carry the setting
     with pytest.raises(InputError, match="sleep_calm"):
+        load_session(json_path)
+
+
+def test_format_3_session_loads_without_the_clutter_floor_it_ran_without(saved, tmp_path):
+    # Format 3 predates LikelihoodConfig.clutter_floor: its sessions scored unexplained readings as outliers.
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    doc["problem_config"]["likelihood"]["clutter_floor"] = 2.0
+    json_path.write_text(json.dumps(doc))
+    assert load_session(json_path).problem_config.likelihood.clutter_floor == 2.0
+    del doc["problem_config"]["likelihood"]["clutter_floor"]
+    json_path.write_text(json.dumps({**doc, "format_version": 3}))
+    assert load_session(json_path).problem_config.likelihood.clutter_floor is None
+    json_path.write_text(json.dumps(doc))  # a format-4 file must carry the setting
+    with pytest.raises(InputError, match="clutter_floor"):
+        load_session(json_path)
+    doc["problem_config"]["likelihood"]["clutter_floor"] = "high"
+    json_path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="clutter_floor"):
         load_session(json_path)
 
 

@@ -34,6 +34,10 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
                    help="default: data-driven starts and moves (one object at a time, resting faces, turns, "
                         "stacking, ICP); paper: random starts and Gaussian diffusion only, as Desingh et al.")
     p.add_argument("--likelihood", choices=("robust", "ssd"), default="robust")
+    p.add_argument("--clutter-floor", type=clutter_floor_arg, default=LikelihoodConfig.clutter_floor,
+                   metavar="LOG_DENSITY",
+                   help="robust likelihood: what a reading in front of the table that no object covers (unmodelled "
+                        "clutter) scores at least, e.g. 2 (default 'none': an outlier; see README, The likelihood)")
     p.add_argument("--sigma-pos", type=float, default=0.01, help="diffusion of x and y, metres")
     p.add_argument("--sigma-z", type=float, default=0.01, help="diffusion of elevation, metres")
     p.add_argument("--sigma-deg", type=float, default=5.0, help="diffusion of roll, pitch, yaw, degrees")
@@ -83,8 +87,19 @@ def ray_config(args: argparse.Namespace):
     return RayConfig(address=args.ray_address, max_retries=retries)
 
 
+def clutter_floor_arg(text: str) -> float | None:
+    """``--clutter-floor``: a number, or "none"."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a log-density or 'none', got {text!r}") from None
+
+
 def problem_config(args: argparse.Namespace) -> ProblemConfig:
-    return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=LikelihoodConfig(model=args.likelihood))
+    likelihood = LikelihoodConfig(model=args.likelihood, clutter_floor=args.clutter_floor)
+    return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=likelihood)
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:

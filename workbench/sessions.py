@@ -62,10 +62,11 @@ from workbench.outputs import check_creatable, check_output_file, dataset_folder
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
-FORMAT_VERSION = 3
-# Settings added since format 1, with the values format-1 sessions ran with (not today's defaults): a restored
-# session steps as it did when saved.
+FORMAT_VERSION = 4
+# Settings added since format 1 (3), with the values format-1 (-3) sessions ran with (not today's defaults): a
+# restored session steps as it did when saved.
 FORMAT_1_PHYSICS = {"sleep_calm": False}
+FORMAT_3_LIKELIHOOD = {"clutter_floor": None}
 KIND = "workbench-session"
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 ARRAYS_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}\.[0-9a-f]{16}\.npz")
@@ -442,19 +443,22 @@ def _read_document(path: Path) -> dict:
         raise InputError(path, f"written by a newer workbench (session format {version}; this one reads up to "
                                f"{FORMAT_VERSION}): update the workbench to open it")
     if version == 1:
-        _upgrade_format_1(document)
+        _fill_settings(document, "physics", FORMAT_1_PHYSICS)
     if version <= 2:
         _upgrade_format_2(document)
+    if version <= 3:
+        _fill_settings(document, "likelihood", FORMAT_3_LIKELIHOOD)
     return document
 
 
-def _upgrade_format_1(document: dict) -> None:
-    """Fill in the physics settings format 1 lacked with the values its sessions ran with (in place)."""
+def _fill_settings(document: dict, part: str, values: dict) -> None:
+    """Fill in the ``problem_config.<part>`` settings an older format lacked with ``values``, the ones its sessions
+    ran with (in place); a malformed document is left for ``config_from_dict`` to report."""
     config = document.get("problem_config")
-    physics = config.get("physics") if isinstance(config, dict) else None
-    if isinstance(physics, dict):
-        for name, value in FORMAT_1_PHYSICS.items():
-            physics.setdefault(name, value)
+    settings = config.get(part) if isinstance(config, dict) else None
+    if isinstance(settings, dict):
+        for name, value in values.items():
+            settings.setdefault(name, value)
 
 
 def _upgrade_format_2(document: dict) -> None:
@@ -702,8 +706,10 @@ def config_from_dict(cls, data, where: str):
         tp, v, at = hints[name], data[name], f"{where}.{name}"
         if is_dataclass(tp):
             kwargs[name] = config_from_dict(tp, v, at)
-        elif tp is float:
+        elif tp is float or (tp == float | None and v is not None):
             kwargs[name] = _float(v, at)
+        elif tp == float | None:
+            kwargs[name] = None
         elif tp is int:
             kwargs[name] = _int(v, at)
         elif tp is str:

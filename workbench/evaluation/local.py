@@ -13,7 +13,7 @@ from workbench.evaluation.base import Done, Evaluation, check_sink, in_region, r
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
 from workbench.render.depth import DepthRenderer
-from workbench.render.likelihood import pixel_loglik, predicted_depth
+from workbench.render.likelihood import pixel_loglik
 from workbench.render.shared import draw_shared, drawn_loglik
 
 
@@ -83,9 +83,7 @@ class LocalEvaluator:
         """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
         log-likelihood (h, w)) on the problem's grid."""
         rendered = self.renderer.render(T_world_obj[None])
-        pixels = pixel_loglik(
-            self.problem.observed, predicted_depth(rendered, self.problem.background), self.problem.config.likelihood
-        )
+        pixels = pixel_loglik(self.problem.observed, self.problem.background, rendered, self.problem.config.likelihood)
         return rendered[0], pixels[0]
 
     def close(self) -> None:

@@ -111,7 +111,7 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
     cover = np.nonzero(np.any(np.concatenate(depths) > 0, axis=0))[0]
     depths = [d[:, cover] for d in depths]
     observed = problem.observed.reshape(1, -1)[:, cover]
-    background = problem.background.reshape(-1)[cover]
+    background = problem.background.reshape(1, -1)[:, cover]
     config = problem.config.likelihood
     clash = {(i, j): conflicts(poses[i], solids[ks[i]], poses[j], solids[ks[j]])
              for i in range(len(ks)) for j in range(i)}
@@ -125,8 +125,7 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
             d = depths[i][ok]
             nearer = (d > 0) & ((joint == 0) | (d < joint))
             merged = np.where(nearer, d, joint)  # (n_ok, P)
-            predicted = np.where(merged > 0, merged, background)
-            score = pixel_loglik(observed, predicted[:, None], config)[:, 0].sum(axis=1, dtype=np.float64)
+            score = pixel_loglik(observed, background, merged[:, None], config)[:, 0].sum(axis=1, dtype=np.float64)
             grown += [(float(sc), np.append(chosen, c), m) for sc, c, m in zip(score, np.nonzero(ok)[0], merged)]
         if not grown:  # every candidate sits inside an assigned object: no consistent assignment from here
             return np.zeros((0,) + base.shape)

@@ -8,8 +8,11 @@ Two models, selected by ``LikelihoodConfig.model``:
   not symmetric: a reading in front of the predicted surface is something unmodelled occluding it (clutter, a
   hand), while a reading behind it means the sensor saw through the predicted surface, into space the hypothesis
   says is solid. That free-space violation is ``free_space`` times less likely than an occluding outlier.
+  With ``clutter_floor`` set, a reading that no object is drawn on and that lies in front of the table (or off
+  it) is unmodelled clutter: it scores at least ``clutter_floor``, so an object drawn over clutter gains only by
+  what its own surface explains better than that (``background_loglik``).
 Observed pixels with no reading (0) are ignored by both. The prediction at a pixel is the rendered object depth,
-else the table-plane depth, else nothing (a pixel no hypothesis explains: outlier for every particle alike).
+else the table-plane depth, else nothing (a pixel no hypothesis explains: an outlier for every particle alike).
 """
 
 from __future__ import annotations
@@ -29,6 +32,13 @@ class LikelihoodConfig:
     # robust only: the outlier density of a reading behind the predicted surface (seen through it) over that of a
     # reading in front of it (occluded). 1: the symmetric mixture.
     free_space: float = 1.0
+    # robust only: the log-density (1/m) at least that a reading in front of the table (or off it) which no object
+    # covers scores, as unmodelled clutter. Without it such a pixel is an outlier (about -3.4) and an object
+    # laid over a tall distractor gains about 7 per pixel, which outweighs a thin object's own pixels (about 1.3
+    # each). At 2 an object gains on a clutter pixel only where its surface lies within about 1.8 sigma of the
+    # reading. None (the default): no floor. The floor also takes most of an object's gain for explaining its
+    # own readings, and the search then misses more than it wins: docs/benchmarks.md, "A clutter floor".
+    clutter_floor: float | None = None
 
     def validate(self) -> None:
         from workbench.errors import InputError
@@ -41,6 +51,9 @@ class LikelihoodConfig:
             raise InputError("likelihood.outlier_prob", f"must lie in (0, 1), got {self.outlier_prob}")
         if not 0.0 < self.free_space <= 1.0:
             raise InputError("likelihood.free_space", f"must lie in (0, 1], got {self.free_space}")
+        if self.clutter_floor is not None and not np.isfinite(self.clutter_floor):
+            raise InputError("likelihood.clutter_floor", f"must be a finite log-density or None, got "
+                                                         f"{self.clutter_floor}")
 
 
 def predicted_depth(rendered: np.ndarray, background: np.ndarray) -> np.ndarray:
@@ -64,11 +77,26 @@ def _loglik(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.n
     return np.log(np.where(pred > 0, inlier, 0.0) + outlier)
 
 
-def pixel_loglik(observed: np.ndarray, predicted: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
-    """Per-pixel log-likelihood. ``observed``: (H, W); ``predicted``: (B, H, W)
+def background_loglik(obs: np.ndarray, background: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
+    """Log-likelihood of readings ``obs`` (> 0) where no object is drawn, given the table depth ``background``
+    there (same shape, 0 = off the table): the table term, raised to ``clutter_floor`` where the reading lies in
+    front of the table or off it (unmodelled clutter). float32 in, float32 out."""
+    ll = _loglik(obs, background, config)
+    if config.model == "ssd" or config.clutter_floor is None:
+        return ll
+    clutter = (background == 0) | (obs < background)
+    return np.where(clutter, np.maximum(ll, np.float32(config.clutter_floor)), ll)
+
+
+def pixel_loglik(observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig
+                 ) -> np.ndarray:
+    """Per-pixel log-likelihood. ``observed``, ``background``: (H, W); ``rendered``: (B, H, W), 0 = no object
     -> (B, H, W) float32, 0 where the observation has no reading."""
-    obs = np.broadcast_to(observed.astype(np.float32)[None], predicted.shape)
-    ll = _loglik(obs, predicted.astype(np.float32), config)
+    observed = observed.astype(np.float32)
+    obs = np.broadcast_to(observed[None], rendered.shape)
+    rendered = rendered.astype(np.float32)
+    table = background_loglik(observed, background.astype(np.float32), config)[None]
+    ll = np.where(rendered > 0, _loglik(obs, rendered, config), table)
     return np.where(obs > 0, ll, 0.0).astype(np.float32)
 
 
@@ -84,7 +112,7 @@ def scene_loglik(
     obs = observed.astype(np.float32).ravel()
     bg = background.astype(np.float32).ravel()
     valid = obs > 0
-    table_ll = np.where(valid, _loglik(obs, bg, config), 0.0)  # (P,)
+    table_ll = np.where(valid, background_loglik(obs, bg, config), 0.0)  # (P,)
     flat = rendered.reshape(len(rendered), -1)
     b, p = np.nonzero((flat > 0) & valid[None])
     delta = _loglik(obs[p], flat[b, p], config) - table_ll[p]
@@ -99,8 +127,12 @@ def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.nda
     computed, which for one object moved in a scene of several is a fraction of the covered pixels."""
     obs = observed.astype(np.float32).ravel()
     under = base.ravel()
-    before = np.where(under > 0, under, background.astype(np.float32).ravel())  # the prediction without ``own``
     flat = own.reshape(len(own), -1)
     b, p = np.nonzero((flat > 0) & (obs > 0)[None] & ((under == 0)[None] | (flat < under[None])))
-    delta = _loglik(obs[p], flat[b, p], config) - _loglik(obs[p], before[p], config)
+    before = np.empty(len(p), np.float32)  # each pixel's term without ``own``: what ``base`` drew there, else table
+    drawn = under[p] > 0
+    before[drawn] = _loglik(obs[p[drawn]], under[p[drawn]], config)
+    bare = p[~drawn]
+    before[~drawn] = background_loglik(obs[bare], background.astype(np.float32).ravel()[bare], config)
+    delta = _loglik(obs[p], flat[b, p], config) - before
     return np.bincount(b, weights=delta, minlength=len(own))
