@@ -81,10 +81,16 @@ def background_loglik(obs: np.ndarray, background: np.ndarray, config: Likelihoo
     """Log-likelihood of readings ``obs`` (> 0) where no object is drawn, given the table depth ``background``
     there (same shape, 0 = off the table): the table term, raised to ``clutter_floor`` where the reading lies in
     front of the table or off it (unmodelled clutter). float32 in, float32 out."""
-    ll = _loglik(obs, background, config)
+    return _clutter_floor(_loglik(obs, background, config), obs, background, config)
+
+
+def _clutter_floor(ll: np.ndarray, obs: np.ndarray, background: np.ndarray, config: LikelihoodConfig,
+                   bare: np.ndarray | bool = True) -> np.ndarray:
+    """``ll``, the table's term at pixels with readings ``obs`` and table depths ``background`` (same shape), raised
+    to ``clutter_floor`` where the pixel is ``bare`` (no object drawn) and the reading is clutter."""
     if config.model == "ssd" or config.clutter_floor is None:
         return ll
-    clutter = (background == 0) | (obs < background)
+    clutter = bare & ((background == 0) | (obs < background))
     return np.where(clutter, np.maximum(ll, np.float32(config.clutter_floor)), ll)
 
 
@@ -129,10 +135,8 @@ def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.nda
     under = base.ravel()
     flat = own.reshape(len(own), -1)
     b, p = np.nonzero((flat > 0) & (obs > 0)[None] & ((under == 0)[None] | (flat < under[None])))
-    before = np.empty(len(p), np.float32)  # each pixel's term without ``own``: what ``base`` drew there, else table
-    drawn = under[p] > 0
-    before[drawn] = _loglik(obs[p[drawn]], under[p[drawn]], config)
-    bare = p[~drawn]
-    before[~drawn] = background_loglik(obs[bare], background.astype(np.float32).ravel()[bare], config)
+    table = background.astype(np.float32).ravel()[p]
+    before = _clutter_floor(_loglik(obs[p], np.where(under[p] > 0, under[p], table), config),  # without ``own``
+                            obs[p], table, config, under[p] == 0)
     delta = _loglik(obs[p], flat[b, p], config) - before
     return np.bincount(b, weights=delta, minlength=len(own))
