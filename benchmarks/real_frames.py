@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.estimators import Estimator
 from workbench.cli import clutter_floor_arg
+from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig

@@ -63,8 +63,8 @@ from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
 FORMAT_VERSION = 4
-# Settings added since format 1 (3), with the values format-1 (-3) sessions ran with (not today's defaults): a
-# restored session steps as it did when saved.
+# Settings a format lacked, with the values its sessions ran with (not today's defaults), so that a restored session
+# steps as it did when saved: the physics' since format 2, the likelihood's since format 4.
 FORMAT_1_PHYSICS = {"sleep_calm": False}
 FORMAT_3_LIKELIHOOD = {"clutter_floor": None}
 KIND = "workbench-session"
@@ -706,10 +706,10 @@ def config_from_dict(cls, data, where: str):
         tp, v, at = hints[name], data[name], f"{where}.{name}"
         if is_dataclass(tp):
             kwargs[name] = config_from_dict(tp, v, at)
-        elif tp is float or (tp == float | None and v is not None):
+        elif tp is float:
             kwargs[name] = _float(v, at)
         elif tp == float | None:
-            kwargs[name] = None
+            kwargs[name] = None if v is None else _float(v, at)
         elif tp is int:
             kwargs[name] = _int(v, at)
         elif tp is str:
