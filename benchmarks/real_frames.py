@@ -118,7 +118,7 @@ def main() -> None:
                     help="robust: a reading behind the predicted surface this many times less likely than one in "
                          "front (LikelihoodConfig.free_space)")
     ap.add_argument("--clutter-floor", type=clutter_floor_arg, default=LikelihoodConfig.clutter_floor,
-                    help="robust: what an uncovered reading in front of the table scores at least; 'none': off")
+                    help="robust: what a reading of an unclaimed piece of clutter scores at least; 'none': off")
     ap.add_argument("--out", type=Path, help="JSON lines, one per frame")
     args = ap.parse_args()
     frames = ([tuple(map(int, f.split(":"))) for f in args.frames] if args.frames

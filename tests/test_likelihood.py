@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from workbench.errors import InputError
-from workbench.render.likelihood import LikelihoodConfig, pixel_loglik, scene_loglik
+from workbench.render.likelihood import LikelihoodConfig, clutter_segments, pixel_loglik, scene_loglik
 
 
 def _scene():
@@ -29,6 +29,8 @@ def test_the_true_scene_is_more_likely(model):
 def test_sparse_scene_loglik_equals_the_dense_sum(model, floor):
     rng = np.random.default_rng(0)
     observed = rng.uniform(0.5, 1.0, (20, 30)).astype(np.float32)
+    observed[2:8, 3:12] = 0.9  # pieces of clutter, for the floor
+    observed[10:18, 15:28] = 0.8
     observed[rng.random((20, 30)) < 0.1] = 0.0
     background = np.where(rng.random((20, 30)) < 0.8, 1.0, 0.0).astype(np.float32)
     rendered = np.where(rng.random((5, 20, 30)) < 0.3, rng.uniform(0.5, 1.0, (5, 20, 30)), 0.0).astype(np.float32)
@@ -88,22 +90,42 @@ def test_a_free_space_violation_costs_more_than_an_occluding_reading():
                 - scene_loglik(observed, background, rendered[:1], LikelihoodConfig())[0])
 
 
-def test_an_object_gains_on_unmodelled_clutter_only_where_its_surface_fits_it():
-    """A 10 cm distractor nobody modelled, and three hypotheses: nothing drawn on it, an object whose top is 3 cm
-    off the distractor's, and one whose top is 5 mm off. Without the clutter floor, covering the distractor badly
-    still beats leaving it (an unexplained reading is an outlier); with it, only the close fit gains, and the
-    pixels off the distractor (the table) score as before."""
-    observed = np.full((20, 30), 1.0, np.float32)
-    observed[5:10, 5:10] = 0.9  # the distractor
-    background = np.full((20, 30), 1.0, np.float32)
-    rendered = np.zeros((3, 20, 30), np.float32)
-    rendered[1, 5:10, 5:10] = 0.93
-    rendered[2, 5:10, 5:10] = 0.905
-    plain = scene_loglik(observed, background, rendered, LikelihoodConfig())
-    floor = scene_loglik(observed, background, rendered, LikelihoodConfig(clutter_floor=2.0))
-    assert plain[1] > plain[0] and plain[2] > plain[1]
-    assert floor[1] < floor[0] < floor[2]
+def test_an_object_gains_on_unmodelled_clutter_only_by_explaining_all_of_it():
+    """A 10 cm distractor nobody modelled, and hypotheses: nothing drawn on it; an object whose top fits all of it
+    within 5 mm; one that fits a third of it (a thin object laid on part of a box); one drawn behind it, hidden by
+    it. Without the clutter floor, covering part of the distractor beats leaving it (an unexplained reading is an
+    outlier). With it, the bare distractor scores the floor and a piece the objects claim part of loses it: only
+    explaining all of it gains, and an object hidden behind clutter costs nothing there."""
+    observed = np.full((30, 30), 1.0, np.float32)
+    observed[5:15, 5:15] = 0.9  # the distractor
+    background = np.full((30, 30), 1.0, np.float32)
+    rendered = np.zeros((4, 30, 30), np.float32)
+    rendered[1, 5:15, 5:15] = 0.905
+    rendered[2, 5:8, 5:15] = 0.905
+    rendered[3, 5:15, 5:15] = 0.95
+    plain_cfg, cfg = LikelihoodConfig(), LikelihoodConfig(clutter_floor=2.0)
+    plain = scene_loglik(observed, background, rendered, plain_cfg)
+    floor = scene_loglik(observed, background, rendered, cfg)
+    assert plain[2] > plain[0]
+    assert floor[2] < floor[0] < floor[1]
+    assert floor[3] == pytest.approx(floor[0])
     assert floor[0] > plain[0]  # the distractor's pixels now score the floor, not the outlier term
-    pixels = pixel_loglik(observed, background, rendered[:1], LikelihoodConfig(clutter_floor=2.0))[0]
-    assert np.allclose(pixels[5:10, 5:10], 2.0)
-    assert np.allclose(pixels[12:], pixel_loglik(observed, background, rendered[:1], LikelihoodConfig())[0, 12:])
+    pixels, plain_pixels = (pixel_loglik(observed, background, rendered, c) for c in (cfg, plain_cfg))
+    assert np.allclose(pixels[0, 5:15, 5:15], 2.0)
+    assert np.allclose(pixels[2, 8:15, 5:15], plain_pixels[2, 8:15, 5:15])  # claimed: no floor on the rest
+    assert np.allclose(pixels[:, 20:], plain_pixels[:, 20:])  # the bare table, as before
+
+
+def test_clutter_pieces_are_joined_readings_in_front_of_the_table():
+    """Two boxes standing on the table, a step of 5 cm between two halves of one, and a speck of noise: three
+    pieces (the step splits one); the table and the speck are not clutter."""
+    observed = np.full((40, 40), 1.0, np.float32)
+    observed[5:15, 5:15] = 0.9
+    observed[5:15, 15:25] = 0.85  # 5 cm nearer than its neighbour: another piece
+    observed[25:35, 30:40] = 0.95
+    observed[30, 10] = 0.8  # speckle
+    observed[0, :] = 0.0
+    pieces = clutter_segments(observed, np.full((40, 40), 1.0, np.float32), LikelihoodConfig())
+    assert len(np.unique(pieces[pieces >= 0])) == 3
+    assert pieces[30, 10] == -1 and pieces[20, 20] == -1
+    assert pieces[10, 10] != pieces[10, 20] and (pieces[5:15, 5:15] == pieces[10, 10]).all()

@@ -36,8 +36,8 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--likelihood", choices=("robust", "ssd"), default="robust")
     p.add_argument("--clutter-floor", type=clutter_floor_arg, default=LikelihoodConfig.clutter_floor,
                    metavar="LOG_DENSITY",
-                   help="robust likelihood: what a reading in front of the table that no object covers (unmodelled "
-                        "clutter) scores at least, e.g. 2 (default 'none': an outlier; see README, The likelihood)")
+                   help="robust likelihood: what a reading of a piece of unmodelled clutter that the objects do not "
+                        "claim scores at least, e.g. 2 (default 'none': an outlier; see README, The likelihood)")
     p.add_argument("--sigma-pos", type=float, default=0.01, help="diffusion of x and y, metres")
     p.add_argument("--sigma-z", type=float, default=0.01, help="diffusion of elevation, metres")
     p.add_argument("--sigma-deg", type=float, default=5.0, help="diffusion of roll, pitch, yaw, degrees")

@@ -73,7 +73,7 @@ def snap_to_plausible(problem: Problem, T_world_obj: np.ndarray, evaluator: Loca
 def scene_logliks(problem: Problem, evaluator: LocalEvaluator, scenes: np.ndarray) -> np.ndarray:
     """Log-likelihood of scenes (B, K, 4, 4) exactly as given, without physics -> (B,)."""
     rendered = evaluator.renderer.render(scenes)
-    return scene_loglik(problem.observed, problem.background, rendered, problem.config.likelihood)
+    return scene_loglik(problem.observed, problem.background, rendered, problem.config.likelihood, problem.clutter)
 
 
 def fit_label(problem: Problem, T_world_obj: np.ndarray, evaluator: LocalEvaluator | None = None,

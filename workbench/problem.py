@@ -8,6 +8,7 @@ The observation is cropped to a region of interest around the objects and reduce
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -15,7 +16,7 @@ from workbench.errors import InputError
 from workbench.geometry import invert_pose, transform_points
 from workbench.physics import PhysicsConfig
 from workbench.render.depth import RenderConfig
-from workbench.render.likelihood import LikelihoodConfig
+from workbench.render.likelihood import LikelihoodConfig, clutter_segments
 from workbench.scene import Camera, Frame, ObjectModel, Table
 
 
@@ -53,6 +54,11 @@ class Problem:
     @property
     def n_objects(self) -> int:
         return len(self.models)
+
+    @cached_property
+    def clutter(self) -> np.ndarray:
+        """(h, w) int32: the observation's pieces of possible clutter (``clutter_segments``), found once."""
+        return clutter_segments(self.observed, self.background, self.config.likelihood)
 
 
 def region_of_interest(camera: Camera, table: Table, models: list[ObjectModel]) -> tuple[int, int, int, int]:

@@ -64,7 +64,7 @@ class LocalEvaluator:
         t2 = time.perf_counter()
         if drawn is not None:
             loglik[ok] = drawn_loglik(drawn, self.problem.observed, self.problem.background,
-                                      self.problem.config.likelihood)
+                                      self.problem.config.likelihood, self.problem.clutter)
         t3 = time.perf_counter()
         return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
 
@@ -83,7 +83,8 @@ class LocalEvaluator:
         """For display: one scene (K, 4, 4) as given (no projection) -> (rendered depth (h, w), per-pixel
         log-likelihood (h, w)) on the problem's grid."""
         rendered = self.renderer.render(T_world_obj[None])
-        pixels = pixel_loglik(self.problem.observed, self.problem.background, rendered, self.problem.config.likelihood)
+        pixels = pixel_loglik(self.problem.observed, self.problem.background, rendered, self.problem.config.likelihood,
+                              self.problem.clutter)
         return rendered[0], pixels[0]
 
     def close(self) -> None:

@@ -107,12 +107,18 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
         return np.zeros((0,) + base.shape)
     poses = [_unique(library.poses[k]) for k in ks]
     depths = [candidate_depths(renderer, P, k).reshape(len(P), -1) for P, k in zip(poses, ks)]
-    # Only pixels some candidate covers can change the score; elsewhere every assignment predicts the table.
-    cover = np.nonzero(np.any(np.concatenate(depths) > 0, axis=0))[0]
+    # Only pixels some candidate covers can change the score (with the clutter floor, the whole of each clutter
+    # piece they touch: whether its bare pixels get the floor depends on how much of it is claimed); elsewhere
+    # every assignment predicts the table.
+    config = problem.config.likelihood
+    covered = np.any(np.concatenate(depths) > 0, axis=0)
+    pieces = problem.clutter.ravel() if config.floored else np.full(len(covered), -1)
+    touched = np.unique(pieces[covered & (pieces >= 0)])
+    cover = np.nonzero(covered | np.isin(pieces, touched))[0]
     depths = [d[:, cover] for d in depths]
     observed = problem.observed.reshape(1, -1)[:, cover]
     background = problem.background.reshape(1, -1)[:, cover]
-    config = problem.config.likelihood
+    segments = pieces[None, cover]
     clash = {(i, j): conflicts(poses[i], solids[ks[i]], poses[j], solids[ks[j]])
              for i in range(len(ks)) for j in range(i)}
     beam = [(np.zeros(0, int), np.zeros(len(cover), np.float32))]  # (candidate per assigned object, joint depth)
@@ -125,7 +131,8 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
             d = depths[i][ok]
             nearer = (d > 0) & ((joint == 0) | (d < joint))
             merged = np.where(nearer, d, joint)  # (n_ok, P)
-            score = pixel_loglik(observed, background, merged[:, None], config)[:, 0].sum(axis=1, dtype=np.float64)
+            score = pixel_loglik(observed, background, merged[:, None], config, segments)[:, 0].sum(axis=1,
+                                                                                             dtype=np.float64)
             grown += [(float(sc), np.append(chosen, c), m) for sc, c, m in zip(score, np.nonzero(ok)[0], merged)]
         if not grown:  # every candidate sits inside an assigned object: no consistent assignment from here
             return np.zeros((0,) + base.shape)

@@ -8,9 +8,11 @@ Two models, selected by ``LikelihoodConfig.model``:
   not symmetric: a reading in front of the predicted surface is something unmodelled occluding it (clutter, a
   hand), while a reading behind it means the sensor saw through the predicted surface, into space the hypothesis
   says is solid. That free-space violation is ``free_space`` times less likely than an occluding outlier.
-  With ``clutter_floor`` set, a reading that no object is drawn on and that lies in front of the table (or off
-  it) is unmodelled clutter: it scores at least ``clutter_floor``, so an object drawn over clutter gains only by
-  what its own surface explains better than that (``background_loglik``).
+  With ``clutter_floor`` set, readings in front of the table (or off it) are cut into pieces of possible clutter
+  (``clutter_segments``: joined where neighbours' depths agree). A piece the objects leave unclaimed (they claim
+  fewer than ``CLAIM_SHARE`` of its readings) is unmodelled clutter: each of its readings scores at least
+  ``clutter_floor``. A piece they claim has no floor. So an object gains on clutter only by explaining all of it,
+  not by covering part of a distractor, and an object hidden behind clutter costs nothing there.
 Observed pixels with no reading (0) are ignored by both. The prediction at a pixel is the rendered object depth,
 else the table-plane depth, else nothing (a pixel no hypothesis explains: an outlier for every particle alike).
 """
@@ -32,14 +34,17 @@ class LikelihoodConfig:
     # robust only: the outlier density of a reading behind the predicted surface (seen through it) over that of a
     # reading in front of it (occluded). 1: the symmetric mixture.
     free_space: float = 1.0
-    # robust only: the log-density (1/m) at least that a reading in front of the table (or off it) which no object
-    # covers scores, as unmodelled clutter. Without it such a pixel is an outlier (about -3.4) and an object
-    # laid over a tall distractor gains about 7 per pixel, which outweighs a thin object's own pixels (about 1.3
-    # each). At 2 an object gains on a clutter pixel only where its surface lies within about 1.8 sigma of the
-    # reading. None (the default): no floor. The floor also takes most of an object's gain for explaining its
-    # own readings, so unplaced objects hide behind others; measured, it turned about as many objects wrong as
-    # right: docs/benchmarks.md, "A clutter floor".
+    # robust only: the log-density (1/m) at least that a reading of an unclaimed clutter piece scores (module
+    # docstring). Without it such a pixel is an outlier (about -3.4) and an object laid over part of a tall
+    # distractor gains about 7 per pixel, which outweighs a thin object's own pixels (about 1.3 each). With it,
+    # claiming part of a piece costs the floor on the rest of it. None (the default): no floor. Measured in
+    # docs/benchmarks.md, "Clutter pieces".
     clutter_floor: float | None = None
+
+    @property
+    def floored(self) -> bool:
+        """Whether the clutter floor is on (it applies to the robust model only)."""
+        return self.model == "robust" and self.clutter_floor is not None
 
     def validate(self) -> None:
         from workbench.errors import InputError
@@ -55,6 +60,13 @@ class LikelihoodConfig:
         if self.clutter_floor is not None and not np.isfinite(self.clutter_floor):
             raise InputError("likelihood.clutter_floor", f"must be a finite log-density or None, got "
                                                          f"{self.clutter_floor}")
+
+
+# The clutter floor's pieces: fewer readings than this are speckle (sensor noise at edges), not clutter.
+CLUTTER_MIN_PIXELS = 20
+# A piece is claimed by the objects, and loses its floor, once they claim this share of its readings: an object
+# laid over part of unmodelled clutter must explain all of it, or leave it to the floor.
+CLAIM_SHARE = 0.1
 
 
 def predicted_depth(rendered: np.ndarray, background: np.ndarray) -> np.ndarray:
@@ -78,66 +90,156 @@ def _loglik(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.n
     return np.log(np.where(pred > 0, inlier, 0.0) + outlier)
 
 
-def background_loglik(obs: np.ndarray, background: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
-    """Log-likelihood of readings ``obs`` (> 0) where no object is drawn, given the table depth ``background``
-    there (same shape, 0 = off the table): the table term, raised to ``clutter_floor`` where the reading lies in
-    front of the table or off it (unmodelled clutter). float32 in, float32 out."""
-    return _clutter_floor(_loglik(obs, background, config), obs, background, config)
+def clutter_segments(observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
+    """The readings that may be unmodelled clutter, in pieces: readings more than ``sigma`` in front of the table
+    (or off it), joined where 4-neighbours differ by less than ``2 sigma`` in depth; pieces of fewer than
+    ``CLUTTER_MIN_PIXELS`` are speckle, not clutter. ``observed``, ``background``: (H, W) m, 0 = none
+    -> (H, W) int32 labels 0..S-1, -1 = not clutter. Computed once per frame (``Problem.clutter``)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    obs = observed.astype(np.float32)
+    h, w = obs.shape
+    above = ((obs > 0) & ((background == 0) | (obs < background - np.float32(config.sigma)))).ravel()
+    index = np.arange(h * w).reshape(h, w)
+    firsts, seconds = [], []
+    for a, b in ((index[:, :-1], index[:, 1:]), (index[:-1, :], index[1:, :])):  # right and lower neighbours
+        a, b = a.ravel(), b.ravel()
+        joined = above[a] & above[b] & (np.abs(obs.ravel()[a] - obs.ravel()[b]) < 2 * config.sigma)
+        firsts.append(a[joined])
+        seconds.append(b[joined])
+    a, b = np.concatenate(firsts), np.concatenate(seconds)
+    _, label = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(h * w, h * w)), directed=False)
+    label = np.where(above, label, h * w)  # h * w: not clutter
+    kept = np.bincount(label, minlength=h * w + 1)[: h * w] >= CLUTTER_MIN_PIXELS
+    renumber = np.full(h * w + 1, -1, np.int32)
+    renumber[np.nonzero(kept)[0]] = np.arange(kept.sum(), dtype=np.int32)
+    return renumber[label].reshape(h, w)
 
 
-def _clutter_floor(ll: np.ndarray, obs: np.ndarray, background: np.ndarray, config: LikelihoodConfig,
-                   bare: np.ndarray | bool = True) -> np.ndarray:
-    """``ll``, the table's term at pixels with readings ``obs`` and table depths ``background`` (same shape), raised
-    to ``clutter_floor`` where the pixel is ``bare`` (no object drawn) and the reading is clutter."""
-    if config.model == "ssd" or config.clutter_floor is None:
-        return ll
-    clutter = bare & ((background == 0) | (obs < background))
-    return np.where(clutter, np.maximum(ll, np.float32(config.clutter_floor)), ll)
+def _raise(ll: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
+    """What the clutter floor adds to a pixel's term ``ll``: max(ll, floor) - ll."""
+    return np.maximum(ll, np.float32(config.clutter_floor)) - ll
 
 
-def pixel_loglik(observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig
-                 ) -> np.ndarray:
-    """Per-pixel log-likelihood. ``observed``, ``background``: (H, W); ``rendered``: (B, H, W), 0 = no object
+def _drawn_terms(obs: np.ndarray, pred: np.ndarray, ll: np.ndarray, bare: np.ndarray, config: LikelihoodConfig
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """At pixels with readings ``obs`` where a surface at ``pred`` is drawn and scores ``ll``, and where the bare
+    table would gain ``bare`` from the floor (same shapes): (whether the surface claims the reading: it is not
+    behind it by more than 2 sigma, so the sensor sees it or through it; what the floor then adds there if the
+    reading's clutter piece stays unclaimed, minus ``bare``). A surface behind the reading is occluded by
+    something unmodelled: clutter explains that reading whether the object is there or not."""
+    claims = obs >= pred - np.float32(2 * config.sigma)
+    return claims, np.where(claims, 0.0, _raise(ll, config)) - bare
+
+
+def _unclaimed_gain(sizes: np.ndarray, bare: np.ndarray, claimed: np.ndarray, change: np.ndarray) -> np.ndarray:
+    """The clutter floor's gain for each of n hypotheses -> (n,) float64: over each piece no hypothesis claims
+    (``claimed`` (n, S) of its ``sizes`` (S,) pixels fewer than ``CLAIM_SHARE``), the bare pixels' gain ``bare``
+    (S,) plus the ``change`` (n, S) its drawn pixels make."""
+    unclaimed = claimed < CLAIM_SHARE * sizes[None]
+    return (unclaimed * (bare[None] + change)).sum(axis=1)
+
+
+def _per_piece(b: np.ndarray, piece: np.ndarray, values: np.ndarray, n: int, s: int) -> np.ndarray:
+    """Sum ``values`` per (hypothesis ``b``, piece ``piece``) over pairs with a piece -> (n, s) float64."""
+    on = piece >= 0
+    return np.bincount(b[on] * s + piece[on], weights=values[on], minlength=n * s).reshape(n, s)
+
+
+def _segments(observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig,
+              segments: np.ndarray | None) -> np.ndarray:
+    return clutter_segments(observed, background, config) if segments is None else segments
+
+
+def pixel_loglik(observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig,
+                 segments: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel log-likelihood. ``observed``, ``background``: (H, W) (or any shape, when ``segments`` is given and
+    the pixels hold every pixel of each clutter piece they touch); ``rendered``: (B, H, W), 0 = no object;
+    ``segments``: the clutter pieces (``clutter_segments``; found here when the floor is on and none are given)
     -> (B, H, W) float32, 0 where the observation has no reading."""
     observed = observed.astype(np.float32)
-    obs = np.broadcast_to(observed[None], rendered.shape)
     rendered = rendered.astype(np.float32)
-    table = background_loglik(observed, background.astype(np.float32), config)[None]
-    ll = np.where(rendered > 0, _loglik(obs, rendered, config), table)
+    obs = np.broadcast_to(observed[None], rendered.shape)
+    table = _loglik(observed, background.astype(np.float32), config)
+    drawn = rendered > 0
+    ll = np.where(drawn, _loglik(obs, rendered, config), table[None])
+    if config.floored and rendered.size:
+        segment = _segments(observed, background, config, segments).ravel()
+        n, sizes = len(rendered), np.bincount(segment[segment >= 0])
+        claims = drawn & (obs >= rendered - np.float32(2 * config.sigma)) & (obs > 0)
+        add = np.where(claims, 0.0, _raise(ll, config)).reshape(n, -1)
+        b, p = np.nonzero(np.broadcast_to(segment >= 0, (n, segment.size)))
+        claimed = _per_piece(b, segment[p], claims.reshape(n, -1)[b, p], n, len(sizes))
+        unclaimed = claimed[b, segment[p]] < CLAIM_SHARE * sizes[segment[p]]
+        ll = ll.reshape(n, -1)
+        ll[b[unclaimed], p[unclaimed]] += add[b[unclaimed], p[unclaimed]]
+        ll = ll.reshape(rendered.shape)
     return np.where(obs > 0, ll, 0.0).astype(np.float32)
 
 
 def scene_loglik(
-    observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig
+    observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig,
+    segments: np.ndarray | None = None,
 ) -> np.ndarray:
     """Log-likelihood of each rendered hypothesis: the sum of ``pixel_loglik`` over the image, computed only
-    where objects were drawn. ``observed``, ``background``: (H, W); ``rendered``: (B, H, W), 0 = no object
-    -> (B,) float64.
+    where objects were drawn. ``observed``, ``background``: (H, W); ``rendered``: (B, H, W), 0 = no object;
+    ``segments``: as ``pixel_loglik`` -> (B,) float64.
 
     Every hypothesis shares the empty-table term; only pixels covered by an object (a tenth of the region,
     typically) change it, so the cost follows the objects' area, not the image's."""
     obs = observed.astype(np.float32).ravel()
     bg = background.astype(np.float32).ravel()
     valid = obs > 0
-    table_ll = np.where(valid, background_loglik(obs, bg, config), 0.0)  # (P,)
+    table_ll = np.where(valid, _loglik(obs, bg, config), 0.0)  # (P,)
     flat = rendered.reshape(len(rendered), -1)
     b, p = np.nonzero((flat > 0) & valid[None])
-    delta = _loglik(obs[p], flat[b, p], config) - table_ll[p]
-    return float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=delta, minlength=len(rendered))
+    ll = _loglik(obs[p], flat[b, p], config)
+    out = float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=ll - table_ll[p], minlength=len(rendered))
+    if config.floored:
+        segment = _segments(observed, background, config, segments).ravel()
+        sizes = np.bincount(segment[segment >= 0])
+        bare = np.where(valid & (segment >= 0), _raise(table_ll.astype(np.float32), config), 0.0)
+        claims, add = _drawn_terms(obs[p], flat[b, p], ll, bare[p], config)
+        n, s = len(rendered), len(sizes)
+        out += _unclaimed_gain(sizes, _per_piece(np.zeros_like(segment), segment, bare, 1, s)[0],
+                               _per_piece(b, segment[p], claims, n, s), _per_piece(b, segment[p], add, n, s))
+    return out
 
 
 def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.ndarray, own: np.ndarray,
-                      config: LikelihoodConfig) -> np.ndarray:
+                      config: LikelihoodConfig, segments: np.ndarray | None = None) -> np.ndarray:
     """How much each of the depth images ``own`` (n, H, W) changes the log-likelihood of ``base`` (H, W) when drawn
     over it (the nearer surface kept per pixel; 0 = nothing drawn) -> (n,) float64: ``scene_loglik`` of each
     composite is ``scene_loglik`` of ``base`` plus this. Only the pixels where ``own`` is the nearer surface are
-    computed, which for one object moved in a scene of several is a fraction of the covered pixels."""
+    computed, which for one object moved in a scene of several is a fraction of the covered pixels (and, with the
+    clutter floor, the pieces those pixels lie on)."""
     obs = observed.astype(np.float32).ravel()
     under = base.ravel()
     flat = own.reshape(len(own), -1)
     b, p = np.nonzero((flat > 0) & (obs > 0)[None] & ((under == 0)[None] | (flat < under[None])))
     table = background.astype(np.float32).ravel()[p]
-    before = _clutter_floor(_loglik(obs[p], np.where(under[p] > 0, under[p], table), config),  # without ``own``
-                            obs[p], table, config, under[p] == 0)
-    delta = _loglik(obs[p], flat[b, p], config) - before
-    return np.bincount(b, weights=delta, minlength=len(own))
+    before = _loglik(obs[p], np.where(under[p] > 0, under[p], table), config)  # without ``own``
+    ll = _loglik(obs[p], flat[b, p], config)
+    out = np.bincount(b, weights=ll - before, minlength=len(own)).astype(np.float64)  # int64 when empty
+    if config.floored:
+        segment = _segments(observed, background, config, segments).ravel()
+        n, s = len(own), int(segment.max()) + 1
+        sizes = np.bincount(segment[segment >= 0], minlength=s)
+        valid = obs > 0
+        table_ll = _loglik(obs, background.astype(np.float32).ravel(), config)
+        bare = np.where(valid & (segment >= 0), _raise(table_ll, config), 0.0)
+        q = np.nonzero((under > 0) & valid)[0]  # the base's drawn pixels
+        base_claims, base_add = np.zeros(len(obs)), np.zeros(len(obs))
+        base_claims[q], base_add[q] = _drawn_terms(obs[q], under[q], _loglik(obs[q], under[q], config), bare[q],
+                                                   config)
+        zero = np.zeros(len(obs), np.int64)
+        claimed = _per_piece(zero, segment, base_claims, 1, s)
+        change = _per_piece(zero, segment, base_add, 1, s)
+        bare_sum = _per_piece(zero, segment, bare, 1, s)[0]
+        claims, add = _drawn_terms(obs[p], flat[b, p], ll, bare[p], config)
+        own_claimed = claimed + _per_piece(b, segment[p], claims - base_claims[p], n, s)
+        own_change = change + _per_piece(b, segment[p], add - base_add[p], n, s)
+        out += (_unclaimed_gain(sizes, bare_sum, own_claimed, own_change)
+                - _unclaimed_gain(sizes, bare_sum, claimed, change)[0])
+    return out

@@ -94,22 +94,23 @@ def render_shared(renderer: DepthRenderer, T_world_obj: np.ndarray) -> np.ndarra
     return out
 
 
-def drawn_loglik(drawn: Drawn, observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig
-                 ) -> np.ndarray:
+def drawn_loglik(drawn: Drawn, observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig,
+                 segments: np.ndarray | None = None) -> np.ndarray:
     """``scene_loglik`` of each scene of ``drawn`` -> (B,) float64, in the batch's order: each group's shared tile
     scored whole, and each scene by how much its own objects change that (``drawn_over_loglik``), which computes
     only their pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums. A group that
-    shares nothing (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit."""
+    shares nothing (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit.
+    ``segments``: the clutter pieces, as ``scene_loglik``."""
     out = np.empty(len(drawn.order))
     shares = drawn.groups.any(axis=1)  # (G,)
     base = np.zeros(len(shares))
     if shares.any():  # every sharing group's tile in one pass over the image's empty-table term
-        base[shares] = scene_loglik(observed, background, drawn.shared[shares], config)
+        base[shares] = scene_loglik(observed, background, drawn.shared[shares], config, segments)
     for g in range(len(shares)):
         own = drawn.own[drawn.group(g)]
         if shares[g]:
-            ll = base[g] + drawn_over_loglik(observed, background, drawn.shared[g], own, config)
+            ll = base[g] + drawn_over_loglik(observed, background, drawn.shared[g], own, config, segments)
         else:
-            ll = scene_loglik(observed, background, own, config)
+            ll = scene_loglik(observed, background, own, config, segments)
         out[drawn.order[drawn.group(g)]] = ll
     return out
