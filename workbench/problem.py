@@ -56,9 +56,11 @@ class Problem:
         return len(self.models)
 
     @cached_property
-    def clutter(self) -> np.ndarray:
-        """(h, w) int32: the observation's pieces of possible clutter (``clutter_segments``), found once."""
-        return clutter_segments(self.observed, self.background, self.config.likelihood)
+    def clutter(self) -> np.ndarray | None:
+        """(h, w) int32: the observation's pieces of possible clutter (``clutter_segments``), found once; None when
+        the likelihood has no clutter floor, which alone reads them."""
+        likelihood = self.config.likelihood
+        return clutter_segments(self.observed, self.background, likelihood) if likelihood.floored else None
 
 
 def region_of_interest(camera: Camera, table: Table, models: list[ObjectModel]) -> tuple[int, int, int, int]:

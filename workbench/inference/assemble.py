@@ -112,7 +112,7 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
     # every assignment predicts the table.
     config = problem.config.likelihood
     covered = np.any(np.concatenate(depths) > 0, axis=0)
-    pieces = problem.clutter.ravel() if config.floored else np.full(len(covered), -1)
+    pieces = problem.clutter.ravel() if problem.clutter is not None else np.full(len(covered), -1)
     touched = np.unique(pieces[covered & (pieces >= 0)])
     cover = np.nonzero(covered | np.isin(pieces, touched))[0]
     depths = [d[:, cover] for d in depths]

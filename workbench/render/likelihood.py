@@ -122,14 +122,19 @@ def _raise(ll: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
     return np.maximum(ll, np.float32(config.clutter_floor)) - ll
 
 
+def _claims(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
+    """Whether a surface drawn at ``pred`` claims the reading ``obs`` (same shapes): it is not behind it by more
+    than 2 sigma, so the sensor sees it or sees through it. A surface further behind is occluded by something
+    unmodelled: clutter explains that reading whether the object is there or not."""
+    return obs >= pred - np.float32(2 * config.sigma)
+
+
 def _drawn_terms(obs: np.ndarray, pred: np.ndarray, ll: np.ndarray, bare: np.ndarray, config: LikelihoodConfig
                  ) -> tuple[np.ndarray, np.ndarray]:
     """At pixels with readings ``obs`` where a surface at ``pred`` is drawn and scores ``ll``, and where the bare
-    table would gain ``bare`` from the floor (same shapes): (whether the surface claims the reading: it is not
-    behind it by more than 2 sigma, so the sensor sees it or through it; what the floor then adds there if the
-    reading's clutter piece stays unclaimed, minus ``bare``). A surface behind the reading is occluded by
-    something unmodelled: clutter explains that reading whether the object is there or not."""
-    claims = obs >= pred - np.float32(2 * config.sigma)
+    table would gain ``bare`` from the floor (same shapes): (whether the surface claims the reading, ``_claims``;
+    what the floor then adds there if the reading's clutter piece stays unclaimed, minus ``bare``)."""
+    claims = _claims(obs, pred, config)
     return claims, np.where(claims, 0.0, _raise(ll, config)) - bare
 
 
@@ -167,7 +172,7 @@ def pixel_loglik(observed: np.ndarray, background: np.ndarray, rendered: np.ndar
     if config.floored and rendered.size:
         segment = _segments(observed, background, config, segments).ravel()
         n, sizes = len(rendered), np.bincount(segment[segment >= 0])
-        claims = drawn & (obs >= rendered - np.float32(2 * config.sigma)) & (obs > 0)
+        claims = drawn & _claims(obs, rendered, config) & (obs > 0)
         add = np.where(claims, 0.0, _raise(ll, config)).reshape(n, -1)
         b, p = np.nonzero(np.broadcast_to(segment >= 0, (n, segment.size)))
         claimed = _per_piece(b, segment[p], claims.reshape(n, -1)[b, p], n, len(sizes))
