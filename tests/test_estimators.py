@@ -10,6 +10,8 @@ from workbench.inference.config import EstimatorConfig
 from workbench.inference.default_search import fit_sink
 from workbench.metrics import position_error, rotation_error
 from workbench.pipeline import load_bop_problem
+from workbench.problem import ProblemConfig
+from workbench.render.likelihood import LikelihoodConfig
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
@@ -221,6 +223,41 @@ def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_pro
         assert estimator.best_loglik > float(resting.loglik[0])
         for k in range(problem.n_objects):  # the estimate rests at the sink, where the objects were drawn
             assert abs(estimator.best[k, 2, 3] - sunk[k, 2, 3]) < 0.003
+    finally:
+        evaluator.close()
+
+
+def test_the_clutter_floor_is_weighed_in_after_its_share_of_the_iterations(touching_dataset, frame_and_problem):
+    """With the floor on, the first steps weigh hypotheses by the plain mixture (``floor_from``); from ``floor_at``
+    on the particles and the estimate carry the whole log-likelihood, scored again as they rest."""
+    assert Estimator(frame_and_problem[1], EstimatorConfig(), None).filter.floor_in  # no floor: nothing waits
+    _, problem = load_bop_problem(touching_dataset, 0, 0,
+                                  config=ProblemConfig(likelihood=LikelihoodConfig(clutter_floor=2.0)))
+    evaluator = LocalEvaluator(problem)
+
+    def as_resting(estimator):  # the particles, and the estimate sunk 20 cm into the table: its readings unclaimed
+        ok = np.isfinite(estimator.particles.loglik)
+        sunk = estimator.best.copy()
+        sunk[:, 2, 3] -= 0.2
+        scenes = np.concatenate([estimator.particles.projected[ok], sunk[None]])
+        return ok, estimator.filter.evaluate(scenes, project=False).loglik, evaluator.evaluate(scenes, project=False)
+    try:
+        estimator = Estimator(problem, EstimatorConfig(particles=12, iterations=4, seed=3, floor_from=0.5), evaluator)
+        assert estimator.filter.floor_at == 2
+        for _ in range(2):  # the start and one iteration
+            estimator.step()
+        assert not estimator.filter.floor_in and not estimator.converged
+        ok, weighed, whole = as_resting(estimator)
+        assert ok.sum() >= 6 and whole.floor_gain[-1] > 100.0  # the floor counts where the readings are unclaimed
+        np.testing.assert_allclose(weighed, whole.loglik - whole.floor_gain, rtol=1e-9)
+        np.testing.assert_allclose(estimator.particles.loglik[ok], weighed[:-1], rtol=1e-5)  # drawn in other tiles
+        estimator.step()
+        assert estimator.filter.floor_in
+        ok, weighed, whole = as_resting(estimator)
+        np.testing.assert_allclose(weighed, whole.loglik, rtol=1e-9)
+        np.testing.assert_allclose(estimator.particles.loglik[ok], weighed[:-1], rtol=1e-5)
+        best = evaluator.evaluate(estimator.best[None], project=False).loglik[0]
+        assert estimator.best_loglik == pytest.approx(best, rel=1e-5) and best >= whole.loglik[:-1].max() - 1.0
     finally:
         evaluator.close()
 

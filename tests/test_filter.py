@@ -140,9 +140,9 @@ def test_particle_set_indexing_copyto_put_and_round_trip():
 
 
 def test_evaluations_concatenate_and_interleave_as_one_batch():
-    a = Evaluation(np.zeros((2, 1, 4, 4)), np.array([1.0, 2.0]), np.array([0, 0], np.int8),
+    a = Evaluation(np.zeros((2, 1, 4, 4)), np.array([1.0, 2.0]), np.array([0, 0], np.int8), np.zeros(2),
                    {"projection": 1.0, "render": 0.0, "likelihood": 0.5})
-    b = Evaluation(np.ones((1, 1, 4, 4)), np.array([3.0]), np.array([4], np.int8),
+    b = Evaluation(np.ones((1, 1, 4, 4)), np.array([3.0]), np.array([4], np.int8), np.zeros(1),
                    {"projection": 2.0, "render": 1.0, "likelihood": 0.5})
     both = Evaluation.concatenate([a, b])
     assert both.loglik.tolist() == [1, 2, 3] and both.timings == {"projection": 3.0, "render": 1.0, "likelihood": 1.0}

@@ -11,7 +11,7 @@ import trimesh
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
 from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
-from workbench.render.likelihood import LikelihoodConfig, scene_loglik
+from workbench.render.likelihood import LikelihoodConfig, scene_loglik, scene_terms
 from workbench.render.shared import common_poses, draw_shared, drawn_loglik, render_shared
 from workbench.scene import Camera
 
@@ -219,10 +219,13 @@ def test_shared_scenes_scored_by_their_own_pixels(meshes, floor):
         observed[::7, ::5] = 0.0  # holes: no reading
         drawn = draw_shared(r, scenes)
         assert len(drawn.groups) == 3  # sharing the box, the ball, both (the common scene itself)
-        incremental = drawn_loglik(drawn, observed, background, config)
+        incremental, gain = drawn_loglik(drawn, observed, background, config)
         composite = scene_loglik(observed, background, render_shared(r, scenes), config)
+        _, composite_gain = scene_terms(observed, background, render_shared(r, scenes), config)
         plain = scene_loglik(observed, background, r.render(scenes), config)
     np.testing.assert_allclose(incremental, composite, rtol=0, atol=1e-6 * np.abs(composite).max())
+    np.testing.assert_allclose(gain, composite_gain, rtol=0, atol=1e-6 * np.abs(composite).max())
+    assert floor is not None or not gain.any()  # the floor's part is nothing when it is off
     assert np.abs(incremental - plain).max() < 25.0  # a few edge pixels rasterised in another tile
     assert np.argmax(incremental) == 8 and np.ptp(incremental) > 1000.0  # the truth wins, by far
 

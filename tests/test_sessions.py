@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from workbench.errors import InputError
-from workbench.estimators import Estimator
+from workbench.estimators import Estimator, parse_search
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.particles import Sigma
@@ -248,7 +248,7 @@ def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 4 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == 5 and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
@@ -273,6 +273,27 @@ def test_format_3_session_loads_without_the_clutter_floor_it_ran_without(saved, 
     doc["problem_config"]["likelihood"]["clutter_floor"] = "high"
     json_path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="clutter_floor"):
+        load_session(json_path)
+
+
+def test_format_4_session_loads_with_the_floor_weighed_in_from_the_start(saved, tmp_path):
+    # Format 4 predates EstimatorConfig.floor_from: its sessions weighed the clutter floor in from the start.
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    assert doc["estimator_config"]["floor_from"] == 0.5 and doc["estimator"]["search"]["floor_in"] is True
+    del doc["estimator_config"]["floor_from"]
+    del doc["estimator"]["search"]["floor_in"]
+    json_path.write_text(json.dumps({**doc, "format_version": 4}))
+    state = load_session(json_path)
+    assert state.estimator_config.floor_from == 0.0
+    assert parse_search(state.estimator["search"], len(state.frame.object_ids))["floor_in"] is True
+    json_path.write_text(json.dumps(doc))  # a format-5 file must carry the setting
+    with pytest.raises(InputError, match="floor_from"):
+        load_session(json_path)
+    doc["estimator_config"]["floor_from"] = 0.5
+    doc["estimator"]["search"]["floor_in"] = "yes"
+    json_path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="floor_in"):
         load_session(json_path)
 
 

@@ -75,7 +75,7 @@ class ToyEvaluator:
             loglik -= 0.5 * (d / self.sigma_m) ** 2 + 0.5 * (angle / self.sigma_rad) ** 2
         outside = ~in_region(projected, self.problem.table, self.problem.config.region_margin)
         status[outside], loglik[outside] = STATUS_OUTSIDE, -np.inf
-        return Evaluation(projected, loglik, status)
+        return Evaluation(projected, loglik, status, np.zeros(B))
 
     def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Done:
         return Done(self.evaluate(hypotheses, sink, project))

@@ -38,6 +38,9 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
                    metavar="LOG_DENSITY",
                    help="robust likelihood: what a reading of a piece of unmodelled clutter that the objects do not "
                         "claim scores at least, e.g. 2 (default 'none': an outlier; see README, The likelihood)")
+    p.add_argument("--floor-from", type=float, default=EstimatorConfig.floor_from, metavar="SHARE",
+                   help="with --clutter-floor: the share of the iterations searched without the floor before it "
+                        f"is weighed in (default {EstimatorConfig.floor_from})")
     p.add_argument("--sigma-pos", type=float, default=0.01, help="diffusion of x and y, metres")
     p.add_argument("--sigma-z", type=float, default=0.01, help="diffusion of elevation, metres")
     p.add_argument("--sigma-deg", type=float, default=5.0, help="diffusion of roll, pitch, yaw, degrees")
@@ -59,6 +62,7 @@ def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
         state=args.state,
         seed=args.seed,
         proposals=args.proposals,
+        floor_from=args.floor_from,
         **({"settle_shift": 0.0} if args.no_settle else {}),
     )
 

@@ -111,9 +111,10 @@ class Estimator:
         depth without physics) -> (K, 4, 4); also kept in ``settled``, with its log-likelihood as given in
         ``settled_loglik``, its near ties in ``ties`` and the posterior per object in ``posterior``. Computed once
         per estimate: stepping on and settling again starts from the new estimate."""
-        estimate = self.filter.map
         if self.answer_current:
             return self.settled
+        self.filter.weigh_floor_in()  # the answer is judged by the whole likelihood (stopped early or not)
+        estimate = self.filter.map
         answer = self.search.finish(self.filter)
         self.settled, self.settled_loglik, self.ties = answer.scene, answer.loglik, answer.ties
         self.posterior = answer.posterior
@@ -157,6 +158,7 @@ class Estimator:
                 "map": None if f.map is None else f.map.tolist(),
                 "map_loglik": f.map_loglik if np.isfinite(f.map_loglik) else None,
                 "map_kind": int(f.map_kind),
+                "floor_in": f.floor_in,
                 "sink": f.sink,
                 "evaluations": f.evaluations,
                 "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
@@ -179,6 +181,7 @@ class Estimator:
         f.calm = int(state["calm"])
         search = parse_search(state.get("search"), self.problem.n_objects)
         f.map, f.map_loglik, f.map_kind = search["map"], search["map_loglik"], search["map_kind"]
+        f.floor_in = search["floor_in"]
         f.sink, f.evaluations = search["sink"], search["evaluations"]
         if isinstance(self.search, DefaultSearch):
             self.search.library = search["library"]
@@ -199,9 +202,16 @@ def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:
     return a
 
 
+def _bool(value, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise ValueError(f"search.{where} must be true or false, got {value!r}")
+    return value
+
+
 def parse_search(search, K: int) -> dict:
     """The ``search`` entry of a ``state_dict`` (plain JSON lists) for K objects -> ``map`` (K, 4, 4) or None,
-    ``map_loglik``, ``map_kind`` (MoveKind), ``sink`` (m), ``evaluations``, ``library`` (datadriven.Library or
+    ``map_loglik``, ``map_kind`` (MoveKind), ``floor_in`` (``ParticleFilter.floor_in``; true in states saved
+    before it existed), ``sink`` (m), ``evaluations``, ``library`` (datadriven.Library or
     None). None (a state saved before the search existed) gives the neutral values. Raises ValueError naming what
     is malformed."""
     if search is None:
@@ -229,6 +239,7 @@ def parse_search(search, K: int) -> dict:
             "map": None if m is None else _array(m, (K, 4, 4), np.float64, "map"),
             "map_loglik": float("-inf") if ll is None else float(_array(ll, (), np.float64, "map_loglik")),
             "map_kind": MoveKind(int(search.get("map_kind", 0))),
+            "floor_in": _bool(search.get("floor_in", True), "floor_in"),
             "sink": sink,
             "evaluations": int(_array(search.get("evaluations", 0), (), np.int64, "evaluations")),
             "library": library,

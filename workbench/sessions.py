@@ -62,11 +62,13 @@ from workbench.outputs import check_creatable, check_output_file, dataset_folder
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 # Settings a format lacked, with the values its sessions ran with (not today's defaults), so that a restored session
-# steps as it did when saved: the physics' since format 2, the likelihood's since format 4.
+# steps as it did when saved: the physics' since format 2, the likelihood's since format 4, the estimator's since 5
+# (a session with the clutter floor weighed it in from the start).
 FORMAT_1_PHYSICS = {"sleep_calm": False}
 FORMAT_3_LIKELIHOOD = {"clutter_floor": None}
+FORMAT_4_ESTIMATOR = {"floor_from": 0.0}
 KIND = "workbench-session"
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 ARRAYS_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}\.[0-9a-f]{16}\.npz")
@@ -448,14 +450,20 @@ def _read_document(path: Path) -> dict:
         _upgrade_format_2(document)
     if version <= 3:
         _fill_settings(document, "likelihood", FORMAT_3_LIKELIHOOD)
+    if version <= 4:
+        _fill_settings(document, None, FORMAT_4_ESTIMATOR)
     return document
 
 
-def _fill_settings(document: dict, part: str, values: dict) -> None:
-    """Fill in the ``problem_config.<part>`` settings an older format lacked with ``values``, the ones its sessions
-    ran with (in place); a malformed document is left for ``config_from_dict`` to report."""
-    config = document.get("problem_config")
-    settings = config.get(part) if isinstance(config, dict) else None
+def _fill_settings(document: dict, part: str | None, values: dict) -> None:
+    """Fill in the ``problem_config.<part>`` settings (``estimator_config``'s when ``part`` is None) an older format
+    lacked with ``values``, the ones its sessions ran with (in place); a malformed document is left for
+    ``config_from_dict`` to report."""
+    if part is None:
+        settings = document.get("estimator_config")
+    else:
+        config = document.get("problem_config")
+        settings = config.get(part) if isinstance(config, dict) else None
     if isinstance(settings, dict):
         for name, value in values.items():
             settings.setdefault(name, value)

@@ -27,15 +27,17 @@ STAGES = ("projection", "render", "likelihood")
 @dataclass
 class Evaluation(Rows):
     """Results for B hypotheses: ``projected`` (B, K, 4, 4) resting poses, ``loglik`` (B,) (-inf where physics
-    failed), ``status`` (B,) physics status codes, ``timings`` seconds spent per stage (summed over workers).
-    Indexing, concatenation and interleaving as for every ``particleset.Rows``."""
+    failed), ``status`` (B,) physics status codes, ``floor_gain`` (B,) the part of ``loglik`` the clutter floor
+    adds (``likelihood.scene_terms``; 0 where it is off or physics failed), ``timings`` seconds spent per stage
+    (summed over workers). Indexing, concatenation and interleaving as for every ``particleset.Rows``."""
 
     projected: np.ndarray
     loglik: np.ndarray
     status: np.ndarray
+    floor_gain: np.ndarray
     timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
 
-    ROWS: ClassVar[tuple[str, ...]] = ("projected", "loglik", "status")
+    ROWS: ClassVar[tuple[str, ...]] = ("projected", "loglik", "status", "floor_gain")
 
     @classmethod
     def merge_other(cls, parts: list["Evaluation"]) -> dict:

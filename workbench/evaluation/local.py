@@ -59,14 +59,15 @@ class LocalEvaluator:
         outside = ok & ~in_region(projected, self.problem.table, self.problem.config.region_margin)
         status[outside] = STATUS_OUTSIDE
         ok &= ~outside
-        loglik = np.full(len(hypotheses), -np.inf)
+        loglik, floor_gain = np.full(len(hypotheses), -np.inf), np.zeros(len(hypotheses))
         drawn = draw_shared(self.renderer, projected[ok]) if ok.any() else None
         t2 = time.perf_counter()
         if drawn is not None:
-            loglik[ok] = drawn_loglik(drawn, self.problem.observed, self.problem.background,
+            loglik[ok], floor_gain[ok] = drawn_loglik(drawn, self.problem.observed, self.problem.background,
                                       self.problem.config.likelihood, self.problem.clutter)
         t3 = time.perf_counter()
-        return Evaluation(projected, loglik, status, {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
+        return Evaluation(projected, loglik, status, floor_gain,
+                          {"projection": t1 - t0, "render": t2 - t1, "likelihood": t3 - t2})
 
     def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Done:
         return Done(self.evaluate(hypotheses, sink, project))

@@ -15,7 +15,7 @@ The best few assignments are then evaluated like any hypothesis (physics, then t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -97,11 +97,12 @@ def candidate_depths(renderer: DepthRenderer, poses: np.ndarray, k: int) -> np.n
 
 
 def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, solids: list[Solid],
-               base: np.ndarray, order: np.ndarray) -> np.ndarray:
+               base: np.ndarray, order: np.ndarray, floored: bool = True) -> np.ndarray:
     """Up to ASSEMBLIES scenes (A, K, 4, 4), best first: ``base`` (K, 4, 4) with every object that has candidates
     put on one of them, no candidate inside another, by the likelihood of the candidates' joint depth (no
     physics). Objects are assigned in ``order`` (K,) (largest first: they constrain the most), keeping the BEAM best
-    partial assignments after each; the objects not yet assigned are absent (the table shows there)."""
+    partial assignments after each; the objects not yet assigned are absent (the table shows there). ``floored``:
+    false leaves the clutter floor out, as the filter does before ``ParticleFilter.floor_at``."""
     ks = [int(k) for k in order if library.has(int(k))]
     if not ks:
         return np.zeros((0,) + base.shape)
@@ -110,9 +111,9 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
     # Only pixels some candidate covers can change the score (with the clutter floor, the whole of each clutter
     # piece they touch: whether its bare pixels get the floor depends on how much of it is claimed); elsewhere
     # every assignment predicts the table.
-    config = problem.config.likelihood
+    config = problem.config.likelihood if floored else replace(problem.config.likelihood, clutter_floor=None)
     covered = np.any(np.concatenate(depths) > 0, axis=0)
-    pieces = problem.clutter.ravel() if problem.clutter is not None else np.full(len(covered), -1)
+    pieces = problem.clutter.ravel() if config.floored else np.full(len(covered), -1)
     touched = np.unique(pieces[covered & (pieces >= 0)])
     cover = np.nonzero(covered | np.isin(pieces, touched))[0]
     depths = [d[:, cover] for d in depths]

@@ -193,7 +193,7 @@ class DefaultSearch:
                                  self.problem.config.render)
         try:
             return assemble.assemblies(self.problem, self.library, renderer, g.solids, base,
-                                       np.argsort(-g.radius, kind="stable"))
+                                       np.argsort(-g.radius, kind="stable"), floored=filt.floor_in)
         finally:
             renderer.close()
 

@@ -15,7 +15,7 @@ Both evaluate N hypotheses per iteration, so their costs compare one to one. Ite
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -80,6 +80,18 @@ class Settled:
     posterior: Posterior | None = None
 
 
+@dataclass
+class _WithoutFloor:
+    """A pending evaluation whose log-likelihoods leave out the clutter floor's part (before
+    ``ParticleFilter.floor_at``)."""
+
+    pending: Pending
+
+    def result(self) -> Evaluation:
+        ev = self.pending.result()
+        return replace(ev, loglik=ev.loglik - ev.floor_gain, floor_gain=np.zeros_like(ev.floor_gain))
+
+
 class Search(Protocol):
     def start(self, filt: "ParticleFilter") -> tuple[np.ndarray, np.ndarray]:
         """Iteration 0 -> (N, K, 4, 4) initial hypotheses, (N,) int8 their MoveKind."""
@@ -134,6 +146,32 @@ class ParticleFilter:
         self.map_kind = MoveKind.START
         self.sink = 0.0
         self.evaluations = 0
+        self.floor_in = self.floor_at <= 0
+
+    @property
+    def floor_at(self) -> int:
+        """How many steps (the start counts) weigh hypotheses without the clutter floor's part of the
+        log-likelihood (``EstimatorConfig.floor_from``); 0 where the likelihood has no floor."""
+        if not self.problem.config.likelihood.floored:
+            return 0
+        return int(np.ceil(self.config.floor_from * self.config.iterations))
+
+    def weigh_floor_in(self) -> None:
+        """From now on the clutter floor's part of the log-likelihood counts: the particles and the estimate are
+        scored again as they rest (no physics; the best particle may become the estimate), and the convergence
+        count starts again. Nothing to do when it counts already."""
+        if self.floor_in:
+            return
+        self.floor_in = True
+        self.calm = 0
+        if self.map is not None:
+            self.map_loglik = float(self.evaluate(self.map[None], project=False).loglik[0])
+        if self.particles is not None and np.isfinite(self.particles.loglik).any():
+            ok = np.nonzero(np.isfinite(self.particles.loglik))[0]
+            ev = self.evaluate(self.particles.projected[ok], project=False)
+            self.particles.loglik[ok] = ev.loglik
+            self.offer(ev, self.particles.kinds[ok])
+            self.beta = temper_to_ess(self.particles.loglik, self.config.target_ess)
 
     @property
     def best(self) -> np.ndarray:
@@ -142,7 +180,7 @@ class ParticleFilter:
 
     @property
     def converged(self) -> bool:
-        return self.calm >= self.config.converge_patience
+        return self.calm >= self.config.converge_patience and self.floor_in
 
     def weights(self) -> np.ndarray:
         """(N,) normalised weights of the current particles, with this iteration's tempering."""
@@ -154,11 +192,12 @@ class ParticleFilter:
         ``Evaluator.submit``."""
         if len(hypotheses) == 0:  # nothing to send the workers
             n, K = 0, self.problem.n_objects
-            return Done(Evaluation(np.zeros((n, K, 4, 4)), np.zeros(n), np.zeros(n, np.int8)))
+            return Done(Evaluation(np.zeros((n, K, 4, 4)), np.zeros(n), np.zeros(n, np.int8), np.zeros(n)))
         if project:
             self.evaluations += len(hypotheses)
         sink = np.full(len(hypotheses), self.sink) if sink is None else sink
-        return self.evaluator.submit(hypotheses, sink, project)
+        pending = self.evaluator.submit(hypotheses, sink, project)
+        return pending if self.floor_in else _WithoutFloor(pending)
 
     def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
         return self.submit(hypotheses, sink, project).result()
@@ -180,6 +219,8 @@ class ParticleFilter:
         cfg = self.config
         t0 = time.perf_counter()
         accept_rate, accepted = float("nan"), None
+        if self.iteration + 1 >= self.floor_at:
+            self.weigh_floor_in()
         if self.iteration < 0:
             start, kinds = self.search.start(self)
             t_resample = time.perf_counter() - t0

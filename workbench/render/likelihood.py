@@ -193,6 +193,17 @@ def scene_loglik(
 
     Every hypothesis shares the empty-table term; only pixels covered by an object (a tenth of the region,
     typically) change it, so the cost follows the objects' area, not the image's."""
+    plain, floor = scene_terms(observed, background, rendered, config, segments)
+    return plain + floor
+
+
+def scene_terms(
+    observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig,
+    segments: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``scene_loglik`` in its two parts -> ((B,), (B,)) float64: the mixture's log-likelihood without the clutter
+    floor, and what the floor adds to it (zeros when it is off). The search weighs the second part in gradually
+    (``EstimatorConfig.floor_from``)."""
     obs = observed.astype(np.float32).ravel()
     bg = background.astype(np.float32).ravel()
     valid = obs > 0
@@ -201,15 +212,16 @@ def scene_loglik(
     b, p = np.nonzero((flat > 0) & valid[None])
     ll = _loglik(obs[p], flat[b, p], config)
     out = float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=ll - table_ll[p], minlength=len(rendered))
+    floor = np.zeros(len(rendered))
     if config.floored:
         segment = _segments(observed, background, config, segments).ravel()
         sizes = np.bincount(segment[segment >= 0])
         bare = np.where(valid & (segment >= 0), _raise(table_ll.astype(np.float32), config), 0.0)
         claims, add = _drawn_terms(obs[p], flat[b, p], ll, bare[p], config)
         n, s = len(rendered), len(sizes)
-        out += _unclaimed_gain(sizes, _per_piece(np.zeros_like(segment), segment, bare, 1, s)[0],
-                               _per_piece(b, segment[p], claims, n, s), _per_piece(b, segment[p], add, n, s))
-    return out
+        floor = _unclaimed_gain(sizes, _per_piece(np.zeros_like(segment), segment, bare, 1, s)[0],
+                                _per_piece(b, segment[p], claims, n, s), _per_piece(b, segment[p], add, n, s))
+    return out, floor
 
 
 def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.ndarray, own: np.ndarray,
@@ -219,6 +231,13 @@ def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.nda
     composite is ``scene_loglik`` of ``base`` plus this. Only the pixels where ``own`` is the nearer surface are
     computed, which for one object moved in a scene of several is a fraction of the covered pixels (and, with the
     clutter floor, the pieces those pixels lie on)."""
+    plain, floor = drawn_over_terms(observed, background, base, own, config, segments)
+    return plain + floor
+
+
+def drawn_over_terms(observed: np.ndarray, background: np.ndarray, base: np.ndarray, own: np.ndarray,
+                     config: LikelihoodConfig, segments: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``drawn_over_loglik`` in the two parts of ``scene_terms`` -> ((n,), (n,)) float64."""
     obs = observed.astype(np.float32).ravel()
     under = base.ravel()
     flat = own.reshape(len(own), -1)
@@ -227,6 +246,7 @@ def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.nda
     before = _loglik(obs[p], np.where(under[p] > 0, under[p], table), config)  # without ``own``
     ll = _loglik(obs[p], flat[b, p], config)
     out = np.bincount(b, weights=ll - before, minlength=len(own)).astype(np.float64)  # int64 when empty
+    floor = np.zeros(len(own))
     if config.floored:
         segment = _segments(observed, background, config, segments).ravel()
         n, s = len(own), int(segment.max()) + 1
@@ -245,6 +265,6 @@ def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.nda
         claims, add = _drawn_terms(obs[p], flat[b, p], ll, bare[p], config)
         own_claimed = claimed + _per_piece(b, segment[p], claims - base_claims[p], n, s)
         own_change = change + _per_piece(b, segment[p], add - base_add[p], n, s)
-        out += (_unclaimed_gain(sizes, bare_sum, own_claimed, own_change)
-                - _unclaimed_gain(sizes, bare_sum, claimed, change)[0])
-    return out
+        floor = (_unclaimed_gain(sizes, bare_sum, own_claimed, own_change)
+                 - _unclaimed_gain(sizes, bare_sum, claimed, change)[0])
+    return out, floor

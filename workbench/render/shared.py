@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.render.depth import DepthRenderer
-from workbench.render.likelihood import LikelihoodConfig, drawn_over_loglik, scene_loglik
+from workbench.render.likelihood import LikelihoodConfig, drawn_over_terms, scene_terms
 
 
 def common_poses(T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,22 +95,27 @@ def render_shared(renderer: DepthRenderer, T_world_obj: np.ndarray) -> np.ndarra
 
 
 def drawn_loglik(drawn: Drawn, observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig,
-                 segments: np.ndarray | None = None) -> np.ndarray:
-    """``scene_loglik`` of each scene of ``drawn`` -> (B,) float64, in the batch's order: each group's shared tile
-    scored whole, and each scene by how much its own objects change that (``drawn_over_loglik``), which computes
-    only their pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums. A group that
-    shares nothing (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit.
-    ``segments``: the clutter pieces, as ``scene_loglik``."""
-    out = np.empty(len(drawn.order))
+                 segments: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``scene_loglik`` of each scene of ``drawn`` -> (B,) float64, in the batch's order, and the part of it the
+    clutter floor adds (B,) (``scene_terms``; zeros when the floor is off): each group's shared tile scored whole,
+    and each scene by how much its own objects change that (``drawn_over_terms``), which computes only their
+    pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums. A group that shares nothing
+    (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit. ``segments``:
+    the clutter pieces, as ``scene_loglik``."""
+    out, floor = np.empty(len(drawn.order)), np.empty(len(drawn.order))
     shares = drawn.groups.any(axis=1)  # (G,)
-    base = np.zeros(len(shares))
+    base, base_floor = np.zeros(len(shares)), np.zeros(len(shares))
     if shares.any():  # every sharing group's tile in one pass over the image's empty-table term
-        base[shares] = scene_loglik(observed, background, drawn.shared[shares], config, segments)
+        plain, gain = scene_terms(observed, background, drawn.shared[shares], config, segments)
+        base[shares], base_floor[shares] = plain + gain, gain
     for g in range(len(shares)):
         own = drawn.own[drawn.group(g)]
         if shares[g]:
-            ll = base[g] + drawn_over_loglik(observed, background, drawn.shared[g], own, config, segments)
+            plain, gain = drawn_over_terms(observed, background, drawn.shared[g], own, config, segments)
+            ll, gain = base[g] + (plain + gain), base_floor[g] + gain
         else:
-            ll = scene_loglik(observed, background, own, config, segments)
+            plain, gain = scene_terms(observed, background, own, config, segments)
+            ll = plain + gain
         out[drawn.order[drawn.group(g)]] = ll
-    return out
+        floor[drawn.order[drawn.group(g)]] = gain
+    return out, floor

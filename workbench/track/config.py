@@ -56,7 +56,9 @@ class TrackConfig:
 
     def frame_config(self, config: EstimatorConfig, lost: bool) -> EstimatorConfig:
         """The estimator's settings for a tracked frame, from the run's ``config`` (its seed, method, state and
-        settling kept): re-searching lost objects (``lost``) or not."""
+        settling kept): re-searching lost objects (``lost``) or not. A frame that is only tracked weighs the clutter
+        floor in from its first step: the carried particles already rest on their readings."""
         return replace(config, particles=self.particles, sigma=self.sigma,
                        iterations=self.lost_iterations if lost else self.iterations,
-                       moves=self.lost_moves if lost else self.moves)
+                       moves=self.lost_moves if lost else self.moves,
+                       floor_from=config.floor_from if lost else 0.0)
