@@ -103,7 +103,7 @@ def test_an_object_gains_on_unmodelled_clutter_only_by_explaining_all_of_it():
     rendered[1, 5:15, 5:15] = 0.905
     rendered[2, 5:8, 5:15] = 0.905
     rendered[3, 5:15, 5:15] = 0.95
-    plain_cfg, cfg = LikelihoodConfig(), LikelihoodConfig(clutter_floor=2.0)
+    plain_cfg, cfg = LikelihoodConfig(clutter_floor=None), LikelihoodConfig(clutter_floor=2.0)
     plain = scene_loglik(observed, background, rendered, plain_cfg)
     floor = scene_loglik(observed, background, rendered, cfg)
     assert plain[2] > plain[0]

@@ -328,7 +328,7 @@ def test_a_thin_object_scores_at_its_place_above_laid_on_a_distractor_beside_it(
     background = table_depth(CAMERA, Table(-0.4, 0.4, -0.4, 0.4))
     observed = np.where(observed > 0, observed, background)
     assert (rendered[0] > 0).sum() > 50 and (rendered[1] > 0).sum() > 50
-    plain = scene_loglik(observed, background, rendered, LikelihoodConfig())
+    plain = scene_loglik(observed, background, rendered, LikelihoodConfig(clutter_floor=None))
     floor = scene_loglik(observed, background, rendered, LikelihoodConfig(clutter_floor=2.0))
     assert plain[1] > plain[0]
     assert floor[0] > floor[1]

@@ -37,7 +37,8 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clutter-floor", type=clutter_floor_arg, default=LikelihoodConfig.clutter_floor,
                    metavar="LOG_DENSITY",
                    help="robust likelihood: what a reading of a piece of unmodelled clutter that the objects do not "
-                        "claim scores at least, e.g. 2 (default 'none': an outlier; see README, The likelihood)")
+                        f"claim scores at least (default {LikelihoodConfig.clutter_floor}; 'none': an outlier, as "
+                        "before; see README, The likelihood)")
     p.add_argument("--floor-from", type=float, default=EstimatorConfig.floor_from, metavar="SHARE",
                    help="with --clutter-floor: the share of the iterations searched without the floor before it "
                         f"is weighed in (default {EstimatorConfig.floor_from})")

@@ -37,9 +37,10 @@ class LikelihoodConfig:
     # robust only: the log-density (1/m) at least that a reading of an unclaimed clutter piece scores (module
     # docstring). Without it such a pixel is an outlier (about -3.4) and an object laid over part of a tall
     # distractor gains about 7 per pixel, which outweighs a thin object's own pixels (about 1.3 each). With it,
-    # claiming part of a piece costs the floor on the rest of it. None (the default): no floor. Measured in
-    # docs/benchmarks.md, "Clutter pieces".
-    clutter_floor: float | None = None
+    # claiming part of a piece costs the floor on the rest of it. 2 is the Gaussian's value 1.8 sigma from its
+    # centre. None: no floor. Measured in docs/benchmarks.md, "The floor weighed in halfway" (with the search's
+    # schedule, EstimatorConfig.floor_from; from the start it lost dev frames, "Clutter pieces").
+    clutter_floor: float | None = 2.0
 
     @property
     def floored(self) -> bool:
