@@ -230,7 +230,9 @@ def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_pro
 def test_the_clutter_floor_is_weighed_in_after_its_share_of_the_iterations(touching_dataset, frame_and_problem):
     """With the floor on, the first steps weigh hypotheses by the plain mixture (``floor_from``); from ``floor_at``
     on the particles and the estimate carry the whole log-likelihood, scored again as they rest."""
-    assert Estimator(frame_and_problem[1], EstimatorConfig(), None).filter.floor_in  # no floor: nothing waits
+    _, plain = load_bop_problem(touching_dataset, 0, 0,
+                                config=ProblemConfig(likelihood=LikelihoodConfig(clutter_floor=None)))
+    assert Estimator(plain, EstimatorConfig(), None).filter.floor_in  # no floor: nothing waits
     _, problem = load_bop_problem(touching_dataset, 0, 0,
                                   config=ProblemConfig(likelihood=LikelihoodConfig(clutter_floor=2.0)))
     evaluator = LocalEvaluator(problem)

