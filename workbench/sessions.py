@@ -445,25 +445,23 @@ def _read_document(path: Path) -> dict:
         raise InputError(path, f"written by a newer workbench (session format {version}; this one reads up to "
                                f"{FORMAT_VERSION}): update the workbench to open it")
     if version == 1:
-        _fill_settings(document, "physics", FORMAT_1_PHYSICS)
+        _fill_settings(document, ("problem_config", "physics"), FORMAT_1_PHYSICS)
     if version <= 2:
         _upgrade_format_2(document)
     if version <= 3:
-        _fill_settings(document, "likelihood", FORMAT_3_LIKELIHOOD)
+        _fill_settings(document, ("problem_config", "likelihood"), FORMAT_3_LIKELIHOOD)
     if version <= 4:
-        _fill_settings(document, None, FORMAT_4_ESTIMATOR)
+        _fill_settings(document, ("estimator_config",), FORMAT_4_ESTIMATOR)
     return document
 
 
-def _fill_settings(document: dict, part: str | None, values: dict) -> None:
-    """Fill in the ``problem_config.<part>`` settings (``estimator_config``'s when ``part`` is None) an older format
-    lacked with ``values``, the ones its sessions ran with (in place); a malformed document is left for
-    ``config_from_dict`` to report."""
-    if part is None:
-        settings = document.get("estimator_config")
-    else:
-        config = document.get("problem_config")
-        settings = config.get(part) if isinstance(config, dict) else None
+def _fill_settings(document: dict, path: tuple[str, ...], values: dict) -> None:
+    """Fill in the settings at ``path`` (e.g. ``problem_config.physics``) that an older format lacked with
+    ``values``, the ones its sessions ran with (in place); a malformed document is left for ``config_from_dict`` to
+    report."""
+    settings = document
+    for name in path:
+        settings = settings.get(name) if isinstance(settings, dict) else None
     if isinstance(settings, dict):
         for name, value in values.items():
             settings.setdefault(name, value)
