@@ -116,6 +116,26 @@ def test_an_object_gains_on_unmodelled_clutter_only_by_explaining_all_of_it():
     assert np.allclose(pixels[:, 20:], plain_pixels[:, 20:])  # the bare table, as before
 
 
+def test_an_object_gains_nothing_by_fitting_a_few_readings_of_a_large_piece_of_clutter():
+    """A large flat piece of unmodelled clutter (a sheet 1.5 cm above the table) and a thin object's hypotheses:
+    laid flat on a corner of it, claiming fewer than CLAIM_SHARE of its readings (the piece stays clutter); laid
+    there but 5 cm higher, so the sensor sees through it; nothing drawn. Fitting part of clutter gains nothing over
+    what the bare table scores there, while the free-space violation still costs: the object's own readings elsewhere
+    decide."""
+    observed = np.full((40, 40), 1.0, np.float32)
+    observed[2:38, 2:38] = 0.985  # the sheet: 1296 readings
+    background = np.full((40, 40), 1.0, np.float32)
+    rendered = np.zeros((3, 40, 40), np.float32)
+    rendered[0, 5:8, 5:30] = 0.985  # 75 readings: under a tenth of the piece
+    rendered[1, 5:8, 5:30] = 0.935
+    cfg = LikelihoodConfig(clutter_floor=2.0)
+    ll = scene_loglik(observed, background, rendered, cfg)
+    assert ll[0] == pytest.approx(ll[2])
+    assert ll[1] < ll[2] - 75 * 3
+    pixels = pixel_loglik(observed, background, rendered, cfg)
+    assert np.allclose(pixels[0], pixels[2])  # what the bare table scores there (above the floor), though it fits
+
+
 def test_clutter_pieces_are_joined_readings_in_front_of_the_table():
     """Two boxes standing on the table, a step of 5 cm between two halves of one, and a speck of noise: three
     pieces (the step splits one); the table and the speck are not clutter."""

@@ -248,7 +248,7 @@ def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 5 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == 6 and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
@@ -286,7 +286,7 @@ def test_format_4_session_loads_with_the_floor_weighed_in_from_the_start(saved, 
     json_path.write_text(json.dumps({**doc, "format_version": 4}))
     state = load_session(json_path)
     assert state.estimator_config.floor_from == 0.0
-    assert parse_search(state.estimator["search"], len(state.frame.object_ids))["floor_in"] is True
+    assert parse_search(state.estimator["search"], len(state.frame.object_ids))["floor_in"] is False  # rescored
     json_path.write_text(json.dumps(doc))  # a format-5 file must carry the setting
     with pytest.raises(InputError, match="floor_from"):
         load_session(json_path)
@@ -295,6 +295,30 @@ def test_format_4_session_loads_with_the_floor_weighed_in_from_the_start(saved, 
     json_path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="floor_in"):
         load_session(json_path)
+
+
+def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded, tmp_path):
+    # Format 5 scored a reading an object claims on unclaimed clutter by an older rule: restored, the particles and
+    # the estimate are scored again before they compete with new hypotheses.
+    _, problem, _ = loaded
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    doc["estimator"]["search"]["floor_in"] = True
+    json_path.write_text(json.dumps({**doc, "format_version": 5}))
+    state = load_session(json_path)
+    evaluator = LocalEvaluator(problem)
+    try:
+        restored = restore_estimator(state, problem, evaluator)
+        assert restored.filter.floor_in is False
+        restored.particles.loglik[:] -= 100.0  # as if scored by another rule
+        restored.filter.weigh_floor_in()
+        ok = np.isfinite(restored.particles.loglik)
+        again = evaluator.evaluate(restored.particles.projected[ok], project=False).loglik
+        assert ok.any() and np.allclose(restored.particles.loglik[ok], again)
+    finally:
+        evaluator.close()
+    json_path.write_text(json.dumps({**doc, "format_version": 6}))  # today's format: as saved
+    assert load_session(json_path).estimator["search"]["floor_in"] is True
 
 
 def test_format_2_session_loads_its_move_kinds_from_the_json(saved, tmp_path):

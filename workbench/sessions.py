@@ -62,10 +62,11 @@ from workbench.outputs import check_creatable, check_output_file, dataset_folder
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 # Settings a format lacked, with the values its sessions ran with (not today's defaults), so that a restored session
 # steps as it did when saved: the physics' since format 2, the likelihood's since format 4, the estimator's since 5
-# (a session with the clutter floor weighed it in from the start).
+# (a session with the clutter floor weighed it in from the start). Format 6 changed how the floor scores a reading an
+# object claims on unclaimed clutter (``render.likelihood._over_clutter``): older sessions' scores are redone.
 FORMAT_1_PHYSICS = {"sleep_calm": False}
 FORMAT_3_LIKELIHOOD = {"clutter_floor": None}
 FORMAT_4_ESTIMATOR = {"floor_from": 0.0}
@@ -452,6 +453,8 @@ def _read_document(path: Path) -> dict:
         _fill_settings(document, ("problem_config", "likelihood"), FORMAT_3_LIKELIHOOD)
     if version <= 4:
         _fill_settings(document, ("estimator_config",), FORMAT_4_ESTIMATOR)
+    if version <= 5:
+        _rescore_floor(document)
     return document
 
 
@@ -465,6 +468,15 @@ def _fill_settings(document: dict, path: tuple[str, ...], values: dict) -> None:
     if isinstance(settings, dict):
         for name, value in values.items():
             settings.setdefault(name, value)
+
+
+def _rescore_floor(document: dict) -> None:
+    """Sessions before format 6 scored the clutter floor by an older rule: their search state is marked as not yet
+    weighing the floor in (in place), so the next step scores the particles and the estimate again
+    (``ParticleFilter.weigh_floor_in``) instead of ranking them against hypotheses scored by today's rule."""
+    search = document.get("estimator", {}).get("search")
+    if isinstance(search, dict):
+        search["floor_in"] = False
 
 
 def _upgrade_format_2(document: dict) -> None:

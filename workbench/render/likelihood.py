@@ -11,8 +11,9 @@ Two models, selected by ``LikelihoodConfig.model``:
   With ``clutter_floor`` set, readings in front of the table (or off it) are cut into pieces of possible clutter
   (``clutter_segments``: joined where neighbours' depths agree). A piece the objects leave unclaimed (they claim
   fewer than ``CLAIM_SHARE`` of its readings) is unmodelled clutter: each of its readings scores at least
-  ``clutter_floor``. A piece they claim has no floor. So an object gains on clutter only by explaining all of it,
-  not by covering part of a distractor, and an object hidden behind clutter costs nothing there.
+  ``clutter_floor``, and a reading an object claims there scores no more than it would without the object. A piece
+  they claim has no floor. So an object gains on clutter only by explaining all of it, not by covering part of a
+  distractor, and an object hidden behind clutter costs nothing there.
 Observed pixels with no reading (0) are ignored by both. The prediction at a pixel is the rendered object depth,
 else the table-plane depth, else nothing (a pixel no hypothesis explains: an outlier for every particle alike).
 """
@@ -123,6 +124,17 @@ def _raise(ll: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
     return np.maximum(ll, np.float32(config.clutter_floor)) - ll
 
 
+def _over_clutter(ll: np.ndarray, claims: np.ndarray, bare_ll: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
+    """What the clutter floor adds to a drawn pixel's term ``ll`` when its piece stays unclaimed (the piece is
+    clutter), where the bare table scores ``bare_ll`` (same shapes): a reading the surface does not claim scores at
+    least the floor (``_raise``); one it claims at most what it scores without the object (the floor, or the table's
+    term where that is higher). An object that fits a few readings of a large piece of clutter gains nothing there
+    (a marker laid flat on an unmodelled sheet gained 1.6 per reading, more than its own partly seen-through
+    readings gave it), while a surface the sensor sees through still costs the free-space term."""
+    floor = np.float32(config.clutter_floor)
+    return np.where(claims, np.minimum(ll, np.maximum(bare_ll, floor)), np.maximum(ll, floor)) - ll
+
+
 def _claims(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
     """Whether a surface drawn at ``pred`` claims the reading ``obs`` (same shapes): it is not behind it by more
     than 2 sigma, so the sensor sees it or sees through it. A surface further behind is occluded by something
@@ -130,13 +142,14 @@ def _claims(obs: np.ndarray, pred: np.ndarray, config: LikelihoodConfig) -> np.n
     return obs >= pred - np.float32(2 * config.sigma)
 
 
-def _drawn_terms(obs: np.ndarray, pred: np.ndarray, ll: np.ndarray, bare: np.ndarray, config: LikelihoodConfig
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _drawn_terms(obs: np.ndarray, pred: np.ndarray, ll: np.ndarray, table_ll: np.ndarray, bare: np.ndarray,
+                 config: LikelihoodConfig) -> tuple[np.ndarray, np.ndarray]:
     """At pixels with readings ``obs`` where a surface at ``pred`` is drawn and scores ``ll``, and where the bare
-    table would gain ``bare`` from the floor (same shapes): (whether the surface claims the reading, ``_claims``;
-    what the floor then adds there if the reading's clutter piece stays unclaimed, minus ``bare``)."""
+    table scores ``table_ll`` and would gain ``bare`` from the floor (same shapes): (whether the surface claims the
+    reading, ``_claims``; what the floor then adds there if the reading's clutter piece stays unclaimed, minus
+    ``bare``)."""
     claims = _claims(obs, pred, config)
-    return claims, np.where(claims, 0.0, _raise(ll, config)) - bare
+    return claims, _over_clutter(ll, claims, table_ll, config) - bare
 
 
 def _unclaimed_gain(sizes: np.ndarray, bare: np.ndarray, claimed: np.ndarray, change: np.ndarray) -> np.ndarray:
@@ -174,7 +187,7 @@ def pixel_loglik(observed: np.ndarray, background: np.ndarray, rendered: np.ndar
         segment = _segments(observed, background, config, segments).ravel()
         n, sizes = len(rendered), np.bincount(segment[segment >= 0])
         claims = drawn & _claims(obs, rendered, config) & (obs > 0)
-        add = np.where(claims, 0.0, _raise(ll, config)).reshape(n, -1)
+        add = _over_clutter(ll, claims, np.broadcast_to(table[None], ll.shape), config).reshape(n, -1)
         b, p = np.nonzero(np.broadcast_to(segment >= 0, (n, segment.size)))
         claimed = _per_piece(b, segment[p], claims.reshape(n, -1)[b, p], n, len(sizes))
         unclaimed = claimed[b, segment[p]] < CLAIM_SHARE * sizes[segment[p]]
@@ -218,7 +231,7 @@ def scene_terms(
         segment = _segments(observed, background, config, segments).ravel()
         sizes = np.bincount(segment[segment >= 0])
         bare = np.where(valid & (segment >= 0), _raise(table_ll.astype(np.float32), config), 0.0)
-        claims, add = _drawn_terms(obs[p], flat[b, p], ll, bare[p], config)
+        claims, add = _drawn_terms(obs[p], flat[b, p], ll, table_ll[p], bare[p], config)
         n, s = len(rendered), len(sizes)
         floor = _unclaimed_gain(sizes, _per_piece(np.zeros_like(segment), segment, bare, 1, s)[0],
                                 _per_piece(b, segment[p], claims, n, s), _per_piece(b, segment[p], add, n, s))
@@ -257,13 +270,13 @@ def drawn_over_terms(observed: np.ndarray, background: np.ndarray, base: np.ndar
         bare = np.where(valid & (segment >= 0), _raise(table_ll, config), 0.0)
         q = np.nonzero((under > 0) & valid)[0]  # the base's drawn pixels
         base_claims, base_add = np.zeros(len(obs)), np.zeros(len(obs))
-        base_claims[q], base_add[q] = _drawn_terms(obs[q], under[q], _loglik(obs[q], under[q], config), bare[q],
-                                                   config)
+        base_claims[q], base_add[q] = _drawn_terms(obs[q], under[q], _loglik(obs[q], under[q], config),
+                                                   table_ll[q], bare[q], config)
         zero = np.zeros(len(obs), np.int64)
         claimed = _per_piece(zero, segment, base_claims, 1, s)
         change = _per_piece(zero, segment, base_add, 1, s)
         bare_sum = _per_piece(zero, segment, bare, 1, s)[0]
-        claims, add = _drawn_terms(obs[p], flat[b, p], ll, bare[p], config)
+        claims, add = _drawn_terms(obs[p], flat[b, p], ll, table_ll[p], bare[p], config)
         own_claimed = claimed + _per_piece(b, segment[p], claims - base_claims[p], n, s)
         own_change = change + _per_piece(b, segment[p], add - base_add[p], n, s)
         floor = (_unclaimed_gain(sizes, bare_sum, own_claimed, own_change)
