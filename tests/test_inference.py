@@ -6,7 +6,7 @@ import pytest
 
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator
-from workbench.geometry import invert_pose, rot_z
+from workbench.geometry import invert_pose, make_pose, rot_z
 from workbench.inference import datadriven, refine, resting, stacking
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.context import MoveContext
@@ -499,6 +499,24 @@ def test_an_object_lying_on_another_gets_a_start_at_its_place():
     turned = np.degrees(np.abs((np.arctan2(S[:, 1, 0], S[:, 0, 0]) + np.pi / 4) % (np.pi / 2) - np.pi / 4))
     assert np.any(near & flat & (turned < 15))
     assert len(place) == len(starts)
+
+
+def test_every_cluster_keeps_its_best_fit_of_every_object(context, monkeypatch):
+    """A small object fits a large flat surface as well as its own cluster (better, where something hides part of
+    it): its best fits overall can all lie on the large one. The library keeps the best overall and the best of
+    every cluster."""
+    problem, ctx, _ = context
+    rng = np.random.default_rng(1)
+    large, own = (np.array([x, 0.0, 0.0]) + rng.uniform([0, 0, 0.02], [0.1, 0.1, 0.04], (60, 3)) for x in (0, 0.3))
+    at = lambda x, y: make_pose(np.eye(3), [x, y, 0.02])  # noqa: E731
+    fits = {id(large): [(100.0 - i, at(0.02 * (i % 5), 0.02 * (i // 5))) for i in range(15)],
+            id(own): [(60.0, at(0.33, 0.03)), (50.0, at(0.36, 0.03))]}
+    monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: list(fits[id(cluster)]))
+    library = datadriven.build_library(problem, [large, own], ctx.points, ctx.rest, ctx.samples, ctx.hulls)
+    for poses in library.poses:
+        assert len(poses) == datadriven.PER_OBJECT + 1
+        assert np.allclose(poses[-1], at(0.33, 0.03))  # its own cluster's best, after the 12 best overall
+        assert np.all(poses[:-1, 0, 3] < 0.1)
 
 
 def test_every_listed_object_and_a_few_distractors_get_a_cluster(context, monkeypatch):
