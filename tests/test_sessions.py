@@ -321,6 +321,18 @@ def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded,
     assert load_session(json_path).estimator["search"]["floor_in"] is True
 
 
+@pytest.mark.parametrize("version", [2, 5])
+def test_an_older_session_without_its_estimator_state_is_refused_by_name(saved, tmp_path, version):
+    # The format upgrades read estimator.search before the document is checked: a malformed entry there must end
+    # in the same clear error as in today's format, not a crash.
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    json_path.write_text(json.dumps({**doc, "estimator": None, "format_version": version}))
+    with pytest.raises(InputError) as err:
+        load_session(json_path)
+    assert err.value.path == str(json_path) and "malformed" in err.value.problem
+
+
 def test_format_2_session_loads_its_move_kinds_from_the_json(saved, tmp_path):
     # Format 2 kept each particle's move kind in the JSON (estimator.search.kinds), not in the arrays file.
     folder, original = saved

@@ -470,11 +470,18 @@ def _fill_settings(document: dict, path: tuple[str, ...], values: dict) -> None:
             settings.setdefault(name, value)
 
 
+def _search_state(document: dict):
+    """The document's ``estimator.search`` entry as it stands (None where a level is missing or not a dict), for the
+    format upgrades; a malformed one is left for ``parse_search`` to report."""
+    estimator = document.get("estimator")
+    return estimator.get("search") if isinstance(estimator, dict) else None
+
+
 def _rescore_floor(document: dict) -> None:
     """Sessions before format 6 scored the clutter floor by an older rule: their search state is marked as not yet
     weighing the floor in (in place), so the next step scores the particles and the estimate again
     (``ParticleFilter.weigh_floor_in``) instead of ranking them against hypotheses scored by today's rule."""
-    search = document.get("estimator", {}).get("search")
+    search = _search_state(document)
     if isinstance(search, dict):
         search["floor_in"] = False
 
@@ -483,7 +490,7 @@ def _upgrade_format_2(document: dict) -> None:
     """Format 2 kept each particle's move kind in the JSON (``estimator.search.kinds``, absent before the search
     existed); format 3 keeps it in the arrays file with the rest of the particle set. Noted in the "arrays" entry
     (in place) for ``_kinds_from_json`` once the arrays are read."""
-    search = document.get("estimator", {}).get("search")
+    search = _search_state(document)
     kinds = search.pop("kinds", None) if isinstance(search, dict) else None
     if isinstance(document.get("arrays"), dict):
         document["arrays"]["kinds_in_json"] = kinds

@@ -126,11 +126,12 @@ def _raise(ll: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
 
 def _over_clutter(ll: np.ndarray, claims: np.ndarray, bare_ll: np.ndarray, config: LikelihoodConfig) -> np.ndarray:
     """What the clutter floor adds to a drawn pixel's term ``ll`` when its piece stays unclaimed (the piece is
-    clutter), where the bare table scores ``bare_ll`` (same shapes): a reading the surface does not claim scores at
-    least the floor (``_raise``); one it claims at most what it scores without the object (the floor, or the table's
-    term where that is higher). An object that fits a few readings of a large piece of clutter gains nothing there
-    (a marker laid flat on an unmodelled sheet gained 1.6 per reading, more than its own partly seen-through
-    readings gave it), while a surface the sensor sees through still costs the free-space term."""
+    clutter), where the bare table scores ``bare_ll`` (the same shape, or broadcast to it): a reading the surface
+    does not claim scores at least the floor (``_raise``); one it claims at most what it scores without the object
+    (the floor, or the table's term where that is higher). An object that fits a few readings of a large piece of
+    clutter gains nothing there (a marker laid flat on an unmodelled sheet gained 1.6 per reading, more than its
+    own partly seen-through readings gave it), while a surface the sensor sees through still costs the free-space
+    term."""
     floor = np.float32(config.clutter_floor)
     return np.where(claims, np.minimum(ll, np.maximum(bare_ll, floor)), np.maximum(ll, floor)) - ll
 
@@ -187,7 +188,7 @@ def pixel_loglik(observed: np.ndarray, background: np.ndarray, rendered: np.ndar
         segment = _segments(observed, background, config, segments).ravel()
         n, sizes = len(rendered), np.bincount(segment[segment >= 0])
         claims = drawn & _claims(obs, rendered, config) & (obs > 0)
-        add = _over_clutter(ll, claims, np.broadcast_to(table[None], ll.shape), config).reshape(n, -1)
+        add = _over_clutter(ll, claims, table[None], config).reshape(n, -1)
         b, p = np.nonzero(np.broadcast_to(segment >= 0, (n, segment.size)))
         claimed = _per_piece(b, segment[p], claims.reshape(n, -1)[b, p], n, len(sizes))
         unclaimed = claimed[b, segment[p]] < CLAIM_SHARE * sizes[segment[p]]
