@@ -22,6 +22,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from workbench.evaluation import run_here
 from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
+from workbench.inference.footprint import footprint_starts
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, icp_batch, near
 from workbench.inference.resting import RestingPoses, height
@@ -238,7 +239,8 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
 def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints, rest: RestingPoses,
                        samples: ModelSamples, hull: np.ndarray) -> list[tuple[float, np.ndarray]]:
     """One object's scored candidates (score, pose (4, 4)) fitted at one ``cluster`` (P, 3) to the observed points
-    ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place."""
+    ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place, and of a
+    thin object's outline aligned with the cluster (``footprint_starts``, not fitted further)."""
     reach = float(np.max(np.linalg.norm(hull[:, :2], axis=1)))
     starts, place = icp_starts(cluster, rest, hull, reach)
     if not starts:
@@ -254,8 +256,13 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints
     fitted, inliers = icp_batch([points[i] for i in chosen], samples, rough[chosen], max_points=FIT_POINTS,
                                 viewpoint=cloud.viewpoint, normals=[normals[i] for i in chosen])
     ok = (inliers >= 10) & np.all(np.isfinite(fitted), axis=(1, 2))
-    scored = [(float(sc), T, p) for sc, T, p in zip(fit_scores(problem, fitted[ok], samples), fitted[ok],
-                                                     place[chosen][ok])]
+    fitted, fitted_place = fitted[ok], place[chosen][ok]
+    # A thin object lying flat: its outline's alignments, one more place, as they are (ICP would let them slide).
+    flat = footprint_starts(cluster, cloud, rest, samples, hull, reach)
+    if flat:
+        fitted = np.concatenate([fitted, np.stack(flat)])
+        fitted_place = np.concatenate([fitted_place, np.full(len(flat), place.max() + 1)])
+    scored = [(float(sc), T, p) for sc, T, p in zip(fit_scores(problem, fitted, samples), fitted, fitted_place)]
     # The best of each start place, so that in a cluster of several objects touching, the largest object's
     # surface (where a smaller object also fits well) cannot crowd out the others.
     out: list[tuple[float, np.ndarray]] = []
