@@ -469,7 +469,7 @@ def test_a_flat_object_turned_over_gets_a_start_at_its_place_from_its_outline():
     """An L-shaped slab 1.6 cm thick (scissors' outline, simplified) lies turned over: its outline is mirrored, and
     the sensor sees only its flat top. The footprint alignment gives a start within 5 mm and 6 degrees of it, on
     the turned-over face; the best alignment of the other face is elsewhere in rotation (the mirror image does not
-    fit as well, and is kept as a second candidate, not in its place)."""
+    fit as well, and is kept as a second candidate, not in its place). A flat box gets none."""
     import trimesh
 
     from workbench.geometry import rotation_angle, rot_x
@@ -501,6 +501,10 @@ def test_a_flat_object_turned_over_gets_a_start_at_its_place_from_its_outline():
     assert np.any((off < 0.005) & (turn < 6)), np.column_stack([off, turn])
     upright = starts[:, 2, 2] > 0  # the other face's alignments: none is the truth
     assert upright.any() and np.all(turn[upright] > 90)
+    # A flat box is no thin object here: its outline is a rectangle, the same turned over.
+    slab = trimesh.creation.box((0.16, 0.03, thick))
+    assert footprint_starts(top, cloud, resting.resting_poses(slab), model_samples(slab),
+                            np.asarray(slab.vertices), 0.08) == []
 
 
 def test_an_object_lying_on_another_gets_a_start_at_its_place():

@@ -24,7 +24,11 @@ TURNS = 72  # headings tried per face, 5 degrees apart
 THIN = 0.04  # m; a face at most this tall ...
 THIN_RATIO = 3.0  # ... whose footprint is at least this many times longer than it is tall is thin
 PER_FACE = 2  # starts kept per face: the two best distinct alignments
+# Thin faces aligned, the likeliest first: two for a flat object (either side up); a marker's four sides (a near
+# cylinder's) show one outline, not worth aligning four times.
+MAX_FACES = 2
 BAND = 0.01  # m; cluster points up to this much above the face's height may be its top
+MIN_POINTS = 30  # such points a cluster needs to place an outline (generated scissors' clusters: 138-291)
 TABLE_LOSS = 1.0  # per footprint cell on bare table, against 1 per cell on the cluster's points
 DISTINCT_M = 0.02  # m; alignments closer than this and DISTINCT_TURN are the same
 DISTINCT_TURN = np.radians(20.0)
@@ -32,14 +36,19 @@ DISTINCT_TURN = np.radians(20.0)
 
 def thin_faces(rest: RestingPoses, hull: np.ndarray) -> list[int]:
     """The resting faces (indices into ``rest.rotations``) on which the object with convex-hull vertices ``hull``
-    (V, 3) lies flat: at most THIN tall, and its horizontal extent at least THIN_RATIO times that."""
+    (V, 3) lies flat: at most THIN tall, and its horizontal extent at least THIN_RATIO times that; the MAX_FACES
+    likeliest (``rest.probs``). None of a box's: its outline is a rectangle, whose heading the cluster's
+    minimum-area rectangle and ICP on its sides give, and turned over it is the same rectangle (the generated
+    flat boxes' outlines, aligned, crowded their libraries: `four` lost 2-3 of 16 objects at two seeds)."""
+    if rest.box:
+        return []
     out = []
     for f, R in enumerate(rest.rotations):
         xy = hull @ R[:2].T
         h = height(R, hull)
         if h <= THIN and float(np.max(np.ptp(xy, axis=0))) >= THIN_RATIO * h:
             out.append(f)
-    return out
+    return sorted(out, key=lambda f: -rest.probs[f])[:MAX_FACES]
 
 
 def footprint(samples: ModelSamples, R: np.ndarray, lift: float, h: float) -> np.ndarray:
@@ -70,7 +79,8 @@ def footprint_starts(cluster: np.ndarray, cloud: ScenePoints, rest: RestingPoses
     no higher than the face's height plus BAND, less TABLE_LOSS per cell on bare table (``cloud.table``, and no
     point above the table there). ``reach``: m, the object's horizontal reach from its origin."""
     faces = thin_faces(rest, hull)
-    if not faces:
+    tallest = max((height(rest.rotations[f], hull) for f in faces), default=0.0)
+    if np.count_nonzero(cluster[:, 2] <= tallest + BAND) < MIN_POINTS:
         return []
     lo = cells_of(cluster[:, :2].min(axis=0) - reach)
     hi = cells_of(cluster[:, :2].max(axis=0) + reach)

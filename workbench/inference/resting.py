@@ -29,11 +29,13 @@ REDUCED_HULL_VERTICES = 1000  # stable poses of a hull of 1,000 vertices take ab
 @dataclass(frozen=True)
 class RestingPoses:
     """``rotations``: (F, 3, 3) object -> table rotations resting on face f at heading 0; ``heights``: (F,) z of
-    the object origin above the plane when resting; ``probs``: (F,) how often the object comes to rest so."""
+    the object origin above the plane when resting; ``probs``: (F,) how often the object comes to rest so;
+    ``box``: whether the mesh is box-like (its faces are its bounding box's)."""
 
     rotations: np.ndarray
     heights: np.ndarray
     probs: np.ndarray
+    box: bool = False
 
 
 def reduced_hull(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
@@ -92,6 +94,7 @@ _RESTING: dict[tuple[str, bool], RestingPoses] = {}
 
 def _resting_poses(mesh: trimesh.Trimesh, upright_only: bool) -> RestingPoses:
     hull = reduced_hull(mesh)
+    box = None
     if upright_only:
         rots = np.eye(3)[None]
         probs = np.ones(1)
@@ -105,7 +108,8 @@ def _resting_poses(mesh: trimesh.Trimesh, upright_only: bool) -> RestingPoses:
             axes = np.asarray(_box_source(mesh, hull).bounding_box_oriented.primitive.transform)[:3, :3]
             rots, probs = one_per_side(np.asarray(transforms)[:, :3, :3], np.asarray(probs, dtype=np.float64), axes)
     heights = -np.min(np.einsum("fij,vj->fvi", rots, hull.vertices)[..., 2], axis=1)
-    out = RestingPoses(np.array(rots, dtype=np.float64), np.array(heights), np.array(probs, dtype=np.float64))
+    out = RestingPoses(np.array(rots, dtype=np.float64), np.array(heights), np.array(probs, dtype=np.float64),
+                       box is not None)
     for a in (out.rotations, out.heights, out.probs):  # shared by every caller (the cache): read only
         a.setflags(write=False)
     return out
