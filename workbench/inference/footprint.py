@@ -17,7 +17,7 @@ from scipy import fft, ndimage
 
 from workbench.geometry import make_pose, rot_z
 from workbench.inference.resting import RestingPoses, height
-from workbench.inference.scenepoints import TABLE_CELL, ModelSamples, ScenePoints
+from workbench.inference.scenepoints import TABLE_CELL, ModelSamples, ScenePoints, table_cells
 
 CELL = TABLE_CELL  # m; the grid the footprints are aligned on (that of ``ScenePoints.table``)
 TURNS = 72  # headings tried per face, 5 degrees apart
@@ -66,35 +66,27 @@ def raster(cells: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return grid
 
 
-def cells_of(xy: np.ndarray) -> np.ndarray:
-    """The CELL grid cells (N, 2) int of the points ``xy`` (N, 2) m: cell (i, j) spans [i, i + 1) * CELL in x and
-    [j, j + 1) * CELL in y."""
-    return np.floor(xy / CELL).astype(np.int64)
-
-
 def footprint_starts(cluster: np.ndarray, cloud: ScenePoints, rest: RestingPoses, samples: ModelSamples,
                      hull: np.ndarray, reach: float) -> list[np.ndarray]:
     """Poses (4, 4) of the object lying on each thin face on the table at the best PER_FACE distinct alignments
     of its footprint with the ``cluster`` (P, 3) (table frame, m): the footprint's cells on the cluster's points
     no higher than the face's height plus BAND, less TABLE_LOSS per cell on bare table (``cloud.table``, and no
     point above the table there). ``reach``: m, the object's horizontal reach from its origin."""
-    faces = thin_faces(rest, hull)
-    tallest = max((height(rest.rotations[f], hull) for f in faces), default=0.0)
-    if np.count_nonzero(cluster[:, 2] <= tallest + BAND) < MIN_POINTS:
+    faces = {f: height(rest.rotations[f], hull) for f in thin_faces(rest, hull)}  # face -> its height, m
+    if np.count_nonzero(cluster[:, 2] <= max(faces.values(), default=0.0) + BAND) < MIN_POINTS:
         return []
-    lo = cells_of(cluster[:, :2].min(axis=0) - reach)
-    hi = cells_of(cluster[:, :2].max(axis=0) + reach)
+    lo = table_cells(cluster[:, :2].min(axis=0) - reach)
+    hi = table_cells(cluster[:, :2].max(axis=0) + reach)
     shape = tuple(int(n) for n in hi - lo + 1)
     near = cloud.points[np.all((cloud.points[:, :2] >= lo * CELL) & (cloud.points[:, :2] < (hi + 1) * CELL), axis=1)]
-    bare = raster(cloud.table - lo, shape) * (1.0 - raster(cells_of(near[:, :2]) - lo, shape))
+    bare = raster(cloud.table - lo, shape) * (1.0 - raster(table_cells(near[:, :2]) - lo, shape))
     m = int(np.ceil(reach / CELL)) + 1  # the footprint's grid: (2m + 1) cells a side, the origin in cell m
     out = []
-    for f in faces:
-        h = height(rest.rotations[f], hull)
-        gain = raster(cells_of(cluster[cluster[:, 2] <= h + BAND, :2]) - lo, shape) - TABLE_LOSS * bare
+    for f, h in faces.items():
+        gain = raster(table_cells(cluster[cluster[:, 2] <= h + BAND, :2]) - lo, shape) - TABLE_LOSS * bare
         xy = footprint(samples, rest.rotations[f], float(rest.heights[f]), h)
         kernels = np.stack([ndimage.binary_closing(  # sparse samples leave holes between them
-            raster(cells_of(xy @ rot_z(2 * np.pi * i / TURNS)[:2, :2].T) + m, (2 * m + 1, 2 * m + 1)))
+            raster(table_cells(xy @ rot_z(2 * np.pi * i / TURNS)[:2, :2].T) + m, (2 * m + 1, 2 * m + 1)))
             for i in range(TURNS)]).astype(np.float32)  # single precision: counts of a few hundred cells
         # Correlation as convolution with the flipped kernels, all headings in one batched FFT; cropped to 'same':
         # score[i, j] sums gain over footprint i with its cell m on cell j, the origin at (lo + j) CELL.

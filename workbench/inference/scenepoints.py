@@ -75,10 +75,16 @@ def observed_points(problem: Problem, max_height: float = 0.45) -> ScenePoints:
               & (world[:, 1] >= tb.y_min) & (world[:, 1] <= tb.y_max))
     keep = inside & (world[:, 2] > MIN_HEIGHT) & (world[:, 2] < max_height)
     on_table = inside & (np.abs(world[:, 2]) <= MIN_HEIGHT)
-    table = _distinct_cells(np.floor(world[on_table, :2] / TABLE_CELL).astype(np.int64))
+    table = _distinct_cells(table_cells(world[on_table, :2]))
     eye = viewpoint(problem)
     return ScenePoints(world[keep], np.stack([rows[keep], cols[keep]], axis=1), eye, point_normals(world[keep], eye),
                        table)
+
+
+def table_cells(xy: np.ndarray) -> np.ndarray:
+    """The TABLE_CELL grid cells (N, 2) int of the points ``xy`` (N, 2) m: cell (i, j) spans [i, i + 1) * TABLE_CELL
+    in x and [j, j + 1) * TABLE_CELL in y (``ScenePoints.table``'s grid)."""
+    return np.floor(xy / TABLE_CELL).astype(np.int64)
 
 
 def _distinct_cells(cells: np.ndarray) -> np.ndarray:
