@@ -507,6 +507,39 @@ def test_a_flat_object_turned_over_gets_a_start_at_its_place_from_its_outline():
                             np.asarray(slab.vertices), 0.08) == []
 
 
+def test_a_box_leaning_on_a_block_gets_a_start_at_its_place():
+    """A box leans 60 degrees on a block: no resting face is up. Its two faces the sensor sees are slanted planar
+    patches (the block's top is level, and no patch), and along them the box gets a start within 1 cm and 8
+    degrees of the truth (up to the box's turns that leave it the same). A box lying flat shows no patch."""
+    import trimesh
+
+    from workbench.geometry import rot_x, rotation_angle
+    from workbench.inference.leaning import leaning_starts, slanted_patches
+
+    box = trimesh.creation.box((0.09, 0.07, 0.03))
+    block = make_pose(np.eye(3), [0.0, 0.1, 0.04])  # an 8 cm cube's centre
+    truth = make_pose(rot_z(np.radians(25.0)) @ rot_x(np.radians(60.0)), [0.01, 0.03, 0.045])
+    eye = np.array([0.0, -0.6, 0.7])
+    cube = trimesh.creation.box((0.08, 0.08, 0.08))
+
+    def seen(mesh, T, n=6000):  # surface points facing the sensor, table frame
+        p, face = trimesh.sample.sample_surface_even(mesh, n, seed=0)
+        p, normal = p @ T[:3, :3].T + T[:3, 3], mesh.face_normals[face] @ T[:3, :3].T
+        return p[(np.einsum("pd,pd->p", normal, eye - p) > 0) & (p[:, 2] > 0.002)]
+
+    cluster = np.concatenate([seen(box, truth), seen(cube, block)])
+    patches = slanted_patches(cluster, eye)
+    assert len(patches) == 2 and all(abs(n[2] - c) < 0.05 for (_, n, _), c in zip(
+        sorted(patches, key=lambda p: p[1][2]), np.cos(np.radians([60.0, 30.0]))))
+    rest = resting.resting_poses(box)
+    starts = np.stack([T for lean in leaning_starts(cluster, eye, rest, np.asarray(box.vertices)) for T in lean])
+    turns = [np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]  # the box's symmetries
+    off = np.linalg.norm(starts[:, :3, 3] - truth[:3, 3], axis=1)
+    turn = np.degrees([min(rotation_angle(S[:3, :3].T @ truth[:3, :3] @ F) for F in turns) for S in starts])
+    assert np.any((off < 0.01) & (turn < 8)), np.column_stack([off, turn])[np.argsort(off)[:5]]
+    assert slanted_patches(seen(box, make_pose(np.eye(3), [0.0, 0.0, 0.015])), eye) == []
+
+
 def test_an_object_lying_on_another_gets_a_start_at_its_place():
     """A small box lying on a long box, beside a tall box in the same cluster: the cluster's centre and rim are
     elsewhere, but its horizontal surface at the small box's top height gives a start within 1 cm of the small
@@ -546,19 +579,21 @@ def test_an_object_lying_on_another_gets_a_start_at_its_place():
 def test_every_cluster_keeps_its_best_fit_of_every_object(context, monkeypatch):
     """A small object fits a large flat surface as well as its own cluster (better, where something hides part of
     it): its best fits overall can all lie on the large one. The library keeps the best overall and the best of
-    every cluster."""
+    every cluster, and the best leaning candidate of every slanted patch, which do not compete with the others."""
     problem, ctx, _ = context
     rng = np.random.default_rng(1)
     large, own = (np.array([x, 0.0, 0.0]) + rng.uniform([0, 0, 0.02], [0.1, 0.1, 0.04], (60, 3)) for x in (0, 0.3))
     at = lambda x, y: make_pose(np.eye(3), [x, y, 0.02])  # noqa: E731
-    fits = {id(large): [(100.0 - i, at(0.02 * (i % 5), 0.02 * (i // 5))) for i in range(15)],
-            id(own): [(60.0, at(0.33, 0.03)), (50.0, at(0.36, 0.03))]}
+    fits = {id(large): [(100.0 - i, at(0.02 * (i % 5), 0.02 * (i // 5)), -1) for i in range(15)]
+            + [(120.0, at(0.05, 0.2), 0), (110.0, at(0.05, 0.25), 0)],  # leaning on the cluster's first patch
+            id(own): [(60.0, at(0.33, 0.03), -1), (50.0, at(0.36, 0.03), -1)]}
     monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: list(fits[id(cluster)]))
     library = datadriven.build_library(problem, [large, own], ctx.points, ctx.rest, ctx.samples, ctx.hulls)
     for poses in library.poses:
-        assert len(poses) == datadriven.PER_OBJECT + 1
-        assert np.allclose(poses[-1], at(0.33, 0.03))  # its own cluster's best, after the 12 best overall
-        assert np.all(poses[:-1, 0, 3] < 0.1)
+        assert len(poses) == datadriven.PER_OBJECT + 2
+        assert np.all(poses[:-2, 0, 3] < 0.1) and np.all(poses[:-2, 1, 3] < 0.1)  # the 12 best resting overall
+        assert np.allclose(poses[-2], at(0.33, 0.03))  # its own cluster's best
+        assert np.allclose(poses[-1], at(0.05, 0.2))  # the patch's best leaning candidate, in a place of its own
 
 
 def test_every_listed_object_and_a_few_distractors_get_a_cluster(context, monkeypatch):
@@ -567,10 +602,15 @@ def test_every_listed_object_and_a_few_distractors_get_a_cluster(context, monkey
     problem, ctx, _ = context
     rng = np.random.default_rng(0)
     groups = [np.array([0.1 * i, 0.0, 0.0]) + rng.uniform([0, 0, 0.02], [0.03, 0.03, 0.04], (40, 3)) for i in range(12)]
-    fitted = []
-    monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: fitted.append(cluster) or [])
+    fitted, leaning = [], []
+    monkeypatch.setattr(datadriven, "cluster_candidates",
+                        lambda _problem, cluster, *a: fitted.append(cluster) or leaning.append(a[-1]) or [])
     monkeypatch.setattr(datadriven, "MAX_CLUSTERS", 1)
     datadriven.build_library(problem, groups, ctx.points, ctx.rest, ctx.samples, ctx.hulls)
+    assert leaning and not any(leaning)  # leaning starts are asked for only with ``leaning``
+    datadriven.build_library(problem, groups[:1], ctx.points, ctx.rest, ctx.samples, ctx.hulls, leaning=True)
+    assert leaning[-1] is True
+    del fitted[-problem.n_objects:]
     K = problem.n_objects
     assert len(fitted) == (K + datadriven.DISTRACTOR_CLUSTERS) * K
     assert all(any(f is g for g in groups[:K + datadriven.DISTRACTOR_CLUSTERS]) for f in fitted)  # the largest first

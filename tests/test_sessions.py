@@ -248,7 +248,7 @@ def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 6 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == 7 and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
@@ -297,6 +297,19 @@ def test_format_4_session_loads_with_the_floor_weighed_in_from_the_start(saved, 
         load_session(json_path)
 
 
+def test_format_6_session_loads_without_leaning_starts(saved, tmp_path):
+    # Format 6 predates EstimatorConfig.leaning: its sessions searched without leaning starts.
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    assert doc["estimator_config"]["leaning"] is False
+    del doc["estimator_config"]["leaning"]
+    json_path.write_text(json.dumps({**doc, "format_version": 6}))
+    assert load_session(json_path).estimator_config.leaning is False
+    json_path.write_text(json.dumps(doc))  # a format-7 file must carry the setting
+    with pytest.raises(InputError, match="leaning"):
+        load_session(json_path)
+
+
 def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded, tmp_path):
     # Format 5 scored a reading an object claims on unclaimed clutter by an older rule: restored, the particles and
     # the estimate are scored again before they compete with new hypotheses.
@@ -317,7 +330,7 @@ def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded,
         assert ok.any() and np.allclose(restored.particles.loglik[ok], again)
     finally:
         evaluator.close()
-    json_path.write_text(json.dumps({**doc, "format_version": 6}))  # today's format: as saved
+    json_path.write_text(json.dumps({**doc, "format_version": 7}))  # today's format: as saved
     assert load_session(json_path).estimator["search"]["floor_in"] is True
 
 

@@ -172,3 +172,10 @@ def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     """Uniformly distributed rotations (Haar measure). -> (n, 3, 3)."""
     q = rng.normal(size=(n, 4))
     return quat_wxyz_to_matrix(q / np.linalg.norm(q, axis=-1, keepdims=True))
+
+
+def principal_heading(points: np.ndarray) -> float:
+    """Heading (rad) of the principal axis of the points' (P, 2 or 3) xy spread."""
+    xy = points[:, :2] - points[:, :2].mean(axis=0)
+    _, v = np.linalg.eigh(xy.T @ xy)
+    return float(np.arctan2(v[1, -1], v[0, -1]))

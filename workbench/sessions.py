@@ -62,14 +62,16 @@ from workbench.outputs import check_creatable, check_output_file, dataset_folder
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 # Settings a format lacked, with the values its sessions ran with (not today's defaults), so that a restored session
 # steps as it did when saved: the physics' since format 2, the likelihood's since format 4, the estimator's since 5
 # (a session with the clutter floor weighed it in from the start). Format 6 changed how the floor scores a reading an
-# object claims on unclaimed clutter (``render.likelihood._over_clutter``): older sessions' scores are redone.
+# object claims on unclaimed clutter (``render.likelihood._over_clutter``): older sessions' scores are redone. Format 7
+# added the estimator's leaning starts, which older sessions ran without.
 FORMAT_1_PHYSICS = {"sleep_calm": False}
 FORMAT_3_LIKELIHOOD = {"clutter_floor": None}
 FORMAT_4_ESTIMATOR = {"floor_from": 0.0}
+FORMAT_6_ESTIMATOR = {"leaning": False}
 KIND = "workbench-session"
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 ARRAYS_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}\.[0-9a-f]{16}\.npz")
@@ -455,6 +457,9 @@ def _read_document(path: Path) -> dict:
         _fill_settings(document, ("estimator_config",), FORMAT_4_ESTIMATOR)
     if version <= 5:
         _rescore_floor(document)
+    if version <= 6:
+        for at in (("estimator_config",), ("sequence", "config")):
+            _fill_settings(document, at, FORMAT_6_ESTIMATOR)
     return document
 
 

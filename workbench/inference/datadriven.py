@@ -21,8 +21,9 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from workbench.evaluation import run_here
-from workbench.geometry import euler_to_matrix, make_pose, rot_z, rotation_angle
+from workbench.geometry import euler_to_matrix, make_pose, principal_heading, rot_z, rotation_angle
 from workbench.inference.footprint import footprint_starts
+from workbench.inference.leaning import MAX_PATCHES, leaning_starts
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, icp_batch, near
 from workbench.inference.resting import RestingPoses, height
@@ -57,6 +58,10 @@ LEVEL_HEADINGS = 12  # headings tried on a horizontal surface, 30 degrees apart
 # took it to 31 (docs/benchmarks.md, "Observed normals").
 CENTRE_HEADINGS = 12
 PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally) are at one place
+
+# A fitted candidate: its score (``fit_scores``), pose (4, 4) in the table frame, and the cluster's slanted patch
+# it leans on (``leaning_starts``; -1: none): each patch keeps a place in the library.
+Candidate = tuple[float, np.ndarray, int]
 
 
 @dataclass
@@ -130,13 +135,6 @@ def rectangle_heading(points: np.ndarray) -> float:
     return float(angles[int(np.argmin(np.ptp(u, axis=0) * np.ptp(v, axis=0)))])
 
 
-def principal_heading(points: np.ndarray) -> float:
-    """Heading (rad) of the principal axis of the points' xy spread."""
-    xy = points[:, :2] - points[:, :2].mean(axis=0)
-    w, v = np.linalg.eigh(xy.T @ xy)
-    return float(np.arctan2(v[1, -1], v[0, -1]))
-
-
 def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples, per_pixel: bool = True) -> np.ndarray:
     """Per candidate pose T (S, 4, 4) of one object: pixels it explains (observed depth on its camera-facing
     surface) less three for each pixel where the sensor sees through it (a pose that floats in front of the
@@ -183,7 +181,7 @@ def _in_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoints,
                   rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray],
-                  memo: dict | None = None, run: Callable | None = None) -> Library:
+                  memo: dict | None = None, run: Callable | None = None, leaning: bool = False) -> Library:
     """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
     all observed points ``cloud`` near each start. -> Library.
 
@@ -195,9 +193,9 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
     candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
     explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
     without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``evaluation.run_here``), the
-    same library either way."""
+    same library either way. ``leaning``: also fit leaning starts (``cluster_candidates``)."""
     K = len(rest)
-    found: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(K)]
+    found: list[list[Candidate]] = [[] for _ in range(K)]
     clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP]
     clusters = clusters[:max(MAX_CLUSTERS, K + DISTRACTOR_CLUSTERS)]
     keys = [hashlib.sha1(np.ascontiguousarray(c, dtype=np.float64).tobytes()).hexdigest() for c in clusters]
@@ -205,7 +203,7 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
     # Every (cluster, object) fit not remembered, all at once: ``run`` may spread them over the workers.
     new = list(dict.fromkeys(key for key in keys if key not in memo))
     first = {key: clusters[keys.index(key)] for key in new}
-    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k])
+    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k], leaning)
                                                            for key in new for k in range(K)])
     for i, key in enumerate(new):
         memo[key] = fits[i * K:(i + 1) * K]
@@ -218,29 +216,38 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
         # own cluster (better, where something hides part of it), so the best fits overall can all lie on other
         # objects: on generated clutter the gelatin box had none within 13 cm of where it lay. The merge at the
         # next refit keeps the best of each place (``place_order``).
-        best = _distinct(sorted(found[k], key=lambda c: -c[0]), PER_OBJECT)
-        firsts = sorted([max(memo[key][k], key=lambda c: c[0]) for key in keys if memo[key][k]], key=lambda c: -c[0])
-        kept = _distinct(best + firsts, len(best) + len(firsts))
+        resting = [c for c in found[k] if c[2] < 0]  # not leaning
+        best = _distinct(sorted(resting, key=lambda c: -c[0]), PER_OBJECT)
+        firsts = sorted([max(own, key=lambda c: c[0]) for key in keys
+                         if (own := [c for c in memo[key][k] if c[2] < 0])], key=lambda c: -c[0])
+        # And the best leaning candidate of each cluster's slanted patch, apart: a leaning object shows part of one
+        # side, which scores below resting poses that cover more points (the generated gelatin box leaning on the
+        # wood block: 109, against 410 for its best fit elsewhere and 165 leaning on another object's patch),
+        # and the filter cannot tilt a resting pose that far.
+        leans = sorted([max(lean, key=lambda c: c[0]) for key in keys for j in range(MAX_PATCHES)
+                        if (lean := [c for c in memo[key][k] if c[2] == j])], key=lambda c: -c[0])
+        kept = _distinct(best + firsts + leans, len(best) + len(firsts) + len(leans))
         if not kept:
             poses.append(np.zeros((0, 4, 4)))
             weights.append(np.zeros(0))
             continue
-        scores = np.array([s for s, _ in kept])
+        scores = np.array([c[0] for c in kept])
         # Flat on purpose: a large object fits well into another object's cluster too, and only the whole scene
         # (physics, the likelihood) can tell which cluster is whose. Softmax in units of half the best score,
         # mixed with uniform, so that no candidate is starved.
         w = np.exp((scores - scores.max()) / max(0.5 * abs(scores.max()), 1.0))
         w = 0.7 * w / w.sum() + 0.3 / len(w)
-        poses.append(np.stack([T for _, T in kept]))
+        poses.append(np.stack([c[1] for c in kept]))
         weights.append(w / w.sum())
     return Library(poses, weights)
 
 
 def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints, rest: RestingPoses,
-                       samples: ModelSamples, hull: np.ndarray) -> list[tuple[float, np.ndarray]]:
-    """One object's scored candidates (score, pose (4, 4)) fitted at one ``cluster`` (P, 3) to the observed points
-    ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place, and of a
-    thin object's outline aligned with the cluster (``footprint_starts``, not fitted further)."""
+                       samples: ModelSamples, hull: np.ndarray, leaning: bool = False) -> list[Candidate]:
+    """One object's scored candidates (``Candidate``) fitted at one ``cluster`` (P, 3) to the observed points
+    ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place, of a thin
+    object's outline aligned with the cluster (``footprint_starts``), and with ``leaning``, of each of the cluster's
+    slanted patches (``leaning_starts``); those two not fitted further."""
     reach = float(np.max(np.linalg.norm(hull[:, :2], axis=1)))
     starts, place = icp_starts(cluster, rest, hull, reach)
     if not starts:
@@ -257,18 +264,26 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints
                                 viewpoint=cloud.viewpoint, normals=[normals[i] for i in chosen])
     ok = (inliers >= 10) & np.all(np.isfinite(fitted), axis=(1, 2))
     fitted, fitted_place = fitted[ok], place[chosen][ok]
+    patch = np.full(len(fitted), -1)  # the slanted patch each candidate leans on (-1: none)
     # A thin object lying flat: its outline's alignments, one more place, as they are (ICP would let them slide).
     flat = footprint_starts(cluster, cloud, rest, samples, hull, reach)
-    if flat:
-        fitted = np.concatenate([fitted, np.stack(flat)])
-        fitted_place = np.concatenate([fitted_place, np.full(len(flat), place.max() + 1)])
-    scored = [(float(sc), T, p) for sc, T, p in zip(fit_scores(problem, fitted, samples), fitted, fitted_place)]
+    # Leaning on something: along each of the cluster's slanted patches, one more place each, as they are (ICP
+    # slides a leaning box off its patch, onto whatever it leans on: the gelatin box on the wood block ended
+    # 2 cm and 74 degrees from a start 0.5 cm and 6 degrees from it).
+    lean = leaning_starts(cluster, cloud.viewpoint, rest, hull) if leaning else []
+    for j, more in enumerate([flat] + lean):
+        if more:
+            fitted = np.concatenate([fitted, np.stack(more)])
+            fitted_place = np.concatenate([fitted_place, np.full(len(more), place.max() + 1 + j)])
+            patch = np.concatenate([patch, np.full(len(more), j - 1)])
+    scores = fit_scores(problem, fitted, samples)
     # The best of each start place, so that in a cluster of several objects touching, the largest object's
     # surface (where a smaller object also fits well) cannot crowd out the others.
-    out: list[tuple[float, np.ndarray]] = []
-    for p in sorted({p for _, _, p in scored}):
-        at_place = sorted([(sc, T) for sc, T, q in scored if q == p], key=lambda c: -c[0])
-        out += _distinct(at_place, PER_CENTRE)
+    out: list[Candidate] = []
+    for p in np.unique(fitted_place):
+        at = np.nonzero(fitted_place == p)[0]
+        at = at[np.argsort(-scores[at], kind="stable")]
+        out += _distinct([(float(scores[i]), fitted[i], int(patch[i])) for i in at], PER_CENTRE)
     return out
 
 
@@ -328,13 +343,14 @@ def _levels(cluster: np.ndarray) -> list[tuple[float, np.ndarray]]:
     return out
 
 
-def _distinct(candidates: list[tuple[float, np.ndarray]], keep: int) -> list[tuple[float, np.ndarray]]:
+def _distinct(candidates: list[Candidate], keep: int) -> list[Candidate]:
     """The best candidates, skipping any within 1.5 cm and 15 degrees of a better one."""
-    out: list[tuple[float, np.ndarray]] = []
-    for s, T in candidates:
+    out: list[Candidate] = []
+    for c in candidates:
+        T = c[1]
         if all(np.linalg.norm(T[:3, 3] - U[:3, 3]) > 0.015
-               or rotation_angle(T[:3, :3].T @ U[:3, :3]) > np.radians(15) for _, U in out):
-            out.append((s, T))
+               or rotation_angle(T[:3, :3].T @ U[:3, :3]) > np.radians(15) for _, U, _ in out):
+            out.append(c)
         if len(out) >= keep:
             break
     return out

@@ -181,7 +181,7 @@ class DefaultSearch:
         loose = unexplained(self.problem, g.points, filt.map if scene is None else scene, g.samples)
         groups = clusters(g.points.points[loose])
         fresh = datadriven.build_library(self.problem, groups, g.points, g.rest, g.samples, g.hulls,
-                                         self._cluster_memo, partial(self._run, filt))
+                                         self._cluster_memo, partial(self._run, filt), filt.config.leaning)
         self.library = fresh if self.library is None else self.library.merged(fresh)
         self.unexplained = fresh
 

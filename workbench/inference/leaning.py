@@ -1,0 +1,91 @@
+"""Starts for an object leaning on another: its flat side laid along a slanted planar patch of a cluster.
+
+Every other start puts an object on one of its resting faces, upright on the table or on a surface, at some
+heading: a box leaning 60 degrees on a block is none of these, and ICP from an upright start does not tilt it that
+far (it slides onto the block's top instead). What the sensor sees of a leaning box is a slanted flat patch: its
+upper side. So each such patch (normals agreeing within PATCH_TURN, tilted TILT_MIN to TILT_MAX from the vertical,
+at least PATCH_POINTS points and PATCH_WIDTH across) proposes the object with each resting face's upper side on
+the patch, through its centre, in HEADINGS headings from the patch's principal axis; physics then lets it
+fall against whatever holds it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workbench.geometry import make_pose, principal_heading, rot_z, rotvec_to_matrix
+from workbench.inference.resting import RestingPoses, height
+from workbench.inference.scenepoints import point_normals
+
+TILT_MIN = np.radians(15.0)  # a patch less tilted is a top, which the level starts cover
+TILT_MAX = np.radians(75.0)  # a patch more tilted is a wall: an upright side, which the upright starts cover
+PATCH_TURN = np.radians(10.0)  # normals within this of a patch's normal belong to it
+PATCH_OFF = 0.01  # m; points farther than this from the patch's plane do not
+PATCH_POINTS = 40  # points that make a patch
+PATCH_WIDTH = 0.015  # m; a patch narrower than this across is an edge or a rim
+MAX_PATCHES = 2  # per cluster, the largest
+HEADINGS = 4  # per face and patch, 90 degrees apart: the face's principal axis along the patch's, and across
+SEEDS = 300  # normals tried as a patch's normal
+
+
+def slanted_patches(cluster: np.ndarray, eye: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The cluster's (P, 3) (table frame, m; seen from ``eye`` (3,)) slanted planar patches, at most MAX_PATCHES,
+    greedily: the normal most other slanted points' normals agree with first -> [(centre (3,), unit normal (3,)
+    facing the sensor, points (Q, 3))]."""
+    if len(cluster) < PATCH_POINTS:
+        return []
+    normals = point_normals(cluster, eye)
+    tilt = np.arccos(np.clip(normals[:, 2], -1.0, 1.0))
+    left = np.nonzero((tilt >= TILT_MIN) & (tilt <= TILT_MAX))[0]
+    out = []
+    cos_turn = np.cos(PATCH_TURN)
+    while len(out) < MAX_PATCHES and len(left) >= PATCH_POINTS:
+        N = normals[left]
+        seeds = left[np.linspace(0, len(left) - 1, min(SEEDS, len(left))).astype(int)]
+        agree = normals[seeds] @ N.T > cos_turn  # (S, L)
+        n = normals[seeds[int(np.argmax(agree.sum(axis=1)))]]
+        alike = left[N @ n > cos_turn]
+        n = normals[alike].mean(axis=0)
+        n /= np.linalg.norm(n)
+        centre = np.median(cluster[alike], axis=0)
+        members = alike[np.abs((cluster[alike] - centre) @ n) < PATCH_OFF]
+        left = np.setdiff1d(left, alike)
+        if len(members) < PATCH_POINTS:
+            continue
+        points = cluster[members]
+        flat = (points - points.mean(axis=0)) @ _tilt(n)  # in the patch's plane (and out of it, ~0)
+        spread = np.linalg.svd(flat[:, :2] - flat[:, :2].mean(axis=0), compute_uv=False)
+        if np.sqrt(12.0 / len(points)) * spread[-1] < PATCH_WIDTH:  # a uniform strip's width is sqrt(12) sigma
+            continue
+        out.append((points.mean(axis=0), n, points))
+    return out
+
+
+def _tilt(n: np.ndarray) -> np.ndarray:
+    """The rotation (3, 3) that turns the vertical onto the unit vector ``n`` (3,) about a horizontal axis."""
+    axis = np.cross([0.0, 0.0, 1.0], n)
+    s = float(np.linalg.norm(axis))
+    if s < 1e-9:
+        return np.eye(3)
+    return rotvec_to_matrix(axis / s * np.arctan2(s, n[2]))
+
+
+def leaning_starts(cluster: np.ndarray, eye: np.ndarray, rest: RestingPoses, hull: np.ndarray
+                   ) -> list[list[np.ndarray]]:
+    """Per slanted patch of the cluster (``slanted_patches``), poses (4, 4) of the object (convex-hull vertices
+    ``hull`` (V, 3)) with each resting face's upper side on it, through the patch's centre, in HEADINGS headings:
+    the patch's principal axis along the face's."""
+    out = []
+    for centre, n, points in slanted_patches(cluster, eye):
+        out.append([])
+        R_tilt = _tilt(n)
+        heading = principal_heading(((points - centre) @ R_tilt)[:, :2])
+        for f, R in enumerate(rest.rotations):
+            top = height(R, hull)
+            own = principal_heading((hull @ R.T)[:, :2])
+            for i in range(HEADINGS):
+                Rz = rot_z(heading - own + i * 2 * np.pi / HEADINGS)
+                # At rest on face f the origin is heights[f] above the table and the upper side ``top`` above it.
+                t = centre + R_tilt @ np.array([0.0, 0.0, rest.heights[f] - top])
+                out[-1].append(make_pose(R_tilt @ Rz @ R, t))
+    return out
