@@ -532,7 +532,7 @@ def test_a_box_leaning_on_a_block_gets_a_start_at_its_place():
     assert len(patches) == 2 and all(abs(n[2] - c) < 0.05 for (_, n, _), c in zip(
         sorted(patches, key=lambda p: p[1][2]), np.cos(np.radians([60.0, 30.0]))))
     rest = resting.resting_poses(box)
-    starts = np.stack([T for lean in leaning_starts(cluster, eye, rest, np.asarray(box.vertices)) for T in lean])
+    starts = np.stack([T for lean in leaning_starts(patches, rest, np.asarray(box.vertices)) for T in lean])
     turns = [np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]  # the box's symmetries
     off = np.linalg.norm(starts[:, :3, 3] - truth[:3, 3], axis=1)
     turn = np.degrees([min(rotation_angle(S[:3, :3].T @ truth[:3, :3] @ F) for F in turns) for S in starts])
@@ -602,14 +602,15 @@ def test_every_listed_object_and_a_few_distractors_get_a_cluster(context, monkey
     problem, ctx, _ = context
     rng = np.random.default_rng(0)
     groups = [np.array([0.1 * i, 0.0, 0.0]) + rng.uniform([0, 0, 0.02], [0.03, 0.03, 0.04], (40, 3)) for i in range(12)]
-    fitted, leaning = [], []
+    fitted, patches, found = [], [], []
     monkeypatch.setattr(datadriven, "cluster_candidates",
-                        lambda _problem, cluster, *a: fitted.append(cluster) or leaning.append(a[-1]) or [])
+                        lambda _problem, cluster, *a: fitted.append(cluster) or patches.append(a[-1]) or [])
+    monkeypatch.setattr(datadriven, "slanted_patches", lambda cluster, eye: found.append(cluster) or ["patch"])
     monkeypatch.setattr(datadriven, "MAX_CLUSTERS", 1)
     datadriven.build_library(problem, groups, ctx.points, ctx.rest, ctx.samples, ctx.hulls)
-    assert leaning and not any(leaning)  # leaning starts are asked for only with ``leaning``
+    assert patches and not any(patches) and not found  # leaning starts are asked for only with ``leaning``
     datadriven.build_library(problem, groups[:1], ctx.points, ctx.rest, ctx.samples, ctx.hulls, leaning=True)
-    assert leaning[-1] is True
+    assert len(found) == 1 and patches[-problem.n_objects:] == [["patch"]] * problem.n_objects  # once per cluster
     del fitted[-problem.n_objects:]
     K = problem.n_objects
     assert len(fitted) == (K + datadriven.DISTRACTOR_CLUSTERS) * K

@@ -23,7 +23,7 @@ from scipy.spatial import ConvexHull, QhullError
 from workbench.evaluation import run_here
 from workbench.geometry import euler_to_matrix, make_pose, principal_heading, rot_z, rotation_angle
 from workbench.inference.footprint import footprint_starts
-from workbench.inference.leaning import MAX_PATCHES, leaning_starts
+from workbench.inference.leaning import leaning_starts, slanted_patches
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, icp_batch, near
 from workbench.inference.resting import RestingPoses, height
@@ -193,7 +193,8 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
     candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
     explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
     without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``evaluation.run_here``), the
-    same library either way. ``leaning``: also fit leaning starts (``cluster_candidates``)."""
+    same library either way. ``leaning``: also fit leaning starts, along each cluster's slanted patches, found once
+    per cluster (``slanted_patches``), not once per object."""
     K = len(rest)
     found: list[list[Candidate]] = [[] for _ in range(K)]
     clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP]
@@ -203,8 +204,9 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
     # Every (cluster, object) fit not remembered, all at once: ``run`` may spread them over the workers.
     new = list(dict.fromkeys(key for key in keys if key not in memo))
     first = {key: clusters[keys.index(key)] for key in new}
-    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k], leaning)
-                                                           for key in new for k in range(K)])
+    patches = {key: slanted_patches(first[key], cloud.viewpoint) if leaning else [] for key in new}
+    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k],
+                                                            patches[key]) for key in new for k in range(K)])
     for i, key in enumerate(new):
         memo[key] = fits[i * K:(i + 1) * K]
     for key in keys:
@@ -224,8 +226,8 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
         # side, which scores below resting poses that cover more points (the generated gelatin box leaning on the
         # wood block: 109, against 410 for its best fit elsewhere and 165 leaning on another object's patch),
         # and the filter cannot tilt a resting pose that far.
-        leans = sorted([max(lean, key=lambda c: c[0]) for key in keys for j in range(MAX_PATCHES)
-                        if (lean := [c for c in memo[key][k] if c[2] == j])], key=lambda c: -c[0])
+        leans = sorted([max((c for c in memo[key][k] if c[2] == j), key=lambda c: c[0]) for key in keys
+                        for j in {c[2] for c in memo[key][k]} - {-1}], key=lambda c: -c[0])
         kept = _distinct(best + firsts + leans, len(best) + len(firsts) + len(leans))
         if not kept:
             poses.append(np.zeros((0, 4, 4)))
@@ -243,11 +245,11 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
 
 
 def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints, rest: RestingPoses,
-                       samples: ModelSamples, hull: np.ndarray, leaning: bool = False) -> list[Candidate]:
+                       samples: ModelSamples, hull: np.ndarray, patches: list | tuple = ()) -> list[Candidate]:
     """One object's scored candidates (``Candidate``) fitted at one ``cluster`` (P, 3) to the observed points
     ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place, of a thin
-    object's outline aligned with the cluster (``footprint_starts``), and with ``leaning``, of each of the cluster's
-    slanted patches (``leaning_starts``); those two not fitted further."""
+    object's outline aligned with the cluster (``footprint_starts``), and of each of the cluster's slanted
+    ``patches`` (``leaning_starts``; none unless asked for); those two not fitted further."""
     reach = float(np.max(np.linalg.norm(hull[:, :2], axis=1)))
     starts, place = icp_starts(cluster, rest, hull, reach)
     if not starts:
@@ -270,7 +272,7 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints
     # Leaning on something: along each of the cluster's slanted patches, one more place each, as they are (ICP
     # slides a leaning box off its patch, onto whatever it leans on: the gelatin box on the wood block ended
     # 2 cm and 74 degrees from a start 0.5 cm and 6 degrees from it).
-    lean = leaning_starts(cluster, cloud.viewpoint, rest, hull) if leaning else []
+    lean = leaning_starts(patches, rest, hull)
     for j, more in enumerate([flat] + lean):
         if more:
             fitted = np.concatenate([fitted, np.stack(more)])

@@ -70,13 +70,13 @@ def _tilt(n: np.ndarray) -> np.ndarray:
     return rotvec_to_matrix(axis / s * np.arctan2(s, n[2]))
 
 
-def leaning_starts(cluster: np.ndarray, eye: np.ndarray, rest: RestingPoses, hull: np.ndarray
+def leaning_starts(patches: list[tuple[np.ndarray, np.ndarray, np.ndarray]], rest: RestingPoses, hull: np.ndarray
                    ) -> list[list[np.ndarray]]:
-    """Per slanted patch of the cluster (``slanted_patches``), poses (4, 4) of the object (convex-hull vertices
+    """Per slanted patch of a cluster (``slanted_patches``), poses (4, 4) of the object (convex-hull vertices
     ``hull`` (V, 3)) with each resting face's upper side on it, through the patch's centre, in HEADINGS headings:
     the patch's principal axis along the face's."""
     out = []
-    for centre, n, points in slanted_patches(cluster, eye):
+    for centre, n, points in patches:
         out.append([])
         R_tilt = _tilt(n)
         heading = principal_heading(((points - centre) @ R_tilt)[:, :2])
