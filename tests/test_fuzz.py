@@ -26,7 +26,7 @@ from PIL import Image
 
 from workbench import sessions
 from workbench.app.engine import DEMO_DIR
-from workbench.bench import tables
+from workbench.bench import gt_info
 from workbench.errors import InputError
 from workbench.estimators import Estimator
 from workbench.evaluation import LocalEvaluator
@@ -170,9 +170,9 @@ def run_dataset(dataset: Path, runs: Runs) -> None:
     """What ``estimate`` (and ``bench``, for scenes.json and scene_gt_info.json) reads, then a small estimate."""
     for scene_id, im_id in bop.list_frames(dataset):
         frame, problem = load_bop_problem(dataset, scene_id, im_id)
-        tables.visib_fractions(frame)
+        gt_info.visib_fractions(frame)
         runs.estimate(problem)
-    tables.scene_categories(dataset)
+    gt_info.scene_categories(dataset)
 
 
 def run_session(path: Path, runs: Runs, problems: dict) -> None:

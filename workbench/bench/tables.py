@@ -22,6 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from workbench.bench.baseline import estimate_icp_fits
+from workbench.bench.gt_info import HIDDEN_VISIB, scene_categories, visib_fractions
 from workbench.errors import InputError
 from workbench.estimators import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
@@ -49,7 +50,6 @@ from workbench.synth import CATEGORIES, frame_table_pose
 
 METHODS = ("icp", "pipf", "mcpf")
 METHOD_NAMES = {"icp": "ICP", "pipf": "PI-PF", "mcpf": "PI-MCPF"}
-HIDDEN_VISIB = 0.1  # scene_gt_info visib_fract below this: the object counts as hidden
 CM = 100.0
 
 # What the paper reports, as far as our brief has it: ranges over its cases, not per-cell numbers.
@@ -380,19 +380,6 @@ def render_report(report: dict) -> str:
 # Running
 
 
-def scene_categories(dataset: Path) -> dict[int, str]:
-    """scene_id -> category, from the scenes.json `workbench make-scenes` writes."""
-    path = Path(dataset) / "scenes.json"
-    meta = bop.expect_object(bop.read_json(path), path, "the file")
-    out = {}
-    for s in bop.expect_list(meta.get("scenes"), path, "scenes"):
-        s = bop.expect_object(s, path, "a scene")
-        out[bop.expect_int(s.get("scene_id"), path, "scene_id")] = s.get("category")
-        if not isinstance(out[s["scene_id"]], str):
-            raise InputError(path, f"scene {s['scene_id']}: category must be a string, got {s.get('category')!r:.40}")
-    return out
-
-
 def select_frames(frames: list[tuple[int, int]], categories: dict[int, str], wanted: list[str] | None,
                   per_category: int | None) -> list[tuple[int, int]]:
     """The first ``per_category`` frames (all when None) of each wanted category (all when None), in order."""
@@ -406,19 +393,6 @@ def select_frames(frames: list[tuple[int, int]], categories: dict[int, str], wan
             taken[c] = taken.get(c, 0) + 1
             out.append((scene_id, im_id))
     return out
-
-
-def visib_fractions(frame: Frame) -> list[float]:
-    """scene_gt_info.json visib_fract per object of the frame (same order as scene_gt.json)."""
-    path = Path(frame.source).parents[1] / "scene_gt_info.json"
-    content = bop.read_json(path)
-    bop.image_ids(content, path)
-    info = bop.expect_list(content.get(str(frame.im_id)), path, f"image {frame.im_id}")
-    fractions = [bop.expect_number(bop.expect_object(i, path, "an object entry").get("visib_fract"), path,
-                                   f"image {frame.im_id} visib_fract") for i in info]
-    if len(fractions) != len(frame.object_ids):
-        raise InputError(path, f"image {frame.im_id}: {len(fractions)} entries for {len(frame.object_ids)} objects")
-    return fractions
 
 
 def run_icp(frame: Frame, models: list[ObjectModel]) -> tuple[np.ndarray, np.ndarray, float]:
