@@ -1,10 +1,13 @@
 """`workbench score`: a results CSV against the dataset's ground truth."""
 
+import json
+import shutil
+
 import numpy as np
 import pytest
 from test_cli import _workbench
 
-from workbench.bench.scoring import instance_groups, match, score_results
+from workbench.bench.scoring import instance_groups, match, report, score_results, summary
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
 
@@ -89,3 +92,32 @@ def test_score_command_prints_the_summary_and_names_a_foreign_frame(touching_dat
     run = _workbench("score", touching_dataset, foreign)
     assert run.returncode == 2 and "foreign.csv" in run.stderr and "scene 7 image 3" in run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test_hidden_objects_and_categories_are_counted_apart(touching_dataset, tmp_path):
+    """An object under 10 % visible (scene_gt_info.json) is counted apart from BOP's targets, and a generated set's
+    objects per category (scenes.json); every object still counts in the headline."""
+    dataset = tmp_path / "set"
+    shutil.copytree(touching_dataset, dataset)
+    info_path = dataset / "test" / "000000" / "scene_gt_info.json"
+    info = json.loads(info_path.read_text())
+    info["0"][1]["visib_fract"] = 0.05
+    info_path.write_text(json.dumps(info))
+    _, rows = _truth_rows(dataset)
+    rows[1].T_cam_obj[:3, 3] += [0.05, 0.0, 0.0]  # the hidden one 5 cm off
+    frames = score_results(dataset, rows)
+    assert [o.hidden for o in frames[0].objects] == [False, True] and frames[0].category == "touching"
+    totals = summary(frames)
+    assert (totals["objects"], totals["objects_right"]) == (2, 1)
+    assert totals["visible"] == {"objects": 1, "objects_right": 1}
+    assert totals["hidden"] == {"objects": 1, "objects_right": 0}
+    assert totals["categories"]["touching"]["hidden"] == {"objects": 1, "objects_right": 0}
+    text = "\n".join(report(frames))
+    assert "1/2 objects right" in text and "(BOP's test targets): 1/1; of the 1 hidden ones" in text
+    assert "per category, right/objects (objects under 10% visible apart): touching 1/1 + hidden 0/1" in text
+
+    info_path.unlink()  # a dataset that does not say: no object is hidden
+    (dataset / "scenes.json").unlink()
+    frames = score_results(dataset, rows)
+    assert not any(o.hidden for o in frames[0].objects) and frames[0].category is None
+    assert "visible" not in summary(frames) and "categories" not in summary(frames)

@@ -1,6 +1,6 @@
 """What a BOP dataset says of its ground truth besides the poses: how much of each object the camera sees
 (scene_gt_info.json's ``visib_fract``) and, in sets `workbench make-scenes` wrote, each scene's category
-(scenes.json). ``bench`` reports by them."""
+(scenes.json). ``bench`` and ``score`` both report by them."""
 
 from __future__ import annotations
 

@@ -8,6 +8,10 @@ camera frame (OpenCV, metres): both errors are the same in any frame both poses 
 
 With ``vsd`` (``score_results``), each object is also scored by what the camera sees of it: BOP's Visible Surface
 Discrepancy (``vsd.py``) against the frame's depth image, the same estimate matched to the same instance.
+
+Where the dataset says how much of each object the camera sees (scene_gt_info.json), objects under
+``gt_info.HIDDEN_VISIB`` are also counted apart: BOP's test targets leave them out, the depth hardly constrains
+them. Sets `workbench make-scenes` wrote are also counted per category (scenes.json).
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import numpy as np
 
 from workbench.bench import calibration
 from workbench.bench.calibration import ObjectModes
+from workbench.bench.gt_info import HIDDEN_VISIB, gt_info_path, scene_categories, visib_fractions
 from workbench.bench.vsd import VSDConfig, diameter, frame_vsd
 from workbench.errors import InputError
 from workbench.io import bop
@@ -41,10 +46,16 @@ class ObjectScore:
     vsd: float = np.nan
     vsd_right: bool | None = None
     ar_vsd: float = np.nan
+    visib_fract: float = np.nan  # scene_gt_info.json's; NaN where the dataset does not say
 
     @property
     def estimated(self) -> bool:
         return bool(np.isfinite(self.position_cm))
+
+    @property
+    def hidden(self) -> bool:
+        """Under ``HIDDEN_VISIB`` of it visible (False where the dataset does not say)."""
+        return bool(self.visib_fract < HIDDEN_VISIB)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -58,6 +69,7 @@ class FrameScore:
     unmatched_rows: int  # estimate rows of objects the ground truth does not hold (or holds fewer of)
     # Per object instance with an estimate: its rows as the modes of its posterior (``calibration``)
     modes: list[ObjectModes] = field(default_factory=list)
+    category: str | None = None  # scenes.json's, in sets `workbench make-scenes` wrote
 
     @property
     def right(self) -> bool:
@@ -117,6 +129,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
     for r in rows:
         frames.setdefault((r.scene_id, r.im_id), []).append(r)
     known = set(bop.list_frames(dataset, split=split))
+    categories = scene_categories(dataset) if (Path(dataset) / "scenes.json").is_file() else {}
     missing = sorted(set(frames) - known)
     if missing:
         raise InputError(results_path, f"{len(missing)} frame(s) are not in {dataset}, e.g. scene {missing[0][0]} "
@@ -137,6 +150,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
                               diameter(m.mesh) if vsd is not None else np.nan)
         objects, matched, extra, modes = [], 0, 0, []
         seen = []  # per ground-truth instance, in the order of ``objects``: (obj_id, T_gt, T_est or None)
+        order = []  # per ground-truth instance, in the order of ``objects``: its index in scene_gt.json
         for obj_id in dict.fromkeys(frame.object_ids):
             gi = [k for k, o in enumerate(frame.object_ids) if o == obj_id]
             # One estimate per instance, its top row: further rows are other modes of the posterior (the same
@@ -152,6 +166,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
                 modes.append(calibration.object_modes(frame.gt_T_cam_obj[gi[i]],
                                                       [(r.score, r.T_cam_obj) for r in groups[j]], sym))
             for i, k in enumerate(gi):
+                order.append(k)
                 T_gt = frame.gt_T_cam_obj[k]
                 if i not in pairs:
                     objects.append(ObjectScore(scene_id, im_id, obj_id, np.nan, np.nan, np.nan, False))
@@ -164,7 +179,10 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
                                            is_right(T_gt, T_est, sym)))
         if vsd is not None:
             objects = _with_vsd(objects, seen, frame, models, vsd)
-        out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched - extra, modes))
+        if gt_info_path(frame).is_file():
+            visib = visib_fractions(frame)
+            objects = [replace(o, visib_fract=visib[k]) for o, k in zip(objects, order)]
+        out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched - extra, modes, categories.get(scene_id)))
     return out
 
 
@@ -182,14 +200,39 @@ def summary(frames: list[FrameScore], vsd: VSDConfig = VSDConfig()) -> dict:
     """The counts the report's summary gives, for ``score --json``: objects and frames right within 2 cm and
     10 degrees, and (when scored, with ``vsd`` the settings they were scored with) objects VSD-right and AR_VSD,
     the mean over objects of their share of AR_VSD's (tau, theta) pairs (an object without an estimate counts 0:
-    BOP's recall over every ground-truth instance)."""
+    BOP's recall over every ground-truth instance). Where the dataset gives visibilities: the same counts over the
+    objects seen (``visible``: BOP's test targets) and the hidden ones (``hidden``). In sets with scenes.json:
+    ``categories``, per category the object counts, all, seen and hidden."""
     objects = [o for f in frames for o in f.objects]
-    out = {"frames": len(frames), "frames_right": sum(f.right for f in frames), "objects": len(objects),
-           "objects_right": sum(o.right for o in objects), "right_cm": RIGHT_CM, "right_deg": RIGHT_DEG}
-    if objects and all(o.vsd_right is not None for o in objects):
-        out.update(vsd_right=sum(o.vsd_right for o in objects), ar_vsd=float(np.mean([o.ar_vsd for o in objects])),
-                   vsd_tau_mm=1000 * vsd.tau, vsd_theta=vsd.theta, vsd_delta_mm=1000 * vsd.delta)
+    out = {"frames": len(frames), "frames_right": sum(f.right for f in frames), **_counts(objects),
+           "right_cm": RIGHT_CM, "right_deg": RIGHT_DEG}
+    if "vsd_right" in out:
+        out.update(ar_vsd=float(np.mean([o.ar_vsd for o in objects])), vsd_tau_mm=1000 * vsd.tau,
+                   vsd_theta=vsd.theta, vsd_delta_mm=1000 * vsd.delta)
+    if any(np.isfinite(o.visib_fract) for o in objects):
+        out.update(hidden_visib=HIDDEN_VISIB, visible=_counts([o for o in objects if not o.hidden]),
+                   hidden=_counts([o for o in objects if o.hidden]))
+    categories = list(dict.fromkeys(f.category for f in frames if f.category is not None))
+    if categories:
+        out["categories"] = {}
+        for c in categories:
+            mine = [o for f in frames if f.category == c for o in f.objects]
+            out["categories"][c] = {**_counts(mine), "visible": _counts([o for o in mine if not o.hidden]),
+                                    "hidden": _counts([o for o in mine if o.hidden])}
     return out
+
+
+def _counts(objects: list[ObjectScore]) -> dict:
+    """{"objects", "objects_right"} and, when every one was scored by VSD, "vsd_right"."""
+    out = {"objects": len(objects), "objects_right": sum(o.right for o in objects)}
+    if objects and all(o.vsd_right is not None for o in objects):
+        out["vsd_right"] = sum(o.vsd_right for o in objects)
+    return out
+
+
+def _count_text(c: dict) -> str:
+    """"right/objects" and, when scored, ", VSD vsd_right"."""
+    return f"{c['objects_right']}/{c['objects']}" + (f", VSD {c['vsd_right']}" if "vsd_right" in c else "")
 
 
 def report(frames: list[FrameScore], vsd: VSDConfig = VSDConfig()) -> list[str]:
@@ -221,6 +264,16 @@ def report(frames: list[FrameScore], vsd: VSDConfig = VSDConfig()) -> list[str]:
             lines.append("# VSD and 2 cm/10 deg differ on " + ", ".join(
                 f"scene {o.scene_id} image {o.im_id} obj {o.obj_id} (VSD {o.vsd:.2f}: "
                 f"{'right' if o.vsd_right else 'wrong'})" for o in differ))
+    if totals.get("hidden", {}).get("objects"):  # BOP's targets: objects at least HIDDEN_VISIB visible
+        lines.append(f"# of the objects at least {HIDDEN_VISIB:.0%} visible (BOP's test targets): "
+                     f"{_count_text(totals['visible'])}; of the {totals['hidden']['objects']} hidden ones, "
+                     f"which the depth hardly constrains: {_count_text(totals['hidden'])}")
+    if "categories" in totals:
+        lines.append("# per category, right/objects (objects under "
+                     f"{HIDDEN_VISIB:.0%} visible apart): " + "; ".join(
+                         f"{c} {_count_text(n['visible'])}" + (f" + hidden {_count_text(n['hidden'])}"
+                                                               if n["hidden"]["objects"] else "")
+                         for c, n in totals["categories"].items()))
     modes = [m for f in frames for m in f.modes]
     if any(len(m.probabilities) > 1 for m in modes):  # a posterior: several rows per object, scored by probability
         lines.append(f"# posterior ({len(modes)} objects): top-1 {calibration.top1(modes):.3f}, the truth among the "
