@@ -33,9 +33,14 @@ def visib_fractions(frame: Frame) -> list[float]:
     return fractions
 
 
+def scenes_path(dataset: Path) -> Path:
+    """The scenes.json `workbench make-scenes` writes at a set's root (other sets have none)."""
+    return Path(dataset) / "scenes.json"
+
+
 def scene_categories(dataset: Path) -> dict[int, str]:
-    """scene_id -> category, from the scenes.json `workbench make-scenes` writes."""
-    path = Path(dataset) / "scenes.json"
+    """scene_id -> category, from ``scenes_path(dataset)``."""
+    path = scenes_path(dataset)
     meta = bop.expect_object(bop.read_json(path), path, "the file")
     out = {}
     for s in bop.expect_list(meta.get("scenes"), path, "scenes"):

@@ -24,7 +24,7 @@ import numpy as np
 
 from workbench.bench import calibration
 from workbench.bench.calibration import ObjectModes
-from workbench.bench.gt_info import HIDDEN_VISIB, gt_info_path, scene_categories, visib_fractions
+from workbench.bench.gt_info import HIDDEN_VISIB, gt_info_path, scene_categories, scenes_path, visib_fractions
 from workbench.bench.vsd import VSDConfig, diameter, frame_vsd
 from workbench.errors import InputError
 from workbench.io import bop
@@ -129,7 +129,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
     for r in rows:
         frames.setdefault((r.scene_id, r.im_id), []).append(r)
     known = set(bop.list_frames(dataset, split=split))
-    categories = scene_categories(dataset) if (Path(dataset) / "scenes.json").is_file() else {}
+    categories = scene_categories(dataset) if scenes_path(dataset).is_file() else {}
     missing = sorted(set(frames) - known)
     if missing:
         raise InputError(results_path, f"{len(missing)} frame(s) are not in {dataset}, e.g. scene {missing[0][0]} "
@@ -150,7 +150,7 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
                               diameter(m.mesh) if vsd is not None else np.nan)
         objects, matched, extra, modes = [], 0, 0, []
         seen = []  # per ground-truth instance, in the order of ``objects``: (obj_id, T_gt, T_est or None)
-        order = []  # per ground-truth instance, in the order of ``objects``: its index in scene_gt.json
+        visib = visib_fractions(frame) if gt_info_path(frame).is_file() else [np.nan] * len(frame.object_ids)
         for obj_id in dict.fromkeys(frame.object_ids):
             gi = [k for k, o in enumerate(frame.object_ids) if o == obj_id]
             # One estimate per instance, its top row: further rows are other modes of the posterior (the same
@@ -166,22 +166,19 @@ def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = 
                 modes.append(calibration.object_modes(frame.gt_T_cam_obj[gi[i]],
                                                       [(r.score, r.T_cam_obj) for r in groups[j]], sym))
             for i, k in enumerate(gi):
-                order.append(k)
                 T_gt = frame.gt_T_cam_obj[k]
                 if i not in pairs:
-                    objects.append(ObjectScore(scene_id, im_id, obj_id, np.nan, np.nan, np.nan, False))
+                    objects.append(ObjectScore(scene_id, im_id, obj_id, np.nan, np.nan, np.nan, False,
+                                               visib_fract=visib[k]))
                     seen.append((obj_id, T_gt, None))
                     continue
                 T_est = est[pairs[i]]
                 seen.append((obj_id, T_gt, T_est))
                 objects.append(ObjectScore(scene_id, im_id, obj_id, 100 * position_error(T_gt, T_est, sym),
                                            rotation_error(T_gt, T_est, sym), 1000 * add_s(T_gt, T_est, points),
-                                           is_right(T_gt, T_est, sym)))
+                                           is_right(T_gt, T_est, sym), visib_fract=visib[k]))
         if vsd is not None:
             objects = _with_vsd(objects, seen, frame, models, vsd)
-        if gt_info_path(frame).is_file():
-            visib = visib_fractions(frame)
-            objects = [replace(o, visib_fract=visib[k]) for o, k in zip(objects, order)]
         out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched - extra, modes, categories.get(scene_id)))
     return out
 
@@ -210,15 +207,13 @@ def summary(frames: list[FrameScore], vsd: VSDConfig = VSDConfig()) -> dict:
         out.update(ar_vsd=float(np.mean([o.ar_vsd for o in objects])), vsd_tau_mm=1000 * vsd.tau,
                    vsd_theta=vsd.theta, vsd_delta_mm=1000 * vsd.delta)
     if any(np.isfinite(o.visib_fract) for o in objects):
-        out.update(hidden_visib=HIDDEN_VISIB, visible=_counts([o for o in objects if not o.hidden]),
-                   hidden=_counts([o for o in objects if o.hidden]))
+        out.update(hidden_visib=HIDDEN_VISIB, **_counts_by_visibility(objects))
     categories = list(dict.fromkeys(f.category for f in frames if f.category is not None))
     if categories:
         out["categories"] = {}
         for c in categories:
             mine = [o for f in frames if f.category == c for o in f.objects]
-            out["categories"][c] = {**_counts(mine), "visible": _counts([o for o in mine if not o.hidden]),
-                                    "hidden": _counts([o for o in mine if o.hidden])}
+            out["categories"][c] = {**_counts(mine), **_counts_by_visibility(mine)}
     return out
 
 
@@ -228,6 +223,12 @@ def _counts(objects: list[ObjectScore]) -> dict:
     if objects and all(o.vsd_right is not None for o in objects):
         out["vsd_right"] = sum(o.vsd_right for o in objects)
     return out
+
+
+def _counts_by_visibility(objects: list[ObjectScore]) -> dict:
+    """{"visible": ``_counts`` of the objects at least ``HIDDEN_VISIB`` visible, "hidden": of the others}."""
+    return {"visible": _counts([o for o in objects if not o.hidden]),
+            "hidden": _counts([o for o in objects if o.hidden])}
 
 
 def _count_text(c: dict) -> str:
