@@ -578,21 +578,23 @@ def test_an_object_lying_on_another_gets_a_start_at_its_place():
 
 def test_every_cluster_keeps_its_best_fit_of_every_object(context, monkeypatch):
     """A small object fits a large flat surface as well as its own cluster (better, where something hides part of
-    it): its best fits overall can all lie on the large one. The library keeps the best overall and the best of
-    every cluster, and the best leaning candidate of every slanted patch, which do not compete with the others."""
+    it): its best fits overall can all lie on the large one. The library keeps the best overall, the best of each
+    of every cluster's first two places (an object partly hidden fits its cluster best where it also covers the
+    object that hides it), and the best leaning candidate of every slanted patch, which do not compete."""
     problem, ctx, _ = context
     rng = np.random.default_rng(1)
     large, own = (np.array([x, 0.0, 0.0]) + rng.uniform([0, 0, 0.02], [0.1, 0.1, 0.04], (60, 3)) for x in (0, 0.3))
     at = lambda x, y: make_pose(np.eye(3), [x, y, 0.02])  # noqa: E731
     fits = {id(large): [(100.0 - i, at(0.02 * (i % 5), 0.02 * (i // 5)), -1) for i in range(15)]
             + [(120.0, at(0.05, 0.2), 0), (110.0, at(0.05, 0.25), 0)],  # leaning on the cluster's first patch
-            id(own): [(60.0, at(0.33, 0.03), -1), (50.0, at(0.36, 0.03), -1)]}
+            id(own): [(60.0, at(0.33, 0.03), -1), (55.0, at(0.35, 0.03), -1),  # one place (2 cm apart)
+                      (50.0, at(0.38, 0.03), -1), (45.0, at(0.38, 0.08), -1)]}  # a second place, and a third
     monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: list(fits[id(cluster)]))
     library = datadriven.build_library(problem, [large, own], ctx.points, ctx.rest, ctx.samples, ctx.hulls)
     for poses in library.poses:
-        assert len(poses) == datadriven.PER_OBJECT + 2
-        assert np.all(poses[:-2, 0, 3] < 0.1) and np.all(poses[:-2, 1, 3] < 0.1)  # the 12 best resting overall
-        assert np.allclose(poses[-2], at(0.33, 0.03))  # its own cluster's best
+        assert len(poses) == datadriven.PER_OBJECT + 3
+        assert np.all(poses[:-3, 0, 3] < 0.1) and np.all(poses[:-3, 1, 3] < 0.1)  # the 12 best resting overall
+        assert np.allclose(poses[-3], at(0.33, 0.03)) and np.allclose(poses[-2], at(0.38, 0.03))  # its own places
         assert np.allclose(poses[-1], at(0.05, 0.2))  # the patch's best leaning candidate, in a place of its own
 
 
