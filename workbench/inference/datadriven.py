@@ -100,12 +100,19 @@ def place_order(poses: np.ndarray, weights: np.ndarray) -> np.ndarray:
     one object explains: YCB-Video's standing marker at the image edge lost its only right candidates at the
     first refit."""
     by_weight = np.argsort(-weights, kind="stable")
-    first: list[int] = []
-    for i in by_weight:
-        if all(np.linalg.norm(poses[i, :2, 3] - poses[j, :2, 3]) >= PLACE_M for j in first):
-            first.append(int(i))
+    first = place_firsts(poses, weights)
     rest = [int(i) for i in by_weight if int(i) not in set(first)]
     return np.array(first + rest, dtype=int)
+
+
+def place_firsts(poses: np.ndarray, weights: np.ndarray) -> list[int]:
+    """The indices of the heaviest candidate (poses (C, 4, 4), weights (C,)) of each distinct place, centres at
+    least PLACE_M apart horizontally, heaviest first."""
+    first: list[int] = []
+    for i in np.argsort(-weights, kind="stable"):
+        if all(np.linalg.norm(poses[i, :2, 3] - poses[j, :2, 3]) >= PLACE_M for j in first):
+            first.append(int(i))
+    return first
 
 
 def spread_centres(points: np.ndarray, spacing: float, limit: int) -> np.ndarray:
@@ -224,7 +231,7 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
         # where it lay. The merge at the next refit keeps the best of each place (``place_order``).
         resting = [c for c in found[k] if c[2] < 0]  # not leaning
         best = _distinct(sorted(resting, key=lambda c: -c[0]), PER_OBJECT)
-        firsts = sorted([c for key in keys for c in _places([c for c in memo[key][k] if c[2] < 0], PER_CLUSTER)],
+        firsts = sorted([c for key in keys for c in _places([c for c in memo[key][k] if c[2] < 0])],
                         key=lambda c: -c[0])
         # And the best leaning candidate of each cluster's slanted patch, apart: a leaning object shows part of one
         # side, which scores below resting poses that cover more points (the generated gelatin box leaning on the
@@ -349,16 +356,12 @@ def _levels(cluster: np.ndarray) -> list[tuple[float, np.ndarray]]:
     return out
 
 
-def _places(candidates: list[Candidate], keep: int) -> list[Candidate]:
-    """The best candidate of each distinct place (centres at least PLACE_M apart horizontally), best first; at
-    most ``keep``."""
-    out: list[Candidate] = []
-    for c in sorted(candidates, key=lambda c: -c[0]):
-        if all(np.linalg.norm(c[1][:2, 3] - u[1][:2, 3]) >= PLACE_M for u in out):
-            out.append(c)
-        if len(out) == keep:
-            break
-    return out
+def _places(candidates: list[Candidate]) -> list[Candidate]:
+    """The best candidate of each of the first PER_CLUSTER distinct places (``place_firsts``), best first."""
+    if not candidates:
+        return []
+    first = place_firsts(np.stack([c[1] for c in candidates]), np.array([c[0] for c in candidates]))
+    return [candidates[i] for i in first[:PER_CLUSTER]]
 
 
 def _distinct(candidates: list[Candidate], keep: int) -> list[Candidate]:
