@@ -154,6 +154,44 @@ def test_a_scene_with_an_object_resting_outside_the_object_region_is_ruled_out(f
     assert np.isfinite(ev.loglik[0]) and ev.loglik[1] == -np.inf
 
 
+def _centre_at_u(problem, T_world_obj: np.ndarray, k: int, u: float) -> np.ndarray:
+    """``T_world_obj`` (K, 4, 4) with object ``k`` moved along the camera's x axis, at its depth, until its mesh's
+    bounding-box centre projects to image column ``u``."""
+    cam = problem.camera
+    centre = T_world_obj[k, :3, :3] @ problem.models[k].mesh.bounds.mean(axis=0) + T_world_obj[k, :3, 3]
+    p = cam.T_cam_world[:3, :3] @ centre + cam.T_cam_world[:3, 3]
+    q = p.copy()
+    q[0] = (u - cam.K[0, 2]) * p[2] / cam.K[0, 0]
+    moved = T_world_obj.copy()
+    moved[k, :3, 3] += cam.T_cam_world[:3, :3].T @ (q - p)
+    return moved
+
+
+def test_a_scene_with_an_object_centred_out_of_view_is_ruled_out(frame_and_problem):
+    """An object listed for a frame shows itself there: a scene whose object has its centre beyond the image's
+    border is ruled out, however well its visible part would explain clutter cut by that border; one just inside
+    is not."""
+    from workbench.evaluation import in_view
+    from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE
+
+    frame, problem = frame_and_problem
+    truth = _ground_truth_in_table_frame(frame, problem)
+    width = problem.camera.width
+    inside, beyond = _centre_at_u(problem, truth, 0, width - 2.0), _centre_at_u(problem, truth, 0, width + 2.0)
+    behind = truth.copy()
+    behind[0, :3, 3] = invert_pose(problem.camera.T_cam_world)[:3, 3] - 0.2 * invert_pose(
+        problem.camera.T_cam_world)[:3, 2]  # 20 cm behind the camera, on its axis
+    scenes = np.stack([truth, inside, beyond, behind])
+    assert in_view(scenes, problem).tolist() == [True, True, False, False]
+    evaluator = LocalEvaluator(problem)
+    try:
+        ev = evaluator.evaluate(np.stack([truth, beyond]), project=False)
+    finally:
+        evaluator.close()
+    assert ev.status.tolist() == [STATUS_AS_GIVEN, STATUS_OUTSIDE]
+    assert np.isfinite(ev.loglik[0]) and ev.loglik[1] == -np.inf
+
+
 def test_particle_count_and_sigma_change_between_steps(frame_and_problem):
     _, problem = frame_and_problem
     evaluator = LocalEvaluator(problem)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from workbench.evaluation import Done, Evaluation, in_region, run_here
+from workbench.evaluation import Done, Evaluation, admissible, run_here
 from workbench.geometry import make_pose, rot_z, rotation_angle
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST
 from workbench.problem import Problem, ProblemConfig
@@ -73,7 +73,7 @@ class ToyEvaluator:
             rel = np.swapaxes(projected[:, k, :3, :3], -1, -2) @ self.target[k, :3, :3]  # (B, 3, 3)
             angle = rotation_angle(rel[:, None] @ model.symmetries[None, :, :3, :3]).min(axis=1)
             loglik -= 0.5 * (d / self.sigma_m) ** 2 + 0.5 * (angle / self.sigma_rad) ** 2
-        outside = ~in_region(projected, self.problem.table, self.problem.config.region_margin)
+        outside = ~admissible(projected, self.problem)
         status[outside], loglik[outside] = STATUS_OUTSIDE, -np.inf
         return Evaluation(projected, loglik, status, np.zeros(B))
 

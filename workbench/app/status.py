@@ -76,7 +76,7 @@ def details_markdown(r: dict) -> str:
     found it, β, the failures, the acceptance and how far the objects rest below the fitted table."""
     accept = "" if np.isnan(r["accept_rate"]) else f" · accepted {r['accept_rate'] * 100:.0f} %"
     return (f"Iteration {r['iteration']}: best log-lik {r['best_loglik']:.1f} (from a {r.get('best_kind') or 'start'}"
-            f" move) · β {r['beta']:.3g} · failed physics or outside the object region {r['n_failed']}{accept} · "
+            f" move) · β {r['beta']:.3g} · failed physics or out of region or view {r['n_failed']}{accept} · "
             f"objects rest {r.get('sink_m', 0.0) * 1000:.0f} mm below the fitted table")
 
 

@@ -18,8 +18,10 @@ from workbench.evaluation.base import (
     Evaluator,
     Pending,
     WorkerCrashed,
+    admissible,
     check_sink,
     in_region,
+    in_view,
     joined,
     run_here,
     split_batch,
@@ -31,7 +33,8 @@ from workbench.problem import Problem
 
 __all__ = [
     "STAGES", "ChunkedEvaluator", "Done", "Evaluation", "Evaluator", "LocalEvaluator", "Pending", "PoolEvaluator",
-    "WorkerCrashed", "check_sink", "in_region", "joined", "make_evaluator", "run_here", "split_batch", "split_calls",
+    "WorkerCrashed", "admissible", "check_sink", "in_region", "in_view", "joined", "make_evaluator", "run_here",
+    "split_batch", "split_calls",
 ]
 
 

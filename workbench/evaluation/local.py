@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 
 from workbench.checks import check_rigid
-from workbench.evaluation.base import Done, Evaluation, check_sink, in_region, run_here, split_batch
+from workbench.evaluation.base import Done, Evaluation, admissible, check_sink, run_here, split_batch
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem import Problem
 from workbench.render.depth import DepthRenderer
@@ -56,7 +56,7 @@ class LocalEvaluator:
             projected, status = hypotheses.copy(), np.full(len(hypotheses), STATUS_AS_GIVEN, np.int8)
         t1 = time.perf_counter()
         ok = (status == STATUS_REST) | (status == STATUS_STEP_CAP) | (status == STATUS_AS_GIVEN)
-        outside = ok & ~in_region(projected, self.problem.table, self.problem.config.region_margin)
+        outside = ok & ~admissible(projected, self.problem)
         status[outside] = STATUS_OUTSIDE
         ok &= ~outside
         loglik, floor_gain = np.full(len(hypotheses), -np.inf), np.zeros(len(hypotheses))

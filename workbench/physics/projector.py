@@ -21,12 +21,13 @@ from workbench.physics.world import World
 from workbench.scene import ObjectModel, Table
 
 STATUS_REST, STATUS_STEP_CAP, STATUS_UNSTABLE, STATUS_OFF_TABLE = 0, 1, 2, 3
-# Set by the evaluator, not here: at rest, but an object's centre lies outside the region where objects are seen.
+# Set by the evaluator, not here: at rest, but an object's centre lies outside the region where objects are seen, or
+# outside the image (``evaluation.admissible``).
 STATUS_OUTSIDE = 4
 # Set by the evaluator: scored as given, not simulated (``Evaluator.evaluate(..., project=False)``).
 STATUS_AS_GIVEN = 5
 STATUS_NAMES = {STATUS_REST: "rest", STATUS_STEP_CAP: "step cap", STATUS_UNSTABLE: "unstable",
-                STATUS_OFF_TABLE: "off the table", STATUS_OUTSIDE: "outside the object region",
+                STATUS_OFF_TABLE: "off the table", STATUS_OUTSIDE: "outside the object region or the view",
                 STATUS_AS_GIVEN: "as given, not simulated"}
 
 
