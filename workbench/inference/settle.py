@@ -8,7 +8,8 @@ pattern search on the likelihood of the scene as given, each object kept within 
 pose in the estimate, so the physics that chose the scene (support, stacking, what hides what) still holds to
 within that region. An object the camera does not see gains nothing from any move and stays where physics put it.
 ``half_turns`` gives the turns that the depth can hardly tell apart (a can upside down, a bottle facing the other
-way): the search compares them only after physics, where the same few millimetres of mismatch decide them, so the
+way), and ``level_flips`` those of a flat object turned over (scissors: its outline mirrored about an axis of its
+own): the search compares them only after physics, where the same few millimetres of mismatch decide them, so the
 estimator settles them too and keeps a turn that wins clearly (``turn_over``); the turns it does not keep but
 that score about as well are the estimate's near ties (``Tie``). The pattern search stops in the first shallow
 optimum along the table's axes; ``hop`` restarts each object a few degrees away, within the same region, where the
@@ -41,6 +42,12 @@ SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
 TURN_MARGIN = 30.0
 # Settled objects restart this many degrees away about each table axis (``hop``).
 HOP_DEGREES = 8.0
+# A flat object turned over shows its outline mirrored, and the level axis that turns it back is the outline's, not
+# one of the object's own (real-shape frame 25: the scissors' true pose is the estimate's half turn about a level
+# axis 18 degrees from its y axis, 35 degrees of heading beyond settling's reach from either axis's turn). So a flat
+# object is also turned about this many level axes, evenly spread: a half turn about an axis d degrees off turns
+# the heading by 2d, so at 7.5 degrees apart each lands within 7.5 degrees of any other, inside settling's reach.
+FLIP_AXES = 24
 
 
 @dataclass(frozen=True)
@@ -121,6 +128,37 @@ def _turned(T: np.ndarray, centre: np.ndarray, rotations) -> np.ndarray:
 def _level_axes(R: np.ndarray) -> np.ndarray:
     """Indices of the two object axes (columns of ``R`` (3, 3)) nearest the table plane -> (2,)."""
     return np.argsort(np.abs(R[2]))[:2]
+
+
+def is_flat(T: np.ndarray, vertices: np.ndarray) -> bool:
+    """Whether an object with mesh ``vertices`` (V, 3) (object frame, m) lies flat in pose ``T`` (4, 4): at most
+    ``footprint.THIN`` tall and ``footprint.THIN_RATIO`` times as long along a table axis (scissors, a clamp)."""
+    from workbench.inference.footprint import THIN, THIN_RATIO
+
+    p = vertices @ T[:3, :3].T
+    tall = float(np.ptp(p[:, 2]))
+    return tall <= THIN and float(np.ptp(p[:, :2], axis=0).max()) >= THIN_RATIO * tall
+
+
+def level_flips(T: np.ndarray, centre: np.ndarray, n: int = FLIP_AXES) -> tuple[np.ndarray, list[str]]:
+    """One object's pose ``T`` (4, 4) turned by 180 degrees about ``n`` level axes through its ``centre`` (3,)
+    (object frame, m), their headings spread evenly from its first level axis (``_level_axes``) but for that axis
+    and the ones within half a spacing of the second, whose turns ``half_turns`` gives -> (poses (m, 4, 4), the
+    name of each turn, e.g. "over a level axis 68 degrees from its x axis")."""
+    R = T[:3, :3]
+    first, second = _level_axes(R)
+    headings = [float(np.arctan2(R[1, i], R[0, i])) for i in (first, second)]
+    spacing = np.pi / n
+    rotations, names = [], []
+    for i in range(1, n):
+        h = headings[0] + i * spacing
+        off_second = abs((h - headings[1] + np.pi / 2) % np.pi - np.pi / 2)
+        if off_second < spacing / 2:
+            continue
+        axis = np.array([np.cos(h), np.sin(h), 0.0])
+        rotations.append(2.0 * np.outer(axis, axis) - np.eye(3))
+        names.append(f"over a level axis {np.degrees(i * spacing):.0f} degrees from its {'xyz'[first]} axis")
+    return _turned(T, centre, rotations), names
 
 
 def half_turn_names(T: np.ndarray) -> list[str]:
@@ -253,20 +291,23 @@ Turn = tuple[int, str, np.ndarray, float]  # an object, the name of its turn, th
 
 def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: Rest, max_shift_m: float,
               max_turn_deg: float) -> tuple[np.ndarray, float, int, list[Tie], list[Turn]]:
-    """Each object of the settled ``scene`` (K, 4, 4) turned over (``half_turns``) and settled alone, the others
-    kept: the depth's near ties, which the search compares only after physics, where our models' few millimetres
-    of mismatch can decide them. Every object's turns are searched together, in lockstep (``run``). An object's
-    best turn is kept when the scene as given gains more than TURN_MARGIN over ``loglik`` and physics (``rest``),
-    resting that scene, keeps the object within the settling region; when several objects turn, their turns are
-    kept together if that scene scores at least as well as the best one alone -> (scene, log-likelihood, scenes
-    scored, the ties left, every settled turn as (object, name, scene, log-likelihood): the posterior's half
-    turns when no turn was kept)."""
+    """Each object of the settled ``scene`` (K, 4, 4) turned over (``half_turns``; a flat object also over the best
+    of its ``level_flips``, ``best_level_flips``) and settled alone, the others kept: the depth's near ties, which
+    the search compares only after physics, where our models' few millimetres of mismatch can decide them. Every
+    object's turns are searched together, in lockstep (``run``). An object's best turn is kept when the scene as
+    given gains more than TURN_MARGIN over ``loglik`` and physics (``rest``), resting that scene, keeps the object
+    within the settling region; when several objects turn, their turns are kept together if that scene scores at
+    least as well as the best one alone -> (scene, log-likelihood, scenes scored, the ties left, every settled turn
+    as (object, name, scene, log-likelihood): the posterior's half turns when no turn was kept)."""
     names = [name for k in range(len(scene)) for name in half_turn_names(scene[k])]
     starts = [(k, pose) for k, model in enumerate(problem.models)
               for pose in half_turns(scene[k], model.mesh.bounds.mean(axis=0))]
+    flips, flip_names, scored = best_level_flips(problem, scene, score)
+    starts += flips
+    names += flip_names
     owners = [k for k, _ in starts]
     found, best = settle_alone(scene, loglik, score, starts, max_shift_m, max_turn_deg)
-    scored = sum(n for _, _, n in found)
+    scored += sum(n for _, _, n in found)
     kept, result, n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
     scored += n
     final = result[0]
@@ -278,6 +319,27 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
             ties.append(Tie(k, name, T[k].copy(), float(gap)))
     turns = [(k, name, T, ll) for k, name, (T, ll, _) in zip(owners, names, found)]
     return final, float(result[1]), scored, ties, turns
+
+
+def best_level_flips(problem: Problem, scene: np.ndarray, score: Score
+                     ) -> tuple[list[tuple[int, np.ndarray]], list[str], int]:
+    """For each object of ``scene`` (K, 4, 4) that lies flat (``is_flat``), the one of its ``level_flips`` that scores
+    best as given, the others kept: where settling starts it turned over its outline's axis -> (starts as
+    (object, pose (4, 4)), their names, scenes scored). Settling every flip would cost as many searches. Each turns
+    about the mesh's centroid, which its outline follows: about its bounding box's centre the flip that turns the
+    generated scissors back landed 2.9 cm off, beyond settling's reach, and scored below 8 wrong ones."""
+    starts, names, scored = [], [], 0
+    for k, model in enumerate(problem.models):
+        if not is_flat(scene[k], model.mesh.vertices):
+            continue
+        poses, turn_names = level_flips(scene[k], model.mesh.centroid)
+        trial = np.repeat(scene[None], len(poses), axis=0)
+        trial[:, k] = poses
+        i = int(np.argmax(score(trial)))
+        scored += len(poses)
+        starts.append((k, poses[i]))
+        names.append(turn_names[i])
+    return starts, names, scored
 
 
 def small_turns(T: np.ndarray, centre: np.ndarray, degrees: float) -> np.ndarray:
