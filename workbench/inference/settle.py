@@ -110,8 +110,12 @@ def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     axes = R[:, _level_axes(R)].T.copy()
     axes[:, 2] = 0.0
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    # the half turn about a unit axis
-    return _turned(T, centre, [2.0 * np.outer(axis, axis) - np.eye(3) for axis in [np.array([0.0, 0.0, 1.0]), *axes]])
+    return _turned(T, centre, [_half_turn(axis) for axis in [np.array([0.0, 0.0, 1.0]), *axes]])
+
+
+def _half_turn(axis: np.ndarray) -> np.ndarray:
+    """The rotation (3, 3) by 180 degrees about the unit ``axis`` (3,)."""
+    return 2.0 * np.outer(axis, axis) - np.eye(3)
 
 
 def _turned(T: np.ndarray, centre: np.ndarray, rotations) -> np.ndarray:
@@ -155,8 +159,7 @@ def level_flips(T: np.ndarray, centre: np.ndarray, n: int = FLIP_AXES) -> tuple[
         off_second = abs((h - headings[1] + np.pi / 2) % np.pi - np.pi / 2)
         if off_second < spacing / 2:
             continue
-        axis = np.array([np.cos(h), np.sin(h), 0.0])
-        rotations.append(2.0 * np.outer(axis, axis) - np.eye(3))
+        rotations.append(_half_turn(np.array([np.cos(h), np.sin(h), 0.0])))
         names.append(f"over a level axis {np.degrees(i * spacing):.0f} degrees from its {'xyz'[first]} axis")
     return _turned(T, centre, rotations), names
 
