@@ -154,6 +154,46 @@ def test_a_scene_with_an_object_resting_outside_the_object_region_is_ruled_out(f
     assert np.isfinite(ev.loglik[0]) and ev.loglik[1] == -np.inf
 
 
+def test_an_object_hidden_behind_the_region_may_rest_beyond_it(frame_and_problem):
+    """The object region bounds what is seen, so an object hidden behind the objects seen may rest beyond it: a
+    scene whose second box has its centre on the camera's ray through the first box's centre, beyond the region, is
+    admissible; the same box as far beyond the region but beside the first, in plain view of the table, is not."""
+    from workbench.evaluation import admissible, hidden_behind_region, in_region
+    from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE
+
+    frame, problem = frame_and_problem
+    truth = _ground_truth_in_table_frame(frame, problem)
+    centre = truth[0, :3, :3] @ problem.models[0].mesh.bounds.mean(axis=0) + truth[0, :3, 3]
+    eye = invert_pose(problem.camera.T_cam_world)[:3, 3]
+    ray = (centre - eye) / np.linalg.norm(centre - eye)
+    lo = np.asarray(problem.table.region_min) - problem.config.region_margin
+    hi = np.asarray(problem.table.region_max) + problem.config.region_margin
+
+    def beyond(p):  # how far (m) the point's xy lies outside the region and its margin
+        return float(np.max(np.maximum(lo - p[:2], p[:2] - hi)))
+
+    s = 0.0
+    while beyond(centre + s * ray) < 0.02 and s < 2.0:
+        s += 0.01
+    behind = truth.copy()
+    offset = problem.models[1].mesh.bounds.mean(axis=0)
+    behind[1, :3, 3] = centre + s * ray - truth[1, :3, :3] @ offset
+    aside = behind.copy()
+    side = np.cross(ray, [0.0, 0.0, 1.0])
+    aside[1, :3, 3] += 0.3 * side / np.linalg.norm(side)
+    scenes = np.stack([behind, aside])
+    assert beyond(behind[1, :3, 3]) > 0 and beyond(aside[1, :3, 3]) > 0
+    assert not in_region(scenes, problem.table, problem.config.region_margin)[:, 1].any()
+    assert hidden_behind_region(scenes, problem)[:, 1].tolist() == [True, False]
+    assert admissible(scenes, problem).tolist() == [True, False]
+    evaluator = LocalEvaluator(problem)
+    try:
+        ev = evaluator.evaluate(scenes, project=False)
+    finally:
+        evaluator.close()
+    assert ev.status.tolist() == [STATUS_AS_GIVEN, STATUS_OUTSIDE]
+
+
 def _centre_at_u(problem, T_world_obj: np.ndarray, k: int, u: float) -> np.ndarray:
     """``T_world_obj`` (K, 4, 4) with object ``k`` moved along the camera's x axis, at its depth, until its mesh's
     bounding-box centre projects to image column ``u``."""

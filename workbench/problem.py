@@ -29,11 +29,16 @@ class ProblemConfig:
     # A scene with an object resting more than this (m) outside the object region (``Table.region_*``, where
     # something stands on the table) is ruled out: no object is seen there. The table itself may go on out of view
     # (``support``), and without this prior the search parks objects it cannot place on unmodelled clutter or at
-    # the image's edges.
+    # the image's edges. An object hidden behind what the region shows may rest beyond it
+    # (``evaluation.hidden_behind_region``).
     region_margin: float = 0.05
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+
+
+# Readings at least this high (m) above the table are objects, not table noise, when telling what hides what.
+HIDER_HEIGHT = 0.01
 
 
 @dataclass
@@ -61,6 +66,22 @@ class Problem:
         the likelihood has no clutter floor, which alone reads them."""
         likelihood = self.config.likelihood
         return clutter_segments(self.observed, self.background, likelihood) if likelihood.floored else None
+
+    @cached_property
+    def hiders(self) -> np.ndarray:
+        """(h, w) bool on the render grid: the readings that stand at least ``HIDER_HEIGHT`` above the table within
+        ``region_margin`` of the object region, i.e. what the objects seen there show. Only these can hide an object
+        that rests beyond the region (``evaluation.hidden_behind_region``); clutter beyond it hides nothing, or any
+        object laid over clutter would count as hidden by it."""
+        h, w = self.observed.shape
+        u, v = np.meshgrid(np.arange(w), np.arange(h))
+        rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(self.render_camera.K).T  # (h, w, 3), z = 1
+        world = transform_points(invert_pose(self.camera.T_cam_world), (rays * self.observed[..., None]).reshape(-1, 3))
+        world = world.reshape(h, w, 3)
+        lo = np.asarray(self.table.region_min) - self.config.region_margin
+        hi = np.asarray(self.table.region_max) + self.config.region_margin
+        inside = np.all((world[..., :2] >= lo) & (world[..., :2] <= hi), axis=-1)
+        return (self.observed > 0) & (world[..., 2] >= HIDER_HEIGHT) & inside
 
 
 def region_of_interest(camera: Camera, table: Table, models: list[ObjectModel]) -> tuple[int, int, int, int]:

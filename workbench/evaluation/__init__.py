@@ -20,6 +20,7 @@ from workbench.evaluation.base import (
     WorkerCrashed,
     admissible,
     check_sink,
+    hidden_behind_region,
     in_region,
     in_view,
     joined,
@@ -33,8 +34,8 @@ from workbench.problem import Problem
 
 __all__ = [
     "STAGES", "ChunkedEvaluator", "Done", "Evaluation", "Evaluator", "LocalEvaluator", "Pending", "PoolEvaluator",
-    "WorkerCrashed", "admissible", "check_sink", "in_region", "in_view", "joined", "make_evaluator", "run_here",
-    "split_batch", "split_calls",
+    "WorkerCrashed", "admissible", "check_sink", "hidden_behind_region", "in_region", "in_view", "joined",
+    "make_evaluator", "run_here", "split_batch", "split_calls",
 ]
 
 

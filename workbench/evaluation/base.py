@@ -83,6 +83,20 @@ class Evaluator(Protocol):
     def close(self) -> None: ...
 
 
+def _centres(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
+    """Every object's mesh bounding-box centre in the camera frame -> (B, K, 3) m, for B scenes (B, K, 4, 4)."""
+    centres = np.stack([m.mesh.bounds.mean(axis=0) for m in problem.models])  # (K, 3) m, object frame
+    world = np.einsum("bkij,kj->bki", T_world_obj[..., :3, :3], centres) + T_world_obj[..., :3, 3]
+    T = problem.camera.T_cam_world
+    return world @ T[:3, :3].T + T[:3, 3]
+
+
+def _pixels(cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Image coordinates (u, v) of camera-frame points (..., 3) under intrinsics ``K``; nan behind the camera."""
+    z = np.where(cam[..., 2] > 0, cam[..., 2], np.nan)
+    return K[0, 0] * cam[..., 0] / z + K[0, 2], K[1, 1] * cam[..., 1] / z + K[1, 2]
+
+
 def in_view(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
     """Whether every object's centre (its mesh's bounding-box centre) projects into the camera's full image, in
     front of it -> (B,) bool, for B scenes (B, K, 4, 4) in the table frame. An object listed for a frame shows itself
@@ -91,30 +105,50 @@ def in_view(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
     centre 13 px beyond it, outscored the box where it stands in full view). Every annotated object of the shared
     sets has its centre at least 88 px inside the image."""
     camera = problem.camera
-    centres = np.stack([m.mesh.bounds.mean(axis=0) for m in problem.models])  # (K, 3) m, object frame
-    world = np.einsum("bkij,kj->bki", T_world_obj[..., :3, :3], centres) + T_world_obj[..., :3, 3]
-    cam = world @ camera.T_cam_world[:3, :3].T + camera.T_cam_world[:3, 3]  # (B, K, 3)
-    z = cam[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = camera.K[0, 0] * cam[..., 0] / z + camera.K[0, 2]
-        v = camera.K[1, 1] * cam[..., 1] / z + camera.K[1, 2]
-    inside = (z > 0) & (u >= 0) & (u <= camera.width) & (v >= 0) & (v <= camera.height)
+    with np.errstate(invalid="ignore"):
+        u, v = _pixels(_centres(T_world_obj, problem), camera.K)
+        inside = (u >= 0) & (u <= camera.width) & (v >= 0) & (v <= camera.height)  # False where nan
     return np.all(inside, axis=1)
 
 
 def in_region(T_world_obj: np.ndarray, table: Table, margin: float) -> np.ndarray:
-    """Whether every object's origin (B, K, 4, 4 table frame) lies within ``margin`` (m) of the table's object
-    region -> (B,) bool."""
+    """Whether each object's origin (B, K, 4, 4 table frame) lies within ``margin`` (m) of the table's object
+    region -> (B, K) bool."""
     xy = T_world_obj[:, :, :2, 3]
     lo, hi = np.asarray(table.region_min) - margin, np.asarray(table.region_max) + margin
-    return np.all((xy >= lo) & (xy <= hi), axis=(1, 2))
+    return np.all((xy >= lo) & (xy <= hi), axis=-1)
+
+
+def hidden_behind_region(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
+    """Whether each object's centre lies behind what the object region shows -> (B, K) bool, for B scenes
+    (B, K, 4, 4): its pixel on the render grid holds a reading of ``Problem.hiders`` at least ``HIDDEN_BEHIND`` (m)
+    nearer the camera. The region bounds what is seen, so an object hidden behind the objects seen may rest beyond
+    it: generated frame 23's hidden box rests 7 cm beyond the region, behind the tall box that hides it, and every
+    object under 10 % visible in the generated sets rests 1-7 cm beyond it."""
+    cam = _centres(T_world_obj, problem)
+    hiders, observed = problem.hiders, problem.observed
+    h, w = hiders.shape
+    with np.errstate(invalid="ignore"):
+        u, v = _pixels(cam, problem.render_camera.K)
+        on_grid = (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)  # False where nan
+    iu = np.clip(np.round(np.nan_to_num(u)), 0, w - 1).astype(int)
+    iv = np.clip(np.round(np.nan_to_num(v)), 0, h - 1).astype(int)
+    return on_grid & hiders[iv, iu] & (observed[iv, iu] <= cam[..., 2] - HIDDEN_BEHIND)
+
+
+# How far (m) behind a reading of the region an object's centre must lie to count as hidden by it: more than the
+# depth noise, so that an object laid on clutter just beyond the region, level with the region's readings, is not.
+HIDDEN_BEHIND = 0.02
 
 
 def admissible(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
     """Whether a scene may explain the frame at all -> (B,) bool: every object within ``region_margin`` of the object
-    region (``in_region``) and in view (``in_view``). Scenes that are not get status ``STATUS_OUTSIDE`` and no
-    likelihood."""
-    return in_region(T_world_obj, problem.table, problem.config.region_margin) & in_view(T_world_obj, problem)
+    region (``in_region``) or hidden behind what it shows (``hidden_behind_region``), and in view (``in_view``).
+    Scenes that are not get status ``STATUS_OUTSIDE`` and no likelihood."""
+    near = in_region(T_world_obj, problem.table, problem.config.region_margin)
+    if not near.all():
+        near = near | hidden_behind_region(T_world_obj, problem)
+    return np.all(near, axis=1) & in_view(T_world_obj, problem)
 
 
 def check_sink(sink: np.ndarray | None, n: int) -> np.ndarray:
