@@ -210,13 +210,79 @@ def test_seating_an_object_moves_the_one_on_its_place_out_of_the_way():
     assert np.array_equal(polish.seat(estimate, {bowl: at(-0.3, 0.0)}, library, radii)[:3], estimate[:3])
 
 
-@pytest.fixture(scope="module")
-def stacked_frame(tmp_path_factory):
+def test_seating_with_hide_puts_what_it_pushes_out_behind_the_object_that_pushed_it():
+    """With ``hide``, the box on the can's place goes to its hiding place behind the can, not to its candidate,
+    and the objects out of the way stay."""
+    from workbench.inference import datadriven, polish
+
+    def at(x, y):
+        T = np.eye(4)
+        T[:2, 3] = x, y
+        return T
+
+    radii = np.full(3, 0.05)
+    box, can, marker = range(3)
+    estimate = np.stack([at(0.2, 0.0), at(0.6, 0.3), at(0.0, 0.0)])
+    library = datadriven.Library(poses=[np.stack([at(0.0, 0.0)]), np.stack([at(0.2, 0.0)]), np.stack([at(0.0, 0.0)])],
+                                 weights=[np.ones(1)] * 3)
+    asked = []
+
+    def behind(scene, k, i):
+        asked.append((k, i))
+        return at(scene[i, 0, 3], scene[i, 1, 3] + 0.3)
+
+    scene = polish.seat(estimate, {can: at(0.2, 0.0)}, library, radii, hide=behind)
+    assert asked == [(box, can)]
+    assert np.allclose(scene[box, :2, 3], [0.2, 0.3]) and np.array_equal(scene[marker], estimate[marker])
+    assert np.allclose(polish.seat(estimate, {can: at(0.2, 0.0)}, library, radii)[box, :2, 3], [0.0, 0.0])
+
+
+def _generated_frame(tmp_path_factory, category: str, seed: int):
+    """The frame and problem of one generated scene of ``category``, 320x240 to stay quick."""
     from workbench.synth import make_scenes
 
-    out = tmp_path_factory.mktemp("stacked")
-    make_scenes(out, ["stacked"], 1, seed=3, width=320, height=240)
+    out = tmp_path_factory.mktemp(category)
+    make_scenes(out, [category], 1, seed=seed, width=320, height=240)
     return load_bop_problem(out, 0, 0)
+
+
+@pytest.fixture(scope="module")
+def occluded_frame(tmp_path_factory):
+    return _generated_frame(tmp_path_factory, "occluded", 0)
+
+
+def test_an_object_at_its_hiding_place_rests_behind_the_other_out_of_sight(occluded_frame):
+    """``hiding_place`` puts the generated frame's hidden box behind the base as the camera sees it: after physics it
+    rests on the table on its lowest face, farther along the line of sight than the base, and the camera sees at
+    most a tenth of it."""
+    from workbench.inference import hiding
+    from workbench.inference.context import SearchGeometry
+    from workbench.render.depth import DepthRenderer
+
+    frame, problem = occluded_frame
+    truth = _truth(frame, problem)
+    base, hidden = 0, 1  # the occluded category: a base, and a box hidden behind it
+    g = SearchGeometry.of(problem, upright=False)
+    scene = truth.copy()
+    scene[hidden] = hiding.hiding_place(problem, truth, hidden, base, g.rest[hidden], g.hulls[hidden], g.hulls[base])
+    evaluator = LocalEvaluator(problem)
+    try:
+        rest = evaluator.evaluate(scene[None]).projected[0]
+    finally:
+        evaluator.close()
+    sight = hiding.line_of_sight(problem, truth[base, :3, 3])
+    assert (rest[hidden, :2, 3] - rest[base, :2, 3]) @ sight > 0
+    assert abs(rest[hidden, 2, 3] - g.rest[hidden].heights.min()) < 0.01
+    with DepthRenderer(problem.render_camera, [m.mesh for m in problem.models]) as renderer:
+        both = renderer.render(rest[None])[0]
+        alone = renderer.render(rest[None], drawn=np.array([[False, True]]))[0]
+    seen = (alone > 0) & (np.abs(both - alone) < 1e-4)
+    assert (alone > 0).sum() > 50 and seen.sum() <= 0.1 * (alone > 0).sum()
+
+
+@pytest.fixture(scope="module")
+def stacked_frame(tmp_path_factory):
+    return _generated_frame(tmp_path_factory, "stacked", 3)
 
 
 def test_a_base_is_put_under_the_top_it_carries(stacked_frame):

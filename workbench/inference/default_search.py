@@ -21,7 +21,7 @@ from functools import partial
 import numpy as np
 
 from workbench.evaluation import Evaluation, run_here
-from workbench.inference import assemble, datadriven, gaussian, polish, posterior, settle
+from workbench.inference import assemble, datadriven, gaussian, hiding, polish, posterior, settle
 from workbench.inference.context import MoveContext, SearchGeometry
 from workbench.inference.filter import ParticleFilter, Proposed, Settled
 from workbench.inference.moves import REGISTRY, MoveKind
@@ -204,7 +204,8 @@ class DefaultSearch:
         if filt.map is None or self.library is None:
             return
         g, estimate = self.geometry(filt), filt.map
-        parts = [polish.variants(estimate, self.library, g.points, g.samples, g.reach, g.radius, self.unexplained),
+        parts = [polish.variants(estimate, self.library, g.points, g.samples, g.reach, g.radius, self.unexplained,
+                                 hiding.hider(self.problem, g.rest, g.hulls)),
                  polish.stacked(self.problem, estimate, self.library, self.unexplained, g.rest, g.hulls, g.samples,
                                 g.radius, self._base_memo, partial(self._run, filt)),
                  self._assemblies(filt, estimate)]

@@ -18,6 +18,7 @@ import numpy as np
 from workbench.evaluation import run_here
 from workbench.geometry import rot_z, rotation_angle
 from workbench.inference.datadriven import Library, overlaps, place_order
+from workbench.inference.hiding import Hide
 from workbench.inference.refine import refit
 from workbench.inference.resting import RestingPoses, highest_point, lowest_point
 from workbench.inference.scenepoints import ModelSamples, ScenePoints
@@ -33,7 +34,8 @@ LIFT = 0.005  # m; exchanged objects start this far above their old height, and 
 
 
 def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples: list[ModelSamples],
-             reach: np.ndarray, radii: np.ndarray, unexplained: Library | None = None) -> np.ndarray:
+             reach: np.ndarray, radii: np.ndarray, unexplained: Library | None = None, hide: Hide | None = None
+             ) -> np.ndarray:
     """Variants of the estimate (K, 4, 4):
     - one object turned by 90, 180 or 270 degrees about the vertical through its centre and refitted by ICP to the
       observed points ``cloud`` near it (``refine.refit``; ``reach`` (K,) m);
@@ -41,9 +43,10 @@ def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples
       (``datadriven.place_order``), for every object and candidate that differs from its pose in the estimate,
       the objects it would sit inside moved out of its way (``seat``; ``radii`` (K,) m); the candidates of
       ``unexplained`` (the latest refit alone: fitted to what the estimate leaves unexplained) are tried first,
-      at their own ``PER_OBJECT`` best places;
+      at their own ``PER_OBJECT`` best places; with ``hide`` (``hiding.hider``), each such variant that moves
+      objects out of the way also with those objects at their hiding places instead (``seat``);
     - every pair of objects exchanging their places (x, y), each keeping its own orientation and height.
-    -> (V, K, 4, 4), V <= K * (2 PER_OBJECT + 3) + K (K - 1) / 2."""
+    -> (V, K, 4, 4), V <= K * (4 PER_OBJECT + 3) + K (K - 1) / 2."""
     K = len(estimate)
     out = []
     for k in range(K):
@@ -60,6 +63,9 @@ def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples
         # put it back (+500 log-units). The latest refit sees only what the estimate leaves unexplained.
         for T in _poses_tried(estimate, k, library, unexplained)[1:]:
             out.append(seat(estimate, {k: T}, library, radii))
+            hidden = seat(estimate, {k: T}, library, radii, hide) if hide is not None else out[-1]
+            if not np.array_equal(hidden, out[-1]):
+                out.append(hidden)
     for i in range(K):
         for j in range(i + 1, K):
             scene = estimate.copy()
@@ -139,11 +145,13 @@ def _best_places(library: Library | None, k: int) -> list[np.ndarray]:
     return list(library.poses[k][place_order(library.poses[k], library.weights[k])[:PER_OBJECT]])
 
 
-def seat(scene: np.ndarray, changes: dict[int, np.ndarray], library: Library, radii: np.ndarray) -> np.ndarray:
+def seat(scene: np.ndarray, changes: dict[int, np.ndarray], library: Library, radii: np.ndarray,
+         hide: Hide | None = None) -> np.ndarray:
     """``scene`` (K, 4, 4) with each object k of ``changes`` at its pose (4, 4) there, and every object one of them
     would then sit inside (``overlaps``; ``radii`` (K,) m) moved to its first candidate in ``place_order`` clear of
     all the others, else of the objects already seated; an object moved so may push out the next (an ejection
-    chain, each object moved at most once). -> (K, 4, 4).
+    chain, each object moved at most once). With ``hide`` (``hiding.hider``), an object pushed out goes to its
+    hiding place behind the object that pushed it out instead. -> (K, 4, 4).
 
     An estimate that went wrong early is often a chain of objects each on another's place: on YCB-Video frame
     2:10 the pudding box sat on the potted meat can's place and the marker on the banana's, the can and the banana
@@ -162,6 +170,10 @@ def seat(scene: np.ndarray, changes: dict[int, np.ndarray], library: Library, ra
             if j in seated or not overlaps(out[j], out[[i]], radii[j], radii[[i]]):
                 continue
             seated.append(j)
+            if hide is not None:
+                out[j] = hide(out, j, i)
+                queue.append(j)
+                continue
             if not library.has(j):
                 continue
             others = np.array([o for o in range(K) if o != j], dtype=int)
