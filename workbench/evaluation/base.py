@@ -92,9 +92,11 @@ def _centres(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
 
 
 def _pixels(cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Image coordinates (u, v) of camera-frame points (..., 3) under intrinsics ``K``; nan behind the camera."""
-    z = np.where(cam[..., 2] > 0, cam[..., 2], np.nan)
-    return K[0, 0] * cam[..., 0] / z + K[0, 2], K[1, 1] * cam[..., 1] / z + K[1, 2]
+    """Image coordinates (u, v) of camera-frame points (..., 3) under intrinsics ``K``; nan behind the camera, and
+    inf or nan for absurd poses, both of which every comparison reads as outside the image."""
+    with np.errstate(all="ignore"):
+        z = np.where(cam[..., 2] > 0, cam[..., 2], np.nan)
+        return K[0, 0] * cam[..., 0] / z + K[0, 2], K[1, 1] * cam[..., 1] / z + K[1, 2]
 
 
 def in_view(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
@@ -105,9 +107,8 @@ def in_view(T_world_obj: np.ndarray, problem: Problem) -> np.ndarray:
     centre 13 px beyond it, outscored the box where it stands in full view). Every annotated object of the shared
     sets has its centre at least 88 px inside the image."""
     camera = problem.camera
-    with np.errstate(invalid="ignore"):
-        u, v = _pixels(_centres(T_world_obj, problem), camera.K)
-        inside = (u >= 0) & (u <= camera.width) & (v >= 0) & (v <= camera.height)  # False where nan
+    u, v = _pixels(_centres(T_world_obj, problem), camera.K)
+    inside = (u >= 0) & (u <= camera.width) & (v >= 0) & (v <= camera.height)  # False where nan
     return np.all(inside, axis=1)
 
 
@@ -128,9 +129,8 @@ def hidden_behind_region(T_world_obj: np.ndarray, problem: Problem) -> np.ndarra
     cam = _centres(T_world_obj, problem)
     hiders, observed = problem.hiders, problem.observed
     h, w = hiders.shape
-    with np.errstate(invalid="ignore"):
-        u, v = _pixels(cam, problem.render_camera.K)
-        on_grid = (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)  # False where nan
+    u, v = _pixels(cam, problem.render_camera.K)
+    on_grid = (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)  # False where nan
     iu = np.clip(np.round(np.nan_to_num(u)), 0, w - 1).astype(int)
     iv = np.clip(np.round(np.nan_to_num(v)), 0, h - 1).astype(int)
     return on_grid & hiders[iv, iu] & (observed[iv, iu] <= cam[..., 2] - HIDDEN_BEHIND)
