@@ -108,6 +108,15 @@ def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
+def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points of every pixel (zero where there is no reading) of a depth image (H, W) m taken with
+    intrinsics ``K`` (3, 3) -> (H, W, 3) m."""
+    H, W = depth.shape
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    z = depth.astype(np.float64)
+    return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+
+
 def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) -> rotation. (..., 4) -> (..., 3, 3)."""
     q = np.asarray(q, dtype=np.float64)

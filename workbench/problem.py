@@ -13,7 +13,7 @@ from functools import cached_property
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.geometry import invert_pose, transform_points
+from workbench.geometry import backproject, invert_pose, transform_points
 from workbench.physics import PhysicsConfig
 from workbench.render.depth import RenderConfig
 from workbench.render.likelihood import LikelihoodConfig, clutter_segments
@@ -73,11 +73,7 @@ class Problem:
         ``region_margin`` of the object region, i.e. what the objects seen there show. Only these can hide an object
         that rests beyond the region (``evaluation.hidden_behind_region``); clutter beyond it hides nothing, or any
         object laid over clutter would count as hidden by it."""
-        h, w = self.observed.shape
-        u, v = np.meshgrid(np.arange(w), np.arange(h))
-        rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(self.render_camera.K).T  # (h, w, 3), z = 1
-        world = transform_points(invert_pose(self.camera.T_cam_world), (rays * self.observed[..., None]).reshape(-1, 3))
-        world = world.reshape(h, w, 3)
+        world = transform_points(invert_pose(self.camera.T_cam_world), backproject(self.observed, self.render_camera.K))
         lo = np.asarray(self.table.region_min) - self.config.region_margin
         hi = np.asarray(self.table.region_max) + self.config.region_margin
         inside = np.all((world[..., :2] >= lo) & (world[..., :2] <= hi), axis=-1)

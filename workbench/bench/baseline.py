@@ -19,7 +19,7 @@ import open3d as o3d
 import trimesh
 
 from workbench.errors import InputError
-from workbench.geometry import invert_pose, make_pose, transform_points
+from workbench.geometry import backproject, invert_pose, make_pose, transform_points
 from workbench.metrics import box_symmetries
 from workbench.scene import Frame, ObjectModel
 from workbench.support import ransac_plane
@@ -51,14 +51,6 @@ class IcpFit:
     fitness: float
     rmse: float
     n_points: int
-
-
-def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points of every pixel (zero where there is no reading). (H, W) -> (H, W, 3)."""
-    H, W = depth.shape
-    u, v = np.meshgrid(np.arange(W), np.arange(H))
-    z = depth.astype(np.float64)
-    return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
 
 
 def plane_mask(points: np.ndarray, valid: np.ndarray, cfg: IcpConfig, rng: np.random.Generator) -> np.ndarray:
