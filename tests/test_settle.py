@@ -15,6 +15,8 @@ from workbench.inference.settle import (
     is_flat,
     level_flips,
     pattern_search,
+    quarter_turn_names,
+    quarter_turns,
     ridge_moves,
     run,
     search,
@@ -267,6 +269,28 @@ def test_half_turn_names_name_the_object_axis_each_turn_is_about():
         assert np.isclose(rotation_angle(rel), np.pi) and np.allclose(rel @ axis, axis, atol=1e-6)
 
 
+def test_quarter_turns_rest_an_object_on_the_faces_beside_its_own():
+    from workbench.geometry import pose_from_xyz_rpy, rotation_angle
+
+    T = pose_from_xyz_rpy([0.1, 0.2, 0.05, np.pi / 2, 0.0, 0.3])  # lying on its side: its y axis points up
+    centre = np.array([0.01, 0.0, 0.02])
+    turns = quarter_turns(T, centre)
+    names = quarter_turn_names(T)
+    assert sorted(names) == ["a quarter back over its x axis", "a quarter back over its z axis",
+                             "a quarter over its x axis", "a quarter over its z axis"]
+    c = T[:3, :3] @ centre + T[:3, 3]
+    ups = set()
+    for H, name in zip(turns, names):
+        assert np.allclose(H[:3, :3] @ centre + H[:3, 3], c)  # turned about its centre
+        rel = T[:3, :3].T @ H[:3, :3]  # in the object's own frame: 90 degrees about the named axis
+        axis = np.eye(3)["xyz".index(name.split()[-2])]
+        assert np.isclose(rotation_angle(rel), np.pi / 2) and np.allclose(rel @ axis, axis, atol=1e-9)
+        up = int(np.argmax(np.abs(H[2, :3])))  # the object axis that now points up (or down)
+        assert up != 1 and np.isclose(abs(H[2, up]), 1.0)  # no longer its y axis: it rests on another face
+        ups.add((up, float(np.sign(H[2, up]))))
+    assert len(ups) == 4  # four different faces
+
+
 def _flat_l_plate():
     """An L-shaped plate 12 x 8 cm, 1.5 cm thick, lying on the table: its outline has no mirror line, as scissors'."""
     import trimesh
@@ -368,7 +392,7 @@ def test_a_box_turned_about_the_vertical_is_a_tie_unless_the_model_declares_the_
     assert {t.obj for t in ties["bare"] if t.turn == "about the vertical"} == set(range(problem.n_objects))
     for t in ties["bare"]:
         assert -TURN_MARGIN < t.gap < TURN_MARGIN and t.T.shape == (4, 4)
-        assert rotation_error(settled[t.obj], t.T) > 90  # a turn, not the estimate again
+        assert rotation_error(settled[t.obj], t.T) > 89  # a turn (a half or a quarter), not the estimate again
         # ... and the same pose up to the box's symmetries
         assert rotation_error(settled[t.obj], t.T, problem.models[t.obj].symmetries) < 10
         assert t.describe(bare).startswith(f"{bare.models[t.obj].name} turned ")

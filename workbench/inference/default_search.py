@@ -7,8 +7,8 @@
   while the workers project the others.
 - ``after_step``: every ``library_every`` iterations the sink is fitted and the estimate polished (one- and
   two-object variants, stacks, assemblies).
-- ``finish``: the estimate settled on the depth without physics, with its half turns tried and its near ties
-  named (``settle``).
+- ``finish``: the estimate settled on the depth without physics, with its half and quarter turns tried and its near
+  ties named (``settle``).
 Every hypothesis still goes through physics and the likelihood; only where hypotheses come from differs from
 the paper.
 """
@@ -119,8 +119,8 @@ class DefaultSearch:
 
     def finish(self, filt: ParticleFilter) -> Settled:
         """The estimate fitted to the observed depth without physics (``settle.pattern_search``), each object
-        within ``settle_shift`` and ``settle_turn`` of its pose in the estimate, then each object's half turns
-        (``settle.turn_over``), each object not turned restarted a few degrees away in the same region
+        within ``settle_shift`` and ``settle_turn`` of its pose in the estimate, then each object's half and quarter
+        turns (``settle.turn_over``), each object not turned restarted a few degrees away in the same region
         (``settle.hop``), and the posterior of what it settled on (``posterior.sweep``). The estimate itself, with no
         posterior, when settling is off."""
         cfg = filt.config
@@ -132,7 +132,7 @@ class DefaultSearch:
             max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
         rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
         before = scene
-        scene, loglik, turned, ties, half_turns = settle.turn_over(self.problem, scene, loglik, score, rest,
+        scene, loglik, turned, ties, turns = settle.turn_over(self.problem, scene, loglik, score, rest,
                                                                    cfg.settle_shift, cfg.settle_turn)
         # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its half turn
         # then no longer does. A turned object was settled from a fresh start; the others restart where physics
@@ -144,7 +144,7 @@ class DefaultSearch:
             projected, weights = np.zeros((0, *scene.shape)), np.zeros(0)
         else:
             projected, weights = filt.particles.projected, filt.weights()
-        found, swept, final, loglik = posterior.sweep(self.problem, scene, loglik, score, rest, half_turns, before,
+        found, swept, final, loglik = posterior.sweep(self.problem, scene, loglik, score, rest, turns, before,
                                                       self.geometry(filt), projected, weights,
                                                       cfg.settle_shift, cfg.settle_turn,
                                                       run=lambda fn, calls: self._run(filt, fn, calls))

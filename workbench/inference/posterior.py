@@ -2,8 +2,8 @@
 
 After settling, each object of the estimate is tried in the poses the view may not tell apart from its own, the
 others kept where the estimate has them:
-- its half turns (``settle.half_turns``: a can upside down, a bottle facing the other way), settled (those of
-  ``settle.turn_over``, reused);
+- its half turns (``settle.half_turns``: a can upside down, a bottle facing the other way) and quarter turns
+  (``settle.quarter_turns``: a box on end or lying down), settled (those of ``settle.turn_over``, reused);
 - turns about the vertical through its centre, every 30 degrees (a mug whose handle is hidden), each scored as
   given, the best ``SETTLE_SWEEP`` per object settled;
 - where the final particles put it (their distinct poses, heaviest first), scored as given, the best settled;
@@ -298,15 +298,15 @@ def centre_call(problem: Problem, points: np.ndarray, vertical: np.ndarray) -> n
 
 
 def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Score, rest: settle.Rest,
-          half_turns: list[settle.Turn], turns_scene: np.ndarray, geometry: SearchGeometry, projected: np.ndarray,
+          turns: list[settle.Turn], turns_scene: np.ndarray, geometry: SearchGeometry, projected: np.ndarray,
           weights: np.ndarray,
           max_shift_m: float, max_turn_deg: float, temperature: float = TEMPERATURE, run: Run | None = None
           ) -> tuple[Posterior, int, np.ndarray, float]:
     """The posterior of the settled estimate ``scene`` (K, 4, 4), whose log-likelihood as given is ``loglik``.
-    ``score``: scenes as given -> log-likelihoods; ``rest``: scenes -> at rest under physics. ``half_turns``:
-    ``settle.turn_over``'s settled half turns, as (object, name, scene, log-likelihood), of ``turns_scene`` (K, 4,
+    ``score``: scenes as given -> log-likelihoods; ``rest``: scenes -> at rest under physics. ``turns``:
+    ``settle.turn_over``'s settled turns, as (object, name, scene, log-likelihood), of ``turns_scene`` (K, 4,
     4): where that is not ``scene`` (settling kept a turn), each turned pose is scored again as given, the others
-    as they are now, rather than settled again (the half turns of a turned object are its pose before and its other
+    as they are now, rather than settled again (the turns of a turned object are its pose before and its other
     turns before). ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
     ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
     where they start. A candidate that beats the estimate by more than the turn margin, physics holding it,
@@ -342,8 +342,9 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         scenes[i, k] = T
     given_ll = score(scenes) if len(scenes) else np.zeros(0)
     scored = len(scenes)
-    # Settled: each object's half turns (reused when given), its best turns about the vertical (not the half turn,
-    # which is among the half turns), its particles' poses and its best other faces, unless hopeless as given.
+    # Settled: each object's half and quarter turns (reused when given), its best turns about the vertical (not the
+    # half turn, which is among the turns given), its particles' poses and its best other faces, unless hopeless
+    # as given.
     starts, owners, whats = [], [], []
     for k, model in enumerate(problem.models):
         angles, at, distinct = yaw[k]
@@ -362,14 +363,14 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         for i in picks:
             if given_ll[i] - loglik > hopeless:
                 starts.append(scenes[i]), owners.append(k), whats.append(given_what[i])
-    found = [(k, f"turned {name}", T, ll) for k, name, T, ll in half_turns]
-    if half_turns and not np.array_equal(turns_scene, scene):
-        again = np.repeat(scene[None], len(half_turns), axis=0)
-        for i, (k, _, T, _) in enumerate(half_turns):
+    found = [(k, f"turned {name}", T, ll) for k, name, T, ll in turns]
+    if turns and not np.array_equal(turns_scene, scene):
+        again = np.repeat(scene[None], len(turns), axis=0)
+        for i, (k, _, T, _) in enumerate(turns):
             again[i, k] = T[k]
         again_ll = score(again)
         scored += len(again)
-        found = [(k, f"turned {name}", again[i], float(again_ll[i])) for i, (k, name, _, _) in enumerate(half_turns)]
+        found = [(k, f"turned {name}", again[i], float(again_ll[i])) for i, (k, name, _, _) in enumerate(turns)]
     # Down to settling's 0.5 mm steps: stopping at 2 mm scored 30 % fewer scenes, but a hidden mug handle's headings
     # then lost enough that its top mode rose from about 0.5 to 0.8 (docs/benchmarks.md, "The posterior, third step").
     # Two kinds of candidate stop early, since neither would be a mode of its own: one still too far below the

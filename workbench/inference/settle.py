@@ -8,8 +8,9 @@ pattern search on the likelihood of the scene as given, each object kept within 
 pose in the estimate, so the physics that chose the scene (support, stacking, what hides what) still holds to
 within that region. An object the camera does not see gains nothing from any move and stays where physics put it.
 ``half_turns`` gives the turns that the depth can hardly tell apart (a can upside down, a bottle facing the other
-way), and ``level_flips`` those of a flat object turned over (scissors: its outline mirrored about an axis of its
-own): the search compares them only after physics, where the same few millimetres of mismatch decide them, so the
+way), ``quarter_turns`` an object on a face beside the one it rests on (where the view hides how tall it stands),
+and ``level_flips`` a flat object turned over (scissors: its outline mirrored about an axis of its own): the
+search compares them only after physics, where the same few millimetres of mismatch decide them, so the
 estimator settles them too and keeps a turn that wins clearly (``turn_over``); the turns it does not keep but
 that score about as well are the estimate's near ties (``Tie``). The pattern search stops in the first shallow
 optimum along the table's axes; ``hop`` restarts each object a few degrees away, within the same region, where the
@@ -52,14 +53,14 @@ FLIP_AXES = 24
 
 @dataclass(frozen=True)
 class Tie:
-    """A pose of one object that the depth can hardly tell from the estimate's: one of its half turns
-    (``half_turns``: a can upside down, a marker end for end), settled, that scores within TURN_MARGIN of the
-    estimate's pose with the other objects kept, and is not the same pose up to the model's symmetries. The
-    estimator keeps a turn only when it wins by more than TURN_MARGIN, so for such an object the depth did not
-    decide: another view, or the object's texture, must."""
+    """A pose of one object that the depth can hardly tell from the estimate's: one of its turns (``half_turns``: a
+    can upside down, a marker end for end; ``quarter_turns``: a box on end or lying down), settled, that scores
+    within TURN_MARGIN of the estimate's pose with the other objects kept, and is not the same pose up to the
+    model's symmetries. The estimator keeps a turn only when it wins by more than TURN_MARGIN, so for such an object
+    the depth did not decide: another view, or the object's texture, must."""
 
     obj: int  # index into problem.models
-    turn: str  # half_turn_names: "about the vertical", "over its x axis", ...
+    turn: str  # half_turn_names, quarter_turn_names: "about the vertical", "a quarter over its x axis", ...
     T: np.ndarray  # (4, 4) the tied pose, table frame, m
     gap: float  # log-units: the scene with this pose minus the scene with the estimate's (as given, not projected)
 
@@ -111,6 +112,25 @@ def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     axes[:, 2] = 0.0
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     return _turned(T, centre, [_half_turn(axis) for axis in [np.array([0.0, 0.0, 1.0]), *axes]])
+
+
+def quarter_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """One object's pose ``T`` (4, 4) turned by +90 and -90 degrees over each of its two most horizontal axes,
+    through its ``centre`` (3,) (object frame, m) -> (4, 4, 4), in ``quarter_turn_names`` order: the object on the
+    faces beside the one it rests on. Where the view hides how tall an object stands, a box on end and one lying
+    down differ by little it sees (real-shape frame 26: the potted meat can stood on its end, 84 degrees off; a
+    quarter turn over its own y axis, settled, lands 1 degree from the truth, 317 above)."""
+    R = T[:3, :3]
+    axes = R[:, _level_axes(R)].T.copy()
+    axes[:, 2] = 0.0
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    return _turned(T, centre, [rotvec_to_matrix(axis * sign * np.pi / 2) for axis in axes for sign in (1.0, -1.0)])
+
+
+def quarter_turn_names(T: np.ndarray) -> list[str]:
+    """What each of ``quarter_turns(T, ...)`` does, in its order, in words, e.g. "a quarter over its x axis",
+    "a quarter back over its x axis"."""
+    return [f"a quarter{way} over its {'xyz'[i]} axis" for i in _level_axes(T[:3, :3]) for way in ("", " back")]
 
 
 def _half_turn(axis: np.ndarray) -> np.ndarray:
@@ -294,17 +314,18 @@ Turn = tuple[int, str, np.ndarray, float]  # an object, the name of its turn, th
 
 def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: Rest, max_shift_m: float,
               max_turn_deg: float) -> tuple[np.ndarray, float, int, list[Tie], list[Turn]]:
-    """Each object of the settled ``scene`` (K, 4, 4) turned over (``half_turns``; a flat object also over the best
-    of its ``level_flips``, ``best_level_flips``) and settled alone, the others kept: the depth's near ties, which
-    the search compares only after physics, where our models' few millimetres of mismatch can decide them. Every
-    object's turns are searched together, in lockstep (``run``). An object's best turn is kept when the scene as
-    given gains more than TURN_MARGIN over ``loglik`` and physics (``rest``), resting that scene, keeps the object
-    within the settling region; when several objects turn, their turns are kept together if that scene scores at
-    least as well as the best one alone -> (scene, log-likelihood, scenes scored, the ties left, every settled turn
-    as (object, name, scene, log-likelihood): the posterior's half turns when no turn was kept)."""
-    names = [name for k in range(len(scene)) for name in half_turn_names(scene[k])]
+    """Each object of the settled ``scene`` (K, 4, 4) turned over (``half_turns``), onto the faces beside the one it
+    rests on (``quarter_turns``; a flat object also over the best of its ``level_flips``, ``best_level_flips``) and
+    settled alone, the others kept: the depth's near ties, which the search compares only after physics, where our
+    models' few millimetres of mismatch can decide them. Every object's turns are searched together, in lockstep
+    (``run``). An object's best turn is kept when the scene as given gains more than TURN_MARGIN over ``loglik`` and
+    physics (``rest``), resting that scene, keeps the object within the settling region; when several objects turn,
+    their turns are kept together if that scene scores at least as well as the best one alone -> (scene, log-
+    likelihood, scenes scored, the ties left, every settled turn as (object, name, scene, log-likelihood): the
+    posterior's turns when no turn was kept)."""
+    names = [name for k in range(len(scene)) for name in half_turn_names(scene[k]) + quarter_turn_names(scene[k])]
     starts = [(k, pose) for k, model in enumerate(problem.models)
-              for pose in half_turns(scene[k], model.mesh.bounds.mean(axis=0))]
+              for turns in (half_turns, quarter_turns) for pose in turns(scene[k], model.mesh.bounds.mean(axis=0))]
     flips, flip_names, scored = best_level_flips(problem, scene, score)
     starts += flips
     names += flip_names
