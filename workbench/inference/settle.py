@@ -107,10 +107,7 @@ def half_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """One object's pose ``T`` (4, 4) turned by 180 degrees about the vertical and about each of its two most
     horizontal axes, through its ``centre`` (3,) (object frame, m) -> (3, 4, 4). These are the depth's near ties:
     a can upside down, a potted meat can or a mustard bottle facing the other way, a marker end for end."""
-    R = T[:3, :3]
-    axes = R[:, _level_axes(R)].T.copy()
-    axes[:, 2] = 0.0
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    axes = _levelled_axes(T[:3, :3])
     return _turned(T, centre, [_half_turn(axis) for axis in [np.array([0.0, 0.0, 1.0]), *axes]])
 
 
@@ -120,11 +117,8 @@ def quarter_turns(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     faces beside the one it rests on. Where the view hides how tall an object stands, a box on end and one lying
     down differ by little it sees (real-shape frame 26: the potted meat can stood on its end, 84 degrees off; a
     quarter turn over its own y axis, settled, lands 1 degree from the truth, 317 above)."""
-    R = T[:3, :3]
-    axes = R[:, _level_axes(R)].T.copy()
-    axes[:, 2] = 0.0
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    return _turned(T, centre, [rotvec_to_matrix(axis * sign * np.pi / 2) for axis in axes for sign in (1.0, -1.0)])
+    turns = [rotvec_to_matrix(axis * sign * np.pi / 2) for axis in _levelled_axes(T[:3, :3]) for sign in (1.0, -1.0)]
+    return _turned(T, centre, turns)
 
 
 def quarter_turn_names(T: np.ndarray) -> list[str]:
@@ -147,6 +141,13 @@ def _turned(T: np.ndarray, centre: np.ndarray, rotations) -> np.ndarray:
         out[i, :3, :3] = H @ T[:3, :3]
         out[i, :3, 3] = H @ (T[:3, 3] - c) + c
     return out
+
+
+def _levelled_axes(R: np.ndarray) -> np.ndarray:
+    """The two object axes (columns of ``R`` (3, 3)) nearest the table plane, laid onto it: unit (2, 3), z = 0."""
+    axes = R[:, _level_axes(R)].T.copy()
+    axes[:, 2] = 0.0
+    return axes / np.linalg.norm(axes, axis=1, keepdims=True)
 
 
 def _level_axes(R: np.ndarray) -> np.ndarray:
