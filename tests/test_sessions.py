@@ -204,6 +204,8 @@ BAD = {
     "setting type": (_set(["estimator_config", "particles"], "many"), "json", "particles"),
     "setting value": (_set(["problem_config", "physics", "timestep"], -1.0), "json", "timestep"),
     "rng state": (_set(["estimator", "rng", "bit_generator"], "MT19937"), "json", "rng"),
+    "estimate out of reach": (_set(["estimator", "search", "map", 1, 0, 3], 1e308), "json", "from the table"),
+    "estimate not rigid": (_set(["estimator", "search", "map", 0, 0, 0], 3.0), "json", "rotation|rigid|orthonormal"),
 }
 
 

@@ -12,6 +12,8 @@ from dataclasses import replace
 import numpy as np
 
 from workbench.answer_json import Answer, answer_json, parse_answer
+from workbench.checks import check_rigid
+from workbench.errors import InputError
 from workbench.evaluation import Evaluator
 from workbench.inference import datadriven
 from workbench.inference.config import EstimatorConfig
@@ -21,6 +23,7 @@ from workbench.inference.moves import MoveKind
 from workbench.inference.paper_search import PaperSearch
 from workbench.inference.posterior import Posterior
 from workbench.inference.settle import Tie
+from workbench.io.bop import MAX_TABLE_DISTANCE
 from workbench.problem import Problem
 
 
@@ -202,6 +205,19 @@ def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:
     return a
 
 
+def _poses(value, shape: tuple, where: str) -> np.ndarray:
+    """Scene poses of the given ``shape`` (..., 4, 4), table frame, m: rigid, and within MAX_TABLE_DISTANCE of the
+    table's origin. A corrupt session's pose 1e308 m away would otherwise overflow the search's distances."""
+    a = _array(value, shape, np.float64, where)
+    try:
+        check_rigid(a, f"search.{where}")
+    except InputError as e:
+        raise ValueError(e.problem) from e
+    if np.abs(a[..., :3, 3]).max(initial=0.0) > MAX_TABLE_DISTANCE:
+        raise ValueError(f"search.{where}: a position lies more than {MAX_TABLE_DISTANCE:g} m from the table")
+    return a
+
+
 def _bool(value, where: str) -> bool:
     if not isinstance(value, bool):
         raise ValueError(f"search.{where} must be true or false, got {value!r}")
@@ -227,7 +243,7 @@ def parse_search(search, K: int) -> dict:
         lib = search.get("library")
         library = None
         if lib is not None:
-            poses = [_array(p, (len(p), 4, 4), np.float64, "library.poses") if len(p) else np.zeros((0, 4, 4))
+            poses = [_poses(p, (len(p), 4, 4), "library.poses") if len(p) else np.zeros((0, 4, 4))
                      for p in lib["poses"]]
             weights = [_array(w, (len(p),), np.float64, "library.weights") for w, p in zip(lib["weights"], poses)]
             if len(poses) != K or len(weights) != K:
@@ -236,7 +252,7 @@ def parse_search(search, K: int) -> dict:
                 raise ValueError("search.library.weights must be probabilities: >= 0, summing to 1 per object")
             library = datadriven.Library(poses, weights)
         return {
-            "map": None if m is None else _array(m, (K, 4, 4), np.float64, "map"),
+            "map": None if m is None else _poses(m, (K, 4, 4), "map"),
             "map_loglik": float("-inf") if ll is None else float(_array(ll, (), np.float64, "map_loglik")),
             "map_kind": MoveKind(int(search.get("map_kind", 0))),
             "floor_in": _bool(search.get("floor_in", True), "floor_in"),
