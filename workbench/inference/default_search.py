@@ -133,7 +133,7 @@ class DefaultSearch:
         rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
         before = scene
         scene, loglik, turned, ties, turns = settle.turn_over(self.problem, scene, loglik, score, rest,
-                                                                   cfg.settle_shift, cfg.settle_turn)
+                                                              cfg.settle_shift, cfg.settle_turn)
         # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its half turn
         # then no longer does. A turned object was settled from a fresh start; the others restart where physics
         # put them.

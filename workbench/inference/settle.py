@@ -324,9 +324,11 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
     their turns are kept together if that scene scores at least as well as the best one alone -> (scene, log-
     likelihood, scenes scored, the ties left, every settled turn as (object, name, scene, log-likelihood): the
     posterior's turns when no turn was kept)."""
-    names = [name for k in range(len(scene)) for name in half_turn_names(scene[k]) + quarter_turn_names(scene[k])]
-    starts = [(k, pose) for k, model in enumerate(problem.models)
-              for turns in (half_turns, quarter_turns) for pose in turns(scene[k], model.mesh.bounds.mean(axis=0))]
+    starts, names = [], []
+    for k, model in enumerate(problem.models):
+        for turns, turn_names in ((half_turns, half_turn_names), (quarter_turns, quarter_turn_names)):
+            starts += [(k, pose) for pose in turns(scene[k], model.mesh.bounds.mean(axis=0))]
+            names += turn_names(scene[k])
     flips, flip_names, scored = best_level_flips(problem, scene, score)
     starts += flips
     names += flip_names
