@@ -178,3 +178,25 @@ def test_a_stack_taller_than_the_height_limit_is_still_the_object_region(caplog)
     camera, table = estimate_support(Frame(depth=depth, camera=Camera(K, W, H), object_ids=[1, 5]))
     assert "nothing stands on the table up to 40 cm" in caplog.text
     assert_region_holds_objects_of(table, invert_pose(camera.T_cam_world) @ T_true, stack)
+
+
+def test_a_stack_taller_than_the_height_limit_beside_another_object_stays_in_when_the_objects_can_be_it():
+    """A cracker box with a wood block stood on it (41 cm) beside a small box: the stack is the listed objects'
+    when they reach that high stacked and the volume seen in it is theirs; objects that could not be it (too small,
+    or too short to reach 41 cm) leave it out as a wall or a monitor."""
+    T_true = look_at(np.radians(50), 0.0, 1.0)
+    stack = [((0.15, -0.1, 0.105), (0.16, 0.06, 0.21), 0.3), ((0.15, -0.1, 0.31), (0.085, 0.085, 0.2), 0.3)]
+    small = [((-0.1, 0.0, 0.06), (0.08, 0.06, 0.12), 0.35)]
+    depth = sensor(raycast(T_true, [DESK, FLOOR, *stack, *small]), np.random.default_rng(8))
+    frame = Frame(depth=depth, camera=Camera(K, W, H), object_ids=[1, 5, 2])
+    volume = sum(np.prod(size) for _, size, _ in stack + small)
+
+    camera, table = estimate_support(frame, objects_volume=volume, objects_reach=0.21 + 0.2 + 0.12)
+    assert_region_holds_objects_of(table, invert_pose(camera.T_cam_world) @ T_true, stack + small)
+
+    for objects_volume, objects_reach in [(volume / 3, 0.53), (volume, 0.35), (None, None)]:
+        camera, table = estimate_support(frame, objects_volume=objects_volume, objects_reach=objects_reach)
+        T_true_to_est = invert_pose(camera.T_cam_world) @ T_true
+        assert_region_holds_objects_of(table, T_true_to_est, small)
+        stack_far_corner = transform_points(T_true_to_est, box_corners(*stack[0]))[:, 0].max()
+        assert table.region_max[0] < stack_far_corner - 0.05

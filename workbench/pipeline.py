@@ -20,7 +20,8 @@ def problem_for_frame(frame: Frame, models: dict[int, ObjectModel], config: Prob
     """Find the table (or the raised support the objects stand on) in the frame and assemble the problem for the
     objects the frame lists (in that order)."""
     listed = [models[i] for i in frame.object_ids]
-    camera, table = estimate_support(frame, objects_volume=sum(m.mass / m.density for m in listed))
+    camera, table = estimate_support(frame, objects_volume=sum(m.mass / m.density for m in listed),
+                                     objects_reach=sum(float(m.mesh.extents.max()) for m in listed))
     return build_problem(frame, listed, camera, table, config)
 
 

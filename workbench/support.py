@@ -58,6 +58,10 @@ class SupportConfig:
     # hidden far sides are missing) is at least this share of theirs (0.38-0.68 on generated raised boxes; a box
     # with another stacked on it, unmodelled clutter as high beside it: 0.15).
     raised_holds: float = 0.25
+    # A cluster above max_height is a stack of the frame's objects, not a wall or a monitor, when its top is within
+    # what they reach stacked and the volume seen in it is at most this share of theirs (1.0-1.1 on generated
+    # stacks 41 cm high with distractors; a 50 cm monitor on its stand beside two boxes: 3.5).
+    stack_holds: float = 1.5
     seed: int = 0
 
 
@@ -267,11 +271,23 @@ def _extend_unseen_sides(
     return out["x_min"], out["x_max"], out["y_min"], out["y_max"]
 
 
+def _column_volume(points: np.ndarray, base: float, voxel: float) -> float:
+    """Volume (m^3) under points (N, 3) down to the height ``base`` (m): each ``voxel`` cell filled from its highest
+    point down (hidden far sides are missing, overhangs filled)."""
+    cells = {}
+    for (x, y), z in zip(np.round(points[:, :2] / voxel).astype(int).tolist(), points[:, 2] - base):
+        cells[x, y] = max(cells.get((x, y), 0.0), z)
+    return sum(cells.values()) * voxel ** 2
+
+
 def _object_region(
-    world: np.ndarray, z_cam: np.ndarray, outline: np.ndarray, cfg: SupportConfig, path
+    world: np.ndarray, z_cam: np.ndarray, outline: np.ndarray, cfg: SupportConfig, path,
+    objects_volume: float | None = None, objects_reach: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """xy bounding box (min (2,), max (2,)) of the object clusters standing on the table. Clutter on the table that
     the image border cuts below ``max_height`` (a monitor's lower half, say) stays in: nothing tells it apart.
+    A taller cluster stays in when the objects (``objects_volume``, m^3; ``objects_reach``, m: the sum of their
+    largest sizes) could be it, stacked (``stack_holds``).
 
     ``world``: (N, 3) points in the table frame; ``z_cam``: (N,) their depths (noise model); ``outline``: (V, 2)."""
     above = world[:, 2] > _noise_band(z_cam, cfg)
@@ -288,6 +304,8 @@ def _object_region(
         top = pts[member, 2].max()
         if cfg.min_object_height <= top <= cfg.max_height:
             keep |= member
+        elif top > cfg.max_height and _a_stack(pts[member], objects_volume, objects_reach, cfg):
+            keep |= member
         elif top > cfg.max_height:
             tall |= member
     if not keep.any() and tall.any():
@@ -303,6 +321,14 @@ def _object_region(
         )
     half = cfg.cluster_voxel / 2  # voxel centres sit up to half a voxel inside the surface
     return pts[keep, :2].min(0) - half, pts[keep, :2].max(0) + half
+
+
+def _a_stack(cluster: np.ndarray, objects_volume: float | None, objects_reach: float | None,
+             cfg: SupportConfig) -> bool:
+    """Whether a cluster (N, 3) taller than ``max_height`` can be the objects stacked (see ``stack_holds``)."""
+    if objects_volume is None or objects_reach is None or cluster[:, 2].max() > objects_reach:
+        return False
+    return _column_volume(cluster, 0.0, cfg.cluster_voxel) <= cfg.stack_holds * objects_volume
 
 
 def _raised_support(world: np.ndarray, z_cam: np.ndarray, outline: np.ndarray, cfg: SupportConfig,
@@ -352,11 +378,7 @@ def _raised_support(world: np.ndarray, z_cam: np.ndarray, outline: np.ndarray, c
             continue
         beside = ~_inside_hull(standing[:, :2], hull, -cfg.edge_margin)  # the top's own sides stand within it
         on_top = _inside_hull(standing[:, :2], hull, 0.0) & (standing[:, 2] > height + cfg.min_object_height)
-        held = standing[on_top]
-        cells = {}
-        for (x, y), z in zip(np.round(held[:, :2] / voxel).astype(int).tolist(), held[:, 2] - height):
-            cells[x, y] = max(cells.get((x, y), 0.0), z)
-        volume = sum(cells.values()) * voxel ** 2
+        volume = _column_volume(standing[on_top], height, voxel)
         holds = objects_volume is None or volume >= cfg.raised_holds * objects_volume
         log.debug("raised plane %.3f m: %d voxels on it, %d beside, %.0f cm^3 above it", height, on_top.sum(),
                   beside.sum(), volume * 1e6)
@@ -392,10 +414,12 @@ def _given_frame_fits(T_cam_world: np.ndarray, points: np.ndarray, cfg: SupportC
     return T_world_cam[2, 3] > 0 and on.mean() >= cfg.min_plane_fraction
 
 
-def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects_volume: float | None = None
-                     ) -> tuple[Camera, Table]:
+def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects_volume: float | None = None,
+                     objects_reach: float | None = None) -> tuple[Camera, Table]:
     """The camera with ``T_cam_world`` set and the ``Table`` (extent and object region) of ``frame``: the table, or
-    a raised support the objects stand on (``_raised_support``; ``objects_volume``, m^3: the frame's objects').
+    a raised support the objects stand on (``_raised_support``; ``objects_volume``, m^3: the frame's objects'),
+    with the objects' region keeping a stack taller than ``max_height`` that they could be (``objects_reach``, m:
+    the sum of their largest sizes).
 
     A given ``frame.camera.T_cam_world`` is kept (only extent and region are measured) unless the depth
     contradicts it (camera below the table, almost no point on z = 0); then a warning is logged and the table is
@@ -428,7 +452,7 @@ def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects
         world = transform_points(invert_pose(T), points)
         outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
     extent = _extend_unseen_sides(extent, depth, camera, T, cfg)
-    lo, hi = _object_region(world, points[:, 2], outline, cfg, path)
+    lo, hi = _object_region(world, points[:, 2], outline, cfg, path, objects_volume, objects_reach)
     if estimated:
         # Put the origin at the centre of the objects: where the estimator's attention is.
         c = (lo + hi) / 2
