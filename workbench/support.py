@@ -59,8 +59,8 @@ class SupportConfig:
     # with another stacked on it, unmodelled clutter as high beside it: 0.15).
     raised_holds: float = 0.25
     # A cluster above max_height is a stack of the frame's objects, not a wall or a monitor, when its top is within
-    # what they reach stacked and the volume seen in it is at most this share of theirs (1.0-1.1 on generated
-    # stacks 41 cm high with distractors; a 50 cm monitor on its stand beside two boxes: 3.5).
+    # what they reach stacked and the volume seen in it is at most this share of theirs (1.0-1.1 on the two
+    # generated stacks 41 cm high; no wall or monitor in the shared sets reaches 40 cm, so none was measured).
     stack_holds: float = 1.5
     seed: int = 0
 
@@ -304,10 +304,11 @@ def _object_region(
         top = pts[member, 2].max()
         if cfg.min_object_height <= top <= cfg.max_height:
             keep |= member
-        elif top > cfg.max_height and _a_stack(pts[member], objects_volume, objects_reach, cfg):
-            keep |= member
         elif top > cfg.max_height:
-            tall |= member
+            if _a_stack(pts[member], objects_volume, objects_reach, cfg):
+                keep |= member
+            else:
+                tall |= member
     if not keep.any() and tall.any():
         # Only clusters taller than max_height (which drops walls and monitors): a stack of tall boxes is one, and
         # no object region at all would end the run, so they are the region.
