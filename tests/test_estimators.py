@@ -342,6 +342,34 @@ def test_the_clutter_floor_is_weighed_in_after_its_share_of_the_iterations(touch
         evaluator.close()
 
 
+def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame_and_problem):
+    """Both objects a centimetre off, as candidates fitted alone come out: the assembly is fitted to the depth,
+    once; one that loses to the estimate by more than FIT_WITHIN is another arrangement and is not fitted."""
+    from workbench.inference import default_search
+
+    frame, problem = frame_and_problem
+    gt = _ground_truth_in_table_frame(frame, problem)
+    off = gt.copy()
+    off[:, 0, 3] += 0.01
+    off[:, 1, 3] -= 0.006
+    evaluator = LocalEvaluator(problem)
+    try:
+        estimator = _run(problem, evaluator, 1)
+        filt, search = estimator.filter, estimator.search
+        estimate = off.copy()
+        estimate[:, 0, 3] += 0.1  # both objects elsewhere, so the assembly moves both
+        near_miss = filt.map_loglik - default_search.FIT_WITHIN / 2
+        far = filt.map_loglik - 2 * default_search.FIT_WITHIN
+        assert len(search._fitted(filt, off[None], np.array([far]), estimate)) == 0
+        fitted = search._fitted(filt, off[None], np.array([near_miss]), estimate)
+        again = search._fitted(filt, off[None], np.array([near_miss]), estimate)
+    finally:
+        evaluator.close()
+    assert fitted.shape == (1, problem.n_objects, 4, 4) and len(again) == 0
+    for k in range(problem.n_objects):
+        assert position_error(gt[k], fitted[0, k]) < 0.004 < position_error(gt[k], off[k])
+
+
 def test_the_paper_search_keeps_the_objects_on_the_fitted_plane(frame_and_problem):
     _, problem = frame_and_problem
     evaluator = LocalEvaluator(problem)

@@ -342,6 +342,21 @@ def test_assembly_puts_each_object_on_its_own_place(frame_and_problem, context):
     assert not any(np.array_equal(s[0], wrong[0]) and np.array_equal(s[1], truth[1]) for s in scenes)
 
 
+def test_an_assembly_moving_three_objects_is_also_tried_with_each_kept_where_it_was():
+    from workbench.inference import assemble
+
+    base = np.repeat(np.eye(4)[None], 4, axis=0)
+    scene = base.copy()
+    scene[[0, 2, 3], 0, 3] = [0.1, 0.2, 0.3]
+    kept = assemble.one_kept(scene, base)
+    assert kept.shape == (3, 4, 4, 4)
+    for variant, k in zip(kept, [0, 2, 3]):
+        assert np.array_equal(variant[k], base[k])
+        assert all(np.array_equal(variant[j], scene[j]) for j in range(4) if j != k)
+    scene[3] = base[3]  # two moved: keeping one is a one-object change, which polish tries anyway
+    assert assemble.one_kept(scene, base).shape == (0, 4, 4, 4)
+
+
 def test_an_object_sits_inside_itself_but_not_inside_its_neighbour(frame_and_problem, context):
     from workbench.inference import assemble
 
@@ -538,7 +553,7 @@ def test_a_flat_object_turned_over_gets_a_start_at_its_place_from_its_outline():
     fit as well, and is kept as a second candidate, not in its place). A flat box gets none."""
     import trimesh
 
-    from workbench.geometry import rotation_angle, rot_x
+    from workbench.geometry import rot_x, rotation_angle
     from workbench.inference.footprint import CELL, footprint_starts
     from workbench.inference.scenepoints import ModelSamples, ScenePoints, model_samples
 

@@ -28,6 +28,7 @@ from workbench.render.depth import DepthRenderer
 from workbench.render.likelihood import pixel_loglik
 
 BEAM = 32  # partial assignments kept after each object
+WIDE_BEAM = 64  # ... when the search is stuck (32 lost the four objects of generated clutter frame 5)
 ASSEMBLIES = 4  # complete assignments returned
 INSIDE = 0.3  # a candidate with this share of its core inside another's hull sits inside it
 CORE = 0.7  # the core: the surface samples pulled this far towards the centroid (surface points of two objects
@@ -97,12 +98,12 @@ def candidate_depths(renderer: DepthRenderer, poses: np.ndarray, k: int) -> np.n
 
 
 def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, solids: list[Solid],
-               base: np.ndarray, order: np.ndarray, floored: bool = True) -> np.ndarray:
+               base: np.ndarray, order: np.ndarray, floored: bool = True, beam_width: int = BEAM) -> np.ndarray:
     """Up to ASSEMBLIES scenes (A, K, 4, 4), best first: ``base`` (K, 4, 4) with every object that has candidates
     put on one of them, no candidate inside another, by the likelihood of the candidates' joint depth (no
-    physics). Objects are assigned in ``order`` (K,) (largest first: they constrain the most), keeping the BEAM best
-    partial assignments after each; the objects not yet assigned are absent (the table shows there). ``floored``:
-    false leaves the clutter floor out, as the filter does before ``ParticleFilter.floor_at``."""
+    physics). Objects are assigned in ``order`` (K,) (largest first: they constrain the most), keeping the
+    ``beam_width`` best partial assignments after each; the objects not yet assigned are absent (the table shows
+    there). ``floored``: false leaves the clutter floor out, as the filter does before ``ParticleFilter.floor_at``."""
     ks = [int(k) for k in order if library.has(int(k))]
     if not ks:
         return np.zeros((0,) + base.shape)
@@ -138,7 +139,7 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
         if not grown:  # every candidate sits inside an assigned object: no consistent assignment from here
             return np.zeros((0,) + base.shape)
         grown.sort(key=lambda g: -g[0])  # stable: ties keep the earlier state and candidate
-        beam = [(c, m) for _, c, m in grown[:BEAM]]
+        beam = [(c, m) for _, c, m in grown[:beam_width]]
     out = []
     for chosen, _ in beam[:ASSEMBLIES]:
         scene = base.copy()
@@ -146,6 +147,19 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
             scene[ks[i]] = poses[i][c]
         out.append(scene)
     return np.array(out)
+
+
+def one_kept(scene: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Variants of an assembled ``scene`` (K, 4, 4) that moves three or more objects of ``base`` (K, 4, 4): for each
+    object it moves, the scene with that one object kept where ``base`` has it -> (V, K, 4, 4), V = 0 when it
+    moves fewer. An assembly puts every object on a candidate, so the right arrangement of some objects can come
+    with another moved wrongly: generated clutter frame 5's fitted assembly put four objects right and the fifth,
+    right in the estimate, 47 cm away."""
+    moved = [k for k in range(len(base)) if not np.allclose(scene[k], base[k])]
+    out = np.repeat(scene[None], len(moved) if len(moved) >= 3 else 0, axis=0)
+    for i, k in enumerate(moved[:len(out)]):
+        out[i, k] = base[k]
+    return out
 
 
 def _unique(poses: np.ndarray) -> np.ndarray:
