@@ -370,6 +370,33 @@ def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame
         assert position_error(gt[k], fitted[0, k]) < 0.004 < position_error(gt[k], off[k])
 
 
+def test_the_assemblies_fitted_and_the_last_polish_are_saved_with_the_search_state(frame_and_problem):
+    """A restored run must not fit an assembly again, nor judge the next polish stuck otherwise: both travel in the
+    state's JSON search entry; a fitted assembly naming an object the problem lacks is refused."""
+    import json
+
+    from workbench.estimators import parse_search
+
+    _, problem = frame_and_problem
+    evaluator = LocalEvaluator(problem)
+    try:
+        estimator = _run(problem, evaluator, 1)
+        search = estimator.search
+        pose = tuple(np.round(np.eye(4) + 1e-7 / 3, 6).ravel().tolist())
+        search.fitted = {((0, pose), (1, pose))}
+        search.polished_at = 1234.5678
+        state = estimator.state_dict()
+        state["search"] = json.loads(json.dumps(state["search"]))
+        restored = Estimator(problem, EstimatorConfig(particles=24, seed=7), evaluator)
+        restored.load_state(state)
+    finally:
+        evaluator.close()
+    assert restored.search.fitted == search.fitted and restored.search.polished_at == 1234.5678
+    state["search"]["fitted"][0][1][0] = problem.n_objects
+    with pytest.raises(ValueError, match="fitted"):
+        parse_search(state["search"], problem.n_objects)
+
+
 def test_the_paper_search_keeps_the_objects_on_the_fitted_plane(frame_and_problem):
     _, problem = frame_and_problem
     evaluator = LocalEvaluator(problem)

@@ -166,10 +166,20 @@ class Estimator:
                 "evaluations": f.evaluations,
                 "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
                                                      "weights": [w.tolist() for w in lib.weights]},
+                **self._search_memory(),
             },
             "answer": answer_json(Answer(self.settled, self.settled_loglik, self.ties, self.posterior))
             if self.answer_current else None,
         }
+
+    def _search_memory(self) -> dict:
+        """What the default search remembers between polishes, as plain lists: the assemblies it ``fitted`` (each
+        a list of [object, 16 pose entries]) and ``polished_at`` (None before the first polish)."""
+        if not isinstance(self.search, DefaultSearch):
+            return {}
+        s = self.search
+        return {"fitted": [[[k, list(pose)] for k, pose in key] for key in sorted(s.fitted)],
+                "polished_at": float(s.polished_at) if np.isfinite(s.polished_at) else None}
 
     def load_state(self, state: dict) -> None:
         """Continue from a ``state_dict()``. The caller vouches that it belongs to this problem and config
@@ -188,6 +198,7 @@ class Estimator:
         f.sink, f.evaluations = search["sink"], search["evaluations"]
         if isinstance(self.search, DefaultSearch):
             self.search.library = search["library"]
+            self.search.fitted, self.search.polished_at = search["fitted"], search["polished_at"]
         answer = parse_answer(state.get("answer"), self.problem.n_objects)
         if answer is not None and f.map is None:
             raise ValueError("answer: a settled answer without an estimate to belong to")
@@ -228,8 +239,9 @@ def parse_search(search, K: int) -> dict:
     """The ``search`` entry of a ``state_dict`` (plain JSON lists) for K objects -> ``map`` (K, 4, 4) or None,
     ``map_loglik``, ``map_kind`` (MoveKind), ``floor_in`` (``ParticleFilter.floor_in``; true in states saved
     before it existed), ``sink`` (m), ``evaluations``, ``library`` (datadriven.Library or
-    None). None (a state saved before the search existed) gives the neutral values. Raises ValueError naming what
-    is malformed."""
+    None), ``fitted`` and ``polished_at`` (``DefaultSearch``'s; none fitted and never polished in states saved
+    before they existed). None (a state saved before the search existed) gives the neutral values. Raises
+    ValueError naming what is malformed."""
     if search is None:
         search = {}
     if not isinstance(search, dict):
@@ -251,6 +263,13 @@ def parse_search(search, K: int) -> dict:
             if any(len(w) and (np.any(w < 0) or abs(w.sum() - 1.0) > 1e-6) for w in weights):
                 raise ValueError("search.library.weights must be probabilities: >= 0, summing to 1 per object")
             library = datadriven.Library(poses, weights)
+        fitted = set()
+        for key in search.get("fitted", []):
+            pairs = tuple((int(k), tuple(_array(pose, (16,), np.float64, "fitted").tolist())) for k, pose in key)
+            if not pairs or any(not 0 <= k < K for k, _ in pairs):
+                raise ValueError(f"search.fitted must list assemblies of objects 0 to {K - 1}")
+            fitted.add(pairs)
+        polished_at = search.get("polished_at")
         return {
             "map": None if m is None else _poses(m, (K, 4, 4), "map"),
             "map_loglik": float("-inf") if ll is None else float(_array(ll, (), np.float64, "map_loglik")),
@@ -259,6 +278,9 @@ def parse_search(search, K: int) -> dict:
             "sink": sink,
             "evaluations": int(_array(search.get("evaluations", 0), (), np.int64, "evaluations")),
             "library": library,
+            "fitted": fitted,
+            "polished_at": float("-inf") if polished_at is None
+            else float(_array(polished_at, (), np.float64, "polished_at")),
         }
     except (TypeError, KeyError, IndexError, OverflowError) as e:
         raise ValueError(f"malformed search entry ({type(e).__name__}: {e})") from e

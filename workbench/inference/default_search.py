@@ -63,10 +63,12 @@ def fit_sink(filt: ParticleFilter) -> None:
 
 
 class DefaultSearch:
-    """The data-driven search's state: the candidate ``library`` (saved with sessions), the latest refit's
-    candidates alone (``unexplained``: fitted where the estimate leaves points unexplained; polish tries them
-    first; made and used within one step, so not saved), and caches: the per-object geometry, the candidates of
-    each cluster already fitted, the bases found under each top."""
+    """The data-driven search's state: the candidate ``library``, the assemblies already ``fitted`` (``_fitted``:
+    per assembly, the (object, pose) pairs it moves, each pose its 16 entries rounded to 1e-6) and the estimate's
+    log-likelihood at the last polish (``polished_at``), all saved with sessions; the latest refit's candidates alone
+    (``unexplained``: fitted where the estimate leaves points unexplained; polish tries them first; made and used
+    within one step, so not saved), and caches: the per-object geometry, the candidates of each cluster already
+    fitted, the bases found under each top."""
 
     def __init__(self, problem: Problem):
         self.problem = problem
@@ -75,8 +77,8 @@ class DefaultSearch:
         self._geometry: SearchGeometry | None = None
         self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
         self._base_memo: dict = {}  # polish.stacked's bases found under each top so far
-        self._fitted_keys: set = set()  # the assemblies already fitted (``_fitted``)
-        self._polished_at = -np.inf  # the estimate's log-likelihood at the last polish
+        self.fitted: set[tuple[tuple[int, tuple[float, ...]], ...]] = set()
+        self.polished_at = -np.inf
         self._map_wait = 0.0  # seconds this iteration's proposals waited for fits on the workers
 
     def geometry(self, filt: ParticleFilter) -> SearchGeometry:
@@ -225,11 +227,11 @@ class DefaultSearch:
         for i in np.argsort(-loglik, kind="stable"):
             moved = [k for k in range(len(estimate)) if not np.allclose(joint[i, k], estimate[k])]
             far = np.linalg.norm(joint[i, moved, :2, 3] - estimate[moved, :2, 3], axis=-1) > datadriven.PLACE_M
-            key = tuple((k, np.round(joint[i, k], 6).tobytes()) for k in moved)
+            key = tuple((k, tuple(np.round(joint[i, k], 6).ravel().tolist())) for k in moved)
             if not filt.map_loglik - FIT_WITHIN < loglik[i] <= filt.map_loglik or far.sum() < 2 \
-                    or key in self._fitted_keys:
+                    or key in self.fitted:
                 continue
-            self._fitted_keys.add(key)
+            self.fitted.add(key)
             searches.append(settle.search(joint[i], min_step_m=FIT_MIN_STEP, max_rounds=FIT_ROUNDS,
                                           max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn, objects=moved))
             if len(searches) == FIT_ASSEMBLIES:
@@ -252,8 +254,8 @@ class DefaultSearch:
                                 g.radius, self._base_memo, partial(self._run, filt))]
         # The estimate stuck since the last polish: a wider beam. The assemblies that nearly beat it are fitted
         # (``_fitted``).
-        stuck = filt.map_loglik - self._polished_at < STUCK
-        self._polished_at = filt.map_loglik
+        stuck = filt.map_loglik - self.polished_at < STUCK
+        self.polished_at = filt.map_loglik
         joint = self._assemblies(filt, estimate, assemble.WIDE_BEAM if stuck else assemble.BEAM)
         parts.append(joint)
         kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.BASE, MoveKind.ASSEMBLE], np.int8),
