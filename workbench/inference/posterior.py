@@ -13,8 +13,9 @@ others kept where the estimate has them:
 Settling a candidate stops early where it could not become a mode of its own: once it has converged at settling's
 first two steps, if it is still too far below the estimate to be reported (``MIN_PROBABILITY``) or has moved into the
 estimate's own mode. A candidate counts only if physics, resting its scene, keeps it where it was fitted
-(``settle.within``). Candidates that are the same pose up to the model's symmetries (``metrics.is_right``: within
-2 cm and 10 degrees) are one mode, scored by its best member.
+(``settle.within``); one at another place replaces the estimate only if it also beats it at rest. Candidates that
+are the same pose up to the model's symmetries (``metrics.is_right``: within 2 cm and 10 degrees) are one mode,
+scored by its best member.
 
 Probabilities: a depth likelihood sums thousands of correlated pixels, so raw likelihood ratios are far too
 confident. Each mode's log-likelihood gap to the estimate is divided by a temperature, and a mode other than the
@@ -316,8 +317,9 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     as they are now, rather than settled again (the turns of a turned object are its pose before and its other
     turns before). ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
     ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
-    where they start. A candidate that beats the estimate by more than the turn margin, physics holding it,
-    replaces it (``settle.adopt``) -> (the posterior, scenes scored, the scene, its log-likelihood). ``run``
+    where they start. A candidate that beats the estimate by more than the turn margin, physics holding it (and,
+    more than ``PLACE_M`` away, beating it at rest too), replaces it (``settle.adopt``) -> (the posterior, scenes
+    scored, the scene, its log-likelihood). ``run``
     (``Evaluator.map``; default: here) computes the objects' turn axes (``turn_centre``), on the evaluation workers,
     which would otherwise wait meanwhile."""
     t0 = time.perf_counter()
