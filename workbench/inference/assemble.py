@@ -149,15 +149,20 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
     return np.array(out)
 
 
+def moved(scene: np.ndarray, base: np.ndarray) -> list[int]:
+    """The objects whose poses differ between ``scene`` and ``base`` (K, 4, 4), in order."""
+    return [k for k in range(len(base)) if not np.allclose(scene[k], base[k])]
+
+
 def one_kept(scene: np.ndarray, base: np.ndarray) -> np.ndarray:
     """Variants of an assembled ``scene`` (K, 4, 4) that moves three or more objects of ``base`` (K, 4, 4): for each
     object it moves, the scene with that one object kept where ``base`` has it -> (V, K, 4, 4), V = 0 when it
     moves fewer. An assembly puts every object on a candidate, so the right arrangement of some objects can come
     with another moved wrongly: generated clutter frame 5's fitted assembly put four objects right and the fifth,
     right in the estimate, 47 cm away."""
-    moved = [k for k in range(len(base)) if not np.allclose(scene[k], base[k])]
-    out = np.repeat(scene[None], len(moved) if len(moved) >= 3 else 0, axis=0)
-    for i, k in enumerate(moved[:len(out)]):
+    changed = moved(scene, base)
+    out = np.repeat(scene[None], len(changed) if len(changed) >= 3 else 0, axis=0)
+    for i, k in enumerate(changed[:len(out)]):
         out[i, k] = base[k]
     return out
 

@@ -63,6 +63,14 @@ LEVEL_HEADINGS = 12  # headings tried on a horizontal surface, 30 degrees apart
 CENTRE_HEADINGS = 12
 PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally) are at one place
 
+
+
+def elsewhere(T: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """Whether poses ``T`` and ``U`` (..., 4, 4, broadcastable) are at different places: their centres more than
+    PLACE_M apart horizontally -> (...) bool."""
+    return np.linalg.norm(T[..., :2, 3] - U[..., :2, 3], axis=-1) > PLACE_M
+
+
 # A fitted candidate: its score (``fit_scores``), pose (4, 4) in the table frame, and the cluster's slanted patch
 # it leans on (``leaning_starts``; -1: none): each patch keeps a place in the library.
 Candidate = tuple[float, np.ndarray, int]

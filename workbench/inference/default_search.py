@@ -225,8 +225,8 @@ class DefaultSearch:
         objects moved together) scored 191 below it as assembled and 21 above it fitted."""
         cfg, searches = filt.config, []
         for i in np.argsort(-loglik, kind="stable"):
-            moved = [k for k in range(len(estimate)) if not np.allclose(joint[i, k], estimate[k])]
-            far = np.linalg.norm(joint[i, moved, :2, 3] - estimate[moved, :2, 3], axis=-1) > datadriven.PLACE_M
+            moved = assemble.moved(joint[i], estimate)
+            far = datadriven.elsewhere(joint[i, moved], estimate[moved])
             key = tuple((k, tuple(np.round(joint[i, k], 6).ravel().tolist())) for k in moved)
             if not filt.map_loglik - FIT_WITHIN < loglik[i] <= filt.map_loglik or far.sum() < 2 \
                     or key in self.fitted:

@@ -55,7 +55,7 @@ from workbench.evaluation.base import Run, run_here
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference import settle
 from workbench.inference.context import SearchGeometry
-from workbench.inference.datadriven import PLACE_M
+from workbench.inference.datadriven import elsewhere
 from workbench.inference.resting import RestingPoses, lowest_point
 from workbench.inference.scenepoints import object_badness
 from workbench.metrics import is_right
@@ -294,12 +294,6 @@ def distinct_poses(poses: np.ndarray, weights: np.ndarray, exclude: list[np.ndar
     return out
 
 
-def moved_away(T: np.ndarray, estimate: np.ndarray) -> bool:
-    """Whether pose ``T`` (4, 4) puts the object at another place than its pose in the estimate (4, 4): more than
-    ``datadriven.PLACE_M`` away along the table."""
-    return bool(np.linalg.norm(T[:2, 3] - estimate[:2, 3]) > PLACE_M)
-
-
 def centre_call(problem: Problem, points: np.ndarray, vertical: np.ndarray) -> np.ndarray:
     """``turn_centre`` as an ``Evaluator.map`` call (the problem is the workers' own, unused)."""
     return turn_centre(points, vertical)
@@ -318,10 +312,9 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     turns before). ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
     ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
     where they start. A candidate that beats the estimate by more than the turn margin, physics holding it (and,
-    more than ``PLACE_M`` away, beating it at rest too), replaces it (``settle.adopt``) -> (the posterior, scenes
-    scored, the scene, its log-likelihood). ``run``
-    (``Evaluator.map``; default: here) computes the objects' turn axes (``turn_centre``), on the evaluation workers,
-    which would otherwise wait meanwhile."""
+    at another place (``datadriven.elsewhere``), beating it at rest too), replaces it (``settle.adopt``) -> (the
+    posterior, scenes scored, the scene, its log-likelihood). ``run`` (``Evaluator.map``; default: here) computes
+    the objects' turn axes (``turn_centre``), on the evaluation workers, which would otherwise wait meanwhile."""
     t0 = time.perf_counter()
     run = run_here(problem) if run is None else run
     loglik_before = loglik
@@ -409,7 +402,7 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
     # sink an object a centimetre into the table onto clutter nobody modelled (generated clutter frame 5: a flat box
     # where the particles put it, on a slab, beat its true place by 68 log-units so, and lost by 135 at rest).
     wins = [ll - loglik > settle.TURN_MARGIN for _, _, _, ll in held]
-    far = [w and moved_away(T[k], scene[k]) for w, (k, _, T, _) in zip(wins, held)]
+    far = [w and bool(elsewhere(T[k], scene[k])) for w, (k, _, T, _) in zip(wins, held)]
     if any(far):
         at_rest = score(np.stack([rest(scene[None])[0]] + [r for r, f in zip(held_rest, far) if f]))
         scored += len(at_rest)
