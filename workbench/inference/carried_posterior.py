@@ -36,6 +36,7 @@ from workbench.inference.posterior import (
     position_spread,
     probabilities,
     turn_centre,
+    turned_about_vertical,
     yaw_range,
     yaw_turns,
 )
@@ -163,7 +164,7 @@ def filled(problem: Problem, scene: np.ndarray, loglik: float, posterior: Poster
     ll = score(scenes)
     objects = []
     for o in posterior.objects:
-        new = [(T, float(ll[i]), float(ll[i]) - loglik, f"turned {a:+.0f} degrees about the vertical")
+        new = [(T, float(ll[i]), float(ll[i]) - loglik, turned_about_vertical(a))
                for i, (k, T, a) in enumerate(fills) if k == o.obj]
         if not new:
             objects.append(o)

@@ -219,6 +219,12 @@ def turn_centre(points: np.ndarray, vertical: np.ndarray, iterations: int = 20, 
     return c
 
 
+def turned_about_vertical(angle_deg: float) -> str:
+    """What a heading mode is called: "turned -30 degrees about the vertical". The sweep also finds a heading's
+    settled score by it."""
+    return f"turned {angle_deg:+.0f} degrees about the vertical"
+
+
 def yaw_turns(T: np.ndarray, centre: np.ndarray, step_deg: float = YAW_STEP_DEG) -> tuple[np.ndarray, np.ndarray]:
     """One object's pose ``T`` (4, 4) turned about the vertical through its ``centre`` (3,), object frame, by every
     multiple of ``step_deg`` but 0 -> (poses (S, 4, 4), their angles (S,) in degrees, in (-180, 180])."""
@@ -331,7 +337,7 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         poses, angles = yaw_turns(scene[k], centres[k])
         yaw[k] = (angles, len(given), np.array([not is_right(scene[k], T, model.symmetries) for T in poses]))
         given += [(k, T) for T in poses]
-        given_what += [f"turned {a:+.0f} degrees about the vertical" for a in angles]
+        given_what += [turned_about_vertical(a) for a in angles]
         for T in distinct_poses(projected[:, k], weights, [scene[k]], model.symmetries, PARTICLE_POSES):
             given.append((k, T))
             given_what.append("where particles put it")
@@ -441,18 +447,18 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         if k in kept:  # its pose before is now a candidate, its gaps are to its new pose
             candidates.append((before[k], loglik_before, "as first settled"))
         angles, poses, lls, distinct, base = headings[k]
-        # A heading settled above (one of its best few) is as likely as it settled, not only as given: a generated
-        # mug with its handle hidden was open from the estimate to -30 degrees as given, and -60 lost 167 so but
-        # only 9 settled, so no range was reported while three of its headings were modes.
-        if k not in kept:
-            lls = np.maximum(lls, [settled.get((k, f"turned {a:+.0f} degrees about the vertical"), -np.inf)
-                                   for a in angles])
-        open_range = yaw_range(angles, lls - base, distinct, YAW_STEP_DEG, open_gap)
+        # How far the range reaches counts a heading settled above (one of its best few) as it settled, not only
+        # as given: a generated mug with its handle hidden was open from the estimate to -30 degrees as given, and
+        # -60 lost 167 so but only 9 settled, so no range was reported while three of its headings were modes. A
+        # heading's own mode below keeps its pose and score as given; the settled pose is a candidate of its own.
+        best = lls if k in kept else np.maximum(lls, [settled.get((k, turned_about_vertical(a)), -np.inf)
+                                                      for a in angles])
+        open_range = yaw_range(angles, best - base, distinct, YAW_STEP_DEG, open_gap)
         if open_range is not None:
             # Each heading of the open range is a mode (scored as given: a lower bound of what settling would give),
             # so that the estimate's probability is its share of the range, not of the two headings settled.
             for i in np.flatnonzero(distinct & (angles >= open_range[0]) & (angles <= open_range[1])):
-                candidates.append((poses[i], float(lls[i]), f"turned {angles[i]:+.0f} degrees about the vertical"))
+                candidates.append((poses[i], float(lls[i]), turned_about_vertical(angles[i])))
         objects.append(doubted(ObjectPosterior(
             obj=k,
             modes=object_modes(scene[k], kept.get(k, loglik_before), candidates, model.symmetries, temperature),
