@@ -497,6 +497,29 @@ def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_a
     assert len(calls) == problem.n_objects
 
 
+def test_a_fit_slid_along_its_length_is_slid_back_and_never_scores_less(frame_and_problem, context):
+    """``datadriven.slide``: each box's true pose moved 1.5-2.5 cm along its own horizontal axes, where ICP's
+    point-to-plane fit cannot tell (the faces it sees run along the slide), comes back within a step of the truth;
+    and no pose, right or wrong, ends with a lower fit score than it started with."""
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    truth = _truth(frame, problem)
+    for k in range(problem.n_objects):
+        axes = [a for a in truth[k, :3, :3].T if abs(a[2]) < 0.1]  # the box's two horizontal axes
+        off = np.repeat(truth[k][None], 4, axis=0)
+        off[:, :3, 3] += np.array([0.015 * axes[0], -0.025 * axes[0], 0.02 * axes[1], -0.015 * axes[1]])
+        slid = datadriven.slide(problem, off, ctx.samples[k])
+        # Back within the finest step: the score may not tell 5 mm apart.
+        assert np.all(np.linalg.norm(slid[:, :3, 3] - truth[k, :3, 3], axis=1) <= datadriven.SLIDE_STEPS[-1] + 1e-6)
+        assert np.array_equal(slid[:, :3, :3], off[:, :3, :3]) and np.allclose(slid[:, 2, 3], off[:, 2, 3])
+        far = off.copy()
+        far[:, 0, 3] += 0.3  # where nothing is seen
+        poses = np.concatenate([truth[k][None], off, far])
+        before = datadriven.fit_scores(problem, poses, ctx.samples[k])
+        assert np.all(datadriven.fit_scores(problem, datadriven.slide(problem, poses, ctx.samples[k]),
+                                            ctx.samples[k]) >= before)
+
+
 def test_observed_normals_face_the_camera_and_keep_a_thin_object_off_a_neighbours_side():
     """A thin slab lying flat (scissors) and, 2.5 cm beyond its end, a box's vertical side: the observed normals
     are the top's (up) and the side's (towards the camera), and ICP from the slab's true pose, matching only
