@@ -344,7 +344,9 @@ def test_the_clutter_floor_is_weighed_in_after_its_share_of_the_iterations(touch
 
 def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame_and_problem):
     """Both objects a centimetre off, as candidates fitted alone come out: the assembly is fitted to the depth,
-    once; one that loses to the estimate by more than FIT_WITHIN is another arrangement and is not fitted."""
+    once; one that loses to the estimate by more than FIT_WITHIN is another arrangement and is not fitted. A move of
+    one object to another place is fitted only from a pool that asks for one (polish's moves), not among the
+    assemblies (two or more)."""
     from workbench.inference import default_search
 
     frame, problem = frame_and_problem
@@ -360,14 +362,23 @@ def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame
         estimate[:, 0, 3] += 0.1  # both objects elsewhere, so the assembly moves both
         near_miss = filt.map_loglik - default_search.FIT_WITHIN / 2
         far = filt.map_loglik - 2 * default_search.FIT_WITHIN
-        assert len(search._fitted(filt, off[None], np.array([far]), estimate)) == 0
-        fitted = search._fitted(filt, off[None], np.array([near_miss]), estimate)
-        again = search._fitted(filt, off[None], np.array([near_miss]), estimate)
+
+        def fitted(scene: np.ndarray, loglik: float, least: int) -> np.ndarray:
+            return search._fitted(filt, [(scene[None], np.array([loglik]), least, 2)], estimate)[0]
+
+        assert len(fitted(off, far, 2)) == 0
+        both, again = fitted(off, near_miss, 2), fitted(off, near_miss, 2)
+        one = estimate.copy()
+        one[0] = off[0]  # only the first object moved back
+        assert len(fitted(one, near_miss, 2)) == 0
+        alone = fitted(one, near_miss, 1)
     finally:
         evaluator.close()
-    assert fitted.shape == (1, problem.n_objects, 4, 4) and len(again) == 0
+    assert both.shape == (1, problem.n_objects, 4, 4) and len(again) == 0
     for k in range(problem.n_objects):
-        assert position_error(gt[k], fitted[0, k]) < 0.004 < position_error(gt[k], off[k])
+        assert position_error(gt[k], both[0, k]) < 0.004 < position_error(gt[k], off[k])
+    assert alone.shape == (1, problem.n_objects, 4, 4)
+    assert position_error(gt[0], alone[0, 0]) < 0.004 and np.array_equal(alone[0, 1], estimate[1])
 
 
 def test_the_assemblies_fitted_and_the_last_polish_are_saved_with_the_search_state(frame_and_problem):

@@ -173,7 +173,7 @@ class Estimator:
         }
 
     def _search_memory(self) -> dict:
-        """What the default search remembers between polishes, as plain lists: the assemblies it ``fitted`` (each
+        """What the default search remembers between polishes, as plain lists: the scenes it ``fitted`` (each
         a list of [object, 16 pose entries]) and ``polished_at`` (None before the first polish)."""
         if not isinstance(self.search, DefaultSearch):
             return {}
