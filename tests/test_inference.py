@@ -153,6 +153,41 @@ def test_polish_variants_change_objects_or_exchange_two(frame_and_problem, conte
     assert np.array_equal(scenes, polish.variants(truth, library, ctx.points, ctx.samples, ctx.reach, ctx.radius))
 
 
+def test_polish_tries_the_candidates_that_add_most_to_the_rest_of_the_estimate(frame_and_problem, context):
+    """Object 0 parked 30 cm away: a candidate on object 1's surface explains pixels object 1 already explains and
+    adds little, and its truth, weighted below PER_OBJECT empty places, is tried only when the places are ranked by
+    what they add (``polish.gains``)."""
+    from workbench.inference import polish
+
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    truth = _truth(frame, problem)
+    K = problem.n_objects
+    estimate = truth.copy()
+    estimate[0, 0, 3] += 0.3
+    on_other = truth[0].copy()
+    on_other[:3, 3] = truth[1, :3, 3]
+    gain = polish.gains(problem, estimate, ctx.samples)
+    plain = datadriven.fit_scores(problem, np.stack([truth[0], on_other]), ctx.samples[0])
+    added = gain(0, np.stack([truth[0], on_other]))
+    assert plain[0] > 100 and added[0] > 0.9 * plain[0] and added[1] < 0.5 * plain[1] and added[1] < 0.5 * added[0]
+    places = []
+    for i in range(polish.PER_OBJECT):  # empty places 10 cm apart beyond object 0's truth, heavier than it
+        T = truth[0].copy()
+        T[1, 3] += 0.4 + 0.1 * i
+        places.append(T)
+    weights = np.append(np.full(polish.PER_OBJECT, 2.0), 1.0)
+    library = datadriven.Library([np.stack(places + [truth[0]])] + [np.zeros((0, 4, 4))] * (K - 1),
+                                 [weights / weights.sum()] + [np.zeros(0)] * (K - 1))
+    args = (library, ctx.points, ctx.samples, ctx.reach, ctx.radius)
+
+    def tried(scenes):
+        return sum(np.allclose(s[0], truth[0]) for s in scenes)
+
+    assert tried(polish.variants(estimate, *args)) == 0
+    assert tried(polish.variants(estimate, *args, gain=gain)) == 1
+
+
 def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_problem, context):
     """A candidate ranked below polish's PER_OBJECT places in the merged library is tried when the latest refit
     (from the points the estimate leaves unexplained) has it; a candidate both have is tried once."""

@@ -159,14 +159,16 @@ def rectangle_heading(points: np.ndarray) -> float:
     return float(angles[int(np.argmin(np.ptp(u, axis=0) * np.ptp(v, axis=0)))])
 
 
-def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples, per_pixel: bool = True) -> np.ndarray:
+def fit_scores(problem: Problem, T: np.ndarray, samples: ModelSamples, per_pixel: bool = True,
+               observed: np.ndarray | None = None) -> np.ndarray:
     """Per candidate pose T (S, 4, 4) of one object: pixels it explains (observed depth on its camera-facing
     surface) less three for each pixel where the sensor sees through it (a pose that floats in front of the
     background) -> (S,). Pixels hidden behind something else count for nothing: an object may be occluded, and a
     pose buried inside another object explains little. All candidates at once, as ``project_samples`` projects
     one. ``per_pixel=False`` counts samples instead of distinct pixels: several times faster, and as good for
-    ranking where the samples are sparser than the pixels."""
-    cam, obs = problem.render_camera, problem.observed
+    ranking where the samples are sparser than the pixels. ``observed`` (h, w) m: the depth to score against
+    (default the problem's; ``scenepoints.unclaimed``: what other objects leave)."""
+    cam, obs = problem.render_camera, problem.observed if observed is None else observed
     h, w = obs.shape
     Tc = cam.T_cam_world[None] @ T
     Rt = np.swapaxes(Tc[:, :3, :3], 1, 2)  # batched matmul: ten times faster than the equivalent einsum

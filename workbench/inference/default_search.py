@@ -259,7 +259,8 @@ class DefaultSearch:
             return
         g, estimate = self.geometry(filt), filt.map
         parts = [polish.variants(estimate, self.library, g.points, g.samples, g.reach, g.radius, self.unexplained,
-                                 hiding.hider(self.problem, g.rest, g.hulls)),
+                                 hiding.hider(self.problem, g.rest, g.hulls),
+                                 polish.gains(self.problem, estimate, g.samples)),
                  polish.stacked(self.problem, estimate, self.library, self.unexplained, g.rest, g.hulls, g.samples,
                                 g.radius, self._base_memo, partial(self._run, filt))]
         # The estimate stuck since the last polish: a wider beam.

@@ -154,19 +154,35 @@ def object_badness(problem: Problem, scene: np.ndarray, samples: list[ModelSampl
     return bad
 
 
+def _splat(problem: Problem, scene: np.ndarray, samples: list[ModelSamples], objects: list[int]) -> np.ndarray:
+    """The nearest depth (h, w) m of the ``objects`` of ``scene`` (K, 4, 4) on the problem grid, each surface
+    sample splatted over its 3x3 neighbourhood (samples are sparser than pixels); inf where none is."""
+    h, w = problem.observed.shape
+    zbuf = np.full((h, w), np.inf)
+    projected = project_samples(problem, scene[objects], [samples[k] for k in objects])
+    for v, u, d in projected:
+        for dv in (-1, 0, 1):
+            for du in (-1, 0, 1):
+                vv, uu = np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)
+                np.minimum.at(zbuf, (vv, uu), d)
+    return zbuf
+
+
+def unclaimed(problem: Problem, scene: np.ndarray, samples: list[ModelSamples], k: int) -> np.ndarray:
+    """The observed depth (h, w) m with the pixels that the objects of ``scene`` (K, 4, 4) other than ``k``
+    explain (their surface within EXPLAINED of the reading) set to 0, no reading: what is left for object k."""
+    others = [j for j in range(len(scene)) if j != k]
+    obs = problem.observed
+    return np.where(np.abs(obs - _splat(problem, scene, samples, others)) < EXPLAINED, 0.0, obs)
+
+
 def unexplained(problem: Problem, points: ScenePoints, scene: np.ndarray | None,
                 samples: list[ModelSamples]) -> np.ndarray:
     """(P,) bool: the observed points above the table that no object of ``scene`` (K, 4, 4) covers at about their
     depth (all of them when ``scene`` is None)."""
     if scene is None:
         return np.ones(len(points.points), dtype=bool)
-    h, w = problem.observed.shape
-    zbuf = np.full((h, w), np.inf)
-    for v, u, d in project_samples(problem, scene, samples):
-        for dv in (-1, 0, 1):  # samples are sparser than pixels: splat each over its 3x3 neighbourhood
-            for du in (-1, 0, 1):
-                vv, uu = np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)
-                np.minimum.at(zbuf, (vv, uu), d)
+    zbuf = _splat(problem, scene, samples, list(range(len(scene))))
     r, c = points.pixels[:, 0], points.pixels[:, 1]
     return ~(np.abs(problem.observed[r, c] - zbuf[r, c]) < EXPLAINED)
 
