@@ -276,16 +276,15 @@ class DefaultSearch:
         ev = filt.evaluate(scenes)
         # The assemblies and one-object moves to other places that nearly beat the estimate, fitted to the depth
         # (``_fitted``); each fitted assembly also with one of its objects kept where the estimate has it.
-        moves, joint_ll = len(parts[0]), ev.loglik[len(scenes) - len(joint):]
+        n_variants, joint_ll = len(parts[0]), ev.loglik[len(scenes) - len(joint):]
         assemblies, ones = self._fitted(filt, [(joint, joint_ll, 2, FIT_ASSEMBLIES),
-                                               (parts[0], ev.loglik[:moves], 1, FIT_MOVES)], estimate)
-        kept = [assemble.one_kept(f, estimate) for f in assemblies]
-        fitted = np.concatenate([assemblies, ones] + kept)
+                                               (parts[0], ev.loglik[:n_variants], 1, FIT_MOVES)], estimate)
+        kept = np.concatenate([assemble.one_kept(f, estimate) for f in assemblies] + [ones[:0]])
+        fitted = np.concatenate([assemblies, ones, kept])
         if len(fitted):
             scenes = np.concatenate([scenes, fitted])
-            kinds = np.concatenate([kinds, np.full(len(assemblies), MoveKind.ASSEMBLE, np.int8),
-                                    np.full(len(ones), MoveKind.POLISH, np.int8),
-                                    np.full(len(fitted) - len(assemblies) - len(ones), MoveKind.ASSEMBLE, np.int8)])
+            kinds = np.append(kinds, np.repeat(np.array([MoveKind.ASSEMBLE, MoveKind.POLISH, MoveKind.ASSEMBLE],
+                                                        np.int8), [len(assemblies), len(ones), len(kept)]))
             ev = Evaluation.concatenate([ev, filt.evaluate(fitted)])
         better = np.nonzero(ev.loglik > filt.map_loglik)[0]
         filt.offer(ev, kinds)
