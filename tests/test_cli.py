@@ -100,5 +100,5 @@ def test_no_settle_keeps_the_estimate_as_physics_put_it():
     parser = build_parser()
     assert estimator_config(parser.parse_args(["estimate", "ds"])).settle_shift > 0
     assert estimator_config(parser.parse_args(["estimate", "ds", "--no-settle"])).settle_shift == 0
-    assert not estimator_config(parser.parse_args(["estimate", "ds"])).leaning
-    assert estimator_config(parser.parse_args(["track", "ds", "--scene", "1", "--leaning"])).leaning
+    assert estimator_config(parser.parse_args(["estimate", "ds"])).leaning
+    assert not estimator_config(parser.parse_args(["track", "ds", "--scene", "1", "--no-leaning"])).leaning

@@ -303,7 +303,7 @@ def test_format_6_session_loads_without_leaning_starts(saved, tmp_path):
     # Format 6 predates EstimatorConfig.leaning: its sessions searched without leaning starts.
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["estimator_config"]["leaning"] is False
+    assert doc["estimator_config"]["leaning"] is True  # today's default
     del doc["estimator_config"]["leaning"]
     json_path.write_text(json.dumps({**doc, "format_version": 6}))
     assert load_session(json_path).estimator_config.leaning is False

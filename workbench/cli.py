@@ -48,9 +48,9 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="evaluation worker processes (default 2)")
     p.add_argument("--max-render-pixels", type=int, default=160 * 120, help="pixels per rendered hypothesis")
     p.add_argument("--no-early-stop", action="store_true", help="run all iterations even after convergence")
-    p.add_argument("--leaning", action="store_true",
-                   help="also start objects along slanted flat patches, as an object leaning on another shows "
-                        "(off by default: real desks show many such patches; see README, Data-driven starts)")
+    p.add_argument("--leaning", action=argparse.BooleanOptionalAction, default=True,
+                   help="polish also tries objects laid along slanted flat patches, as an object leaning on another "
+                        "shows (default on; see README, Data-driven starts)")
     p.add_argument("--no-settle", action="store_true",
                    help="return the search's estimate as physics put it, not fitted to the depth at the end "
                         "(within 1.5 cm and 12 degrees; see README, Settling)")

@@ -52,12 +52,11 @@ class EstimatorConfig:
     # the settled scenes stay as restful under physics as the annotated ones (section "Settling, third step").
     settle_shift: float = 0.015
     settle_turn: float = 12.0
-    # Leaning starts (inference.leaning): every object laid along each slanted flat patch of a cluster, and the best
-    # of each patch kept in the library apart. Off by default, measured (docs/benchmarks.md, "Leaning starts"):
-    # on generated real shapes it puts the gelatin box leaning on the wood block right (lost at both seeds without
-    # it), but the real desk of ycbv-real-dev shows 5-6 slanted patches that are no leaning object, and there it
-    # cost one object near the 10-degree line at both seeds tried (48 -> 46 and 47 -> 46 of 50 right; VSD the same).
-    leaning: bool = False
+    # Leaning starts (inference.leaning): every object laid along each slanted flat patch of the observed points, the
+    # best of each patch tried by polish while the estimate is stuck, never drawn into particles. In the library that
+    # particles draw from, they found the generated gelatin box leaning on the wood block but sent the search astray
+    # on the real desk of ycbv-real-dev, with its 5-6 slanted patches of clutter (docs/benchmarks.md).
+    leaning: bool = True
 
     def validate(self) -> None:
         if self.method not in METHODS:

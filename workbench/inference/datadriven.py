@@ -24,7 +24,6 @@ from scipy.spatial import ConvexHull, QhullError
 from workbench.evaluation import run_here
 from workbench.geometry import euler_to_matrix, make_pose, principal_heading, rot_z, rotation_angle
 from workbench.inference.footprint import footprint_starts
-from workbench.inference.leaning import leaning_starts, slanted_patches
 from workbench.inference.proposal import Proposal, pick_objects
 from workbench.inference.refine import NEAR, STAGES, icp_batch, near
 from workbench.inference.resting import RestingPoses, height
@@ -76,9 +75,8 @@ def elsewhere(T: np.ndarray, U: np.ndarray) -> np.ndarray:
     return np.linalg.norm(T[..., :2, 3] - U[..., :2, 3], axis=-1) > PLACE_M
 
 
-# A fitted candidate: its score (``fit_scores``), pose (4, 4) in the table frame, and the cluster's slanted patch
-# it leans on (``leaning_starts``; -1: none): each patch keeps a place in the library.
-Candidate = tuple[float, np.ndarray, int]
+# A fitted candidate: its score (``fit_scores``) and pose (4, 4) in the table frame.
+Candidate = tuple[float, np.ndarray]
 
 
 @dataclass
@@ -239,7 +237,7 @@ def _in_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoints,
                   rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray],
-                  memo: dict | None = None, run: Callable | None = None, leaning: bool = False) -> Library:
+                  memo: dict | None = None, run: Callable | None = None) -> Library:
     """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
     all observed points ``cloud`` near each start. -> Library.
 
@@ -251,20 +249,17 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
     candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
     explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
     without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``evaluation.run_here``), the
-    same library either way. ``leaning``: also fit leaning starts, along each cluster's slanted patches, found once
-    per cluster (``slanted_patches``), not once per object."""
+    same library either way."""
     K = len(rest)
     found: list[list[Candidate]] = [[] for _ in range(K)]
-    clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP]
-    clusters = clusters[:max(MAX_CLUSTERS, K + DISTRACTOR_CLUSTERS)]
+    clusters = fitted_clusters(clusters, K)
     keys = [hashlib.sha1(np.ascontiguousarray(c, dtype=np.float64).tobytes()).hexdigest() for c in clusters]
     memo = {} if memo is None else memo
     # Every (cluster, object) fit not remembered, all at once: ``run`` may spread them over the workers.
     new = list(dict.fromkeys(key for key in keys if key not in memo))
     first = {key: clusters[keys.index(key)] for key in new}
-    patches = {key: slanted_patches(first[key], cloud.viewpoint) if leaning else [] for key in new}
-    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k],
-                                                            patches[key]) for key in new for k in range(K)])
+    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k])
+                                                           for key in new for k in range(K)])
     for i, key in enumerate(new):
         memo[key] = fits[i * K:(i + 1) * K]
     for key in keys:
@@ -276,38 +271,39 @@ def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoin
         # large flat surface as well as its own cluster (better, where something hides part of it), so the best
         # fits overall can all lie on other objects: on generated clutter the gelatin box had none within 13 cm of
         # where it lay. The merge at the next refit keeps the best of each place (``place_order``).
-        resting = [c for c in found[k] if c[2] < 0]  # not leaning
-        best = _distinct(sorted(resting, key=lambda c: -c[0]), PER_OBJECT)
-        firsts = sorted([c for key in keys for c in _places([c for c in memo[key][k] if c[2] < 0])],
-                        key=lambda c: -c[0])
-        # And the best leaning candidate of each cluster's slanted patch, apart: a leaning object shows part of one
-        # side, which scores below resting poses that cover more points (the generated gelatin box leaning on the
-        # wood block: 109, against 410 for its best fit elsewhere and 165 leaning on another object's patch),
-        # and the filter cannot tilt a resting pose that far.
-        leans = sorted([max((c for c in memo[key][k] if c[2] == j), key=lambda c: c[0]) for key in keys
-                        for j in {c[2] for c in memo[key][k]} - {-1}], key=lambda c: -c[0])
-        kept = _distinct(best + firsts + leans, len(best) + len(firsts) + len(leans))
-        if not kept:
-            poses.append(np.zeros((0, 4, 4)))
-            weights.append(np.zeros(0))
-            continue
-        scores = np.array([c[0] for c in kept])
-        # Flat on purpose: a large object fits well into another object's cluster too, and only the whole scene
-        # (physics, the likelihood) can tell which cluster is whose. Softmax in units of half the best score,
-        # mixed with uniform, so that no candidate is starved.
-        w = np.exp((scores - scores.max()) / max(0.5 * abs(scores.max()), 1.0))
-        w = 0.7 * w / w.sum() + 0.3 / len(w)
-        poses.append(np.stack([c[1] for c in kept]))
-        weights.append(w / w.sum())
+        best = _distinct(sorted(found[k], key=lambda c: -c[0]), PER_OBJECT)
+        firsts = sorted([c for key in keys for c in _places(memo[key][k])], key=lambda c: -c[0])
+        kept = _distinct(best + firsts, len(best) + len(firsts))
+        poses.append(np.stack([c[1] for c in kept]) if kept else np.zeros((0, 4, 4)))
+        weights.append(candidate_weights(np.array([c[0] for c in kept])))
     return Library(poses, weights)
 
 
+def candidate_weights(scores: np.ndarray) -> np.ndarray:
+    """Library weights (C,), summing to 1, of candidates scored ``scores`` (C,) by ``fit_scores``.
+
+    Flat on purpose: a large object fits well into another object's cluster too, and only the whole scene
+    (physics, the likelihood) can tell which cluster is whose. Softmax in units of half the best score, mixed with
+    uniform, so that no candidate is starved."""
+    if not len(scores):
+        return np.zeros(0)
+    w = np.exp((scores - scores.max()) / max(0.5 * abs(scores.max()), 1.0))
+    w = 0.7 * w / w.sum() + 0.3 / len(w)
+    return w / w.sum()
+
+
+def fitted_clusters(clusters: list[np.ndarray], n_objects: int) -> list[np.ndarray]:
+    """The clusters (list of (P_i, 3), largest first) that candidates are fitted to: those that rise MIN_TOP above
+    the table, at most MAX_CLUSTERS, or one per object and DISTRACTOR_CLUSTERS more where that is more."""
+    clusters = [c for c in clusters if np.percentile(c[:, 2], 95) >= MIN_TOP]
+    return clusters[:max(MAX_CLUSTERS, n_objects + DISTRACTOR_CLUSTERS)]
+
+
 def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints, rest: RestingPoses,
-                       samples: ModelSamples, hull: np.ndarray, patches: list | tuple = ()) -> list[Candidate]:
+                       samples: ModelSamples, hull: np.ndarray) -> list[Candidate]:
     """One object's scored candidates (``Candidate``) fitted at one ``cluster`` (P, 3) to the observed points
-    ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place, of a thin
-    object's outline aligned with the cluster (``footprint_starts``), and of each of the cluster's slanted
-    ``patches`` (``leaning_starts``; none unless asked for); those two not fitted further."""
+    ``cloud``: the best PER_CENTRE distinct ones of each start place (``icp_starts``), place by place, and of a
+    thin object's outline aligned with the cluster (``footprint_starts``, not fitted further)."""
     reach = float(np.max(np.linalg.norm(hull[:, :2], axis=1)))
     starts, place = icp_starts(cluster, rest, hull, reach)
     if not starts:
@@ -324,18 +320,11 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints
                                 viewpoint=cloud.viewpoint, normals=[normals[i] for i in chosen])
     ok = (inliers >= 10) & np.all(np.isfinite(fitted), axis=(1, 2))
     fitted, fitted_place = slide(problem, fitted[ok], samples), place[chosen][ok]
-    patch = np.full(len(fitted), -1)  # the slanted patch each candidate leans on (-1: none)
     # A thin object lying flat: its outline's alignments, one more place, as they are (ICP would let them slide).
     flat = footprint_starts(cluster, cloud, rest, samples, hull, reach)
-    # Leaning on something: along each of the cluster's slanted patches, one more place each, as they are (ICP
-    # slides a leaning box off its patch, onto whatever it leans on: the gelatin box on the wood block ended
-    # 2 cm and 74 degrees from a start 0.5 cm and 6 degrees from it).
-    lean = leaning_starts(patches, rest, hull)
-    for j, more in enumerate([flat] + lean):
-        if more:
-            fitted = np.concatenate([fitted, np.stack(more)])
-            fitted_place = np.concatenate([fitted_place, np.full(len(more), place.max() + 1 + j)])
-            patch = np.concatenate([patch, np.full(len(more), j - 1)])
+    if flat:
+        fitted = np.concatenate([fitted, np.stack(flat)])
+        fitted_place = np.concatenate([fitted_place, np.full(len(flat), place.max() + 1)])
     scores = fit_scores(problem, fitted, samples)
     # The best of each start place, so that in a cluster of several objects touching, the largest object's
     # surface (where a smaller object also fits well) cannot crowd out the others.
@@ -343,7 +332,7 @@ def cluster_candidates(problem: Problem, cluster: np.ndarray, cloud: ScenePoints
     for p in np.unique(fitted_place):
         at = np.nonzero(fitted_place == p)[0]
         at = at[np.argsort(-scores[at], kind="stable")]
-        out += _distinct([(float(scores[i]), fitted[i], int(patch[i])) for i in at], PER_CENTRE)
+        out += _distinct([(float(scores[i]), fitted[i]) for i in at], PER_CENTRE)
     return out
 
 
@@ -417,7 +406,7 @@ def _distinct(candidates: list[Candidate], keep: int) -> list[Candidate]:
     for c in candidates:
         T = c[1]
         if all(np.linalg.norm(T[:3, 3] - U[:3, 3]) > 0.015
-               or rotation_angle(T[:3, :3].T @ U[:3, :3]) > np.radians(15) for _, U, _ in out):
+               or rotation_angle(T[:3, :3].T @ U[:3, :3]) > np.radians(15) for _, U in out):
             out.append(c)
         if len(out) >= keep:
             break

@@ -28,6 +28,7 @@ from workbench.problem import Problem
 MEMO_LIMIT = 2000  # tops whose bases ``stacked`` remembers
 MEMO_CELL = 0.01  # m; tops whose centres and bottoms fall in one cell of this size share their bases
 PER_OBJECT = 6  # candidates of each object tried in place of its pose in the estimate: the best of as many places
+LEANING_PER_OBJECT = 3  # and of its leaning starts (``leaning.library``): the best of as many patches
 # A candidate this close to the estimate's pose is no change; this close to one already tried, no new variant.
 SAME_M, SAME_RAD = 0.01, np.radians(10.0)
 LIFT = 0.005  # m; exchanged objects start this far above their old height, and physics sets them down
@@ -37,7 +38,7 @@ Gain = Callable[[int, np.ndarray], np.ndarray]  # (object k, its candidate poses
 
 def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples: list[ModelSamples],
              reach: np.ndarray, radii: np.ndarray, unexplained: Library | None = None, hide: Hide | None = None,
-             gain: Gain | None = None) -> np.ndarray:
+             gain: Gain | None = None, leaning: Library | None = None) -> np.ndarray:
     """Variants of the estimate (K, 4, 4):
     - one object turned by 90, 180 or 270 degrees about the vertical through its centre and refitted by ICP to the
       observed points ``cloud`` near it (``refine.refit``; ``reach`` (K,) m);
@@ -46,10 +47,11 @@ def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples
       the objects it would sit inside moved out of its way (``seat``; ``radii`` (K,) m); the candidates of
       ``unexplained`` (the latest refit alone: fitted to what the estimate leaves unexplained) are tried first,
       at their own ``PER_OBJECT`` best places; with ``gain`` (``gains``), the best places by what each candidate
-      adds to the rest of the estimate, not by its weight; with ``hide`` (``hiding.hider``), each such variant
+      adds to the rest of the estimate, not by its weight; then its leaning starts at its LEANING_PER_OBJECT
+      best places in ``leaning`` (``leaning.library``); with ``hide`` (``hiding.hider``), each such variant
       that moves objects out of the way also with those objects at their hiding places instead (``seat``);
     - every pair of objects exchanging their places (x, y), each keeping its own orientation and height.
-    -> (V, K, 4, 4), V <= K * (4 PER_OBJECT + 3) + K (K - 1) / 2."""
+    -> (V, K, 4, 4), V <= K * (4 PER_OBJECT + 2 LEANING_PER_OBJECT + 3) + K (K - 1) / 2."""
     K = len(estimate)
     out = []
     for k in range(K):
@@ -64,7 +66,7 @@ def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples
         # places: YCB-Video's standing marker, parked 50 cm away by the search (frame 2:20), had its right
         # candidates in the library from the first refit on, behind the large cluster's places, and polish never
         # put it back (+500 log-units). The latest refit sees only what the estimate leaves unexplained.
-        for T in _poses_tried(estimate, k, library, unexplained, gain)[1:]:
+        for T in _poses_tried(estimate, k, library, unexplained, gain, leaning)[1:]:
             out.append(seat(estimate, {k: T}, library, radii))
             hidden = seat(estimate, {k: T}, library, radii, hide) if hide is not None else out[-1]
             if not np.array_equal(hidden, out[-1]):
@@ -127,11 +129,13 @@ def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplaine
 
 
 def _poses_tried(estimate: np.ndarray, k: int, library: Library, unexplained: Library | None,
-                 gain: Gain | None = None) -> list[np.ndarray]:
-    """Object k's pose in the estimate (K, 4, 4), then its candidates (4, 4) at its best places in ``unexplained``
-    and then in ``library`` (``_best_places``), each unlike those before it (``_same``)."""
+                 gain: Gain | None = None, leaning: Library | None = None) -> list[np.ndarray]:
+    """Object k's pose in the estimate (K, 4, 4), then its candidates (4, 4) at its best places in ``unexplained``,
+    in ``leaning`` (the first LEANING_PER_OBJECT) and in ``library`` (``_best_places``), each unlike those before
+    it (``_same``)."""
     tried = [estimate[k]]
-    for T in _best_places(unexplained, k, gain) + _best_places(library, k, gain):
+    leans = _best_places(leaning, k, gain)[:LEANING_PER_OBJECT]
+    for T in _best_places(unexplained, k, gain) + leans + _best_places(library, k, gain):
         if not any(_same(T, U) for U in tried):
             tried.append(T)
     return tried
