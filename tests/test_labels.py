@@ -83,6 +83,27 @@ def test_original_ground_truth_is_replaced_only_when_asked_with_a_backup(scene, 
     assert np.allclose(reloaded.gt_T_cam_obj, problem.camera.T_cam_world[None] @ moved, rtol=0, atol=ROUNDTRIP_ATOL)
 
 
+def test_labelling_one_object_keeps_every_other_objects_truth(scene, tmp_path):
+    """Overwriting scene_gt.json with one object labelled replaces that object's entry only: the frame keeps all
+    its objects (it went from 4 to 1 on a real frame), and an entry of an object outside the problem stays too."""
+    dataset, frame, problem, gt, _ = scene
+    work = tmp_path / "dataset"
+    shutil.copytree(dataset, work)
+    scene_gt = work / "test" / "000000" / "scene_gt.json"
+    content = bop.read_json(scene_gt)
+    stranger = {"cam_R_m2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_m2c": [0, 0, 900], "obj_id": 99}
+    content["0"].append(stranger)
+    scene_gt.write_text(__import__("json").dumps(content))
+    moved = _perturbed(gt)
+    save_labels(work, 0, 0, problem.camera.T_cam_world, [None, moved[1]], frame.object_ids, overwrite_original=True)
+    entries = bop.read_json(scene_gt)["0"]
+    assert [e["obj_id"] for e in entries] == [*frame.object_ids, 99]
+    assert entries[0] == content["0"][0] and entries[2] == stranger
+    back = load_labels(work, 0, 0, problem.camera.T_cam_world, frame.object_ids, path=scene_gt)
+    assert np.allclose(back[0], gt[0], rtol=0, atol=1e-6)
+    assert np.allclose(back[1], moved[1], rtol=0, atol=ROUNDTRIP_ATOL)
+
+
 def test_snap_puts_a_floating_box_on_the_table(scene):
     _, _, problem, _, evaluator = scene
     floating = np.tile(np.eye(4), (2, 1, 1))

@@ -172,6 +172,38 @@ def test_a_lock_is_released_and_taken_again_in_one_process(tmp_path):
     assert not (tmp_path / ".r.csv.lock").exists()
 
 
+@pytest.mark.parametrize("command", ["estimate", "track"])
+def test_posterior_and_out_on_one_file_are_refused_before_any_work(demo, tmp_path, capsys, command):
+    """The posterior JSON written over the results CSV lost every result, with exit 0."""
+    out = _results(tmp_path / "same.csv", ROW)
+    before = out.read_bytes()
+    scene = ["--scene", "0"] if command == "track" else []
+    _refused(capsys, [command, demo, *scene, "--out", out, "--posterior", tmp_path / "." / "same.csv", "--force"],
+             "--posterior", "--out", "different files")
+    assert out.read_bytes() == before
+
+
+def test_a_second_run_on_the_same_posterior_is_refused_naming_the_first_runs_pid(demo, tmp_path, capsys):
+    """Two runs with different --out but one --posterior: the second is refused, not left to replace the first's
+    frames."""
+    from workbench.outputs import OutputLock
+
+    posterior = tmp_path / "posterior.json"
+    with OutputLock(posterior, flag="--posterior"):
+        _refused(capsys, ["estimate", demo, "--out", tmp_path / "b.csv", "--posterior", posterior],
+                 str(posterior), f"pid {os.getpid()}", "another --posterior")
+    assert not posterior.exists() and not (tmp_path / "b.csv").exists()
+
+
+def test_score_refuses_its_json_or_diagram_on_the_results_or_on_each_other(demo, tmp_path, capsys):
+    results = _results(tmp_path / "r.csv", ROW)
+    before = results.read_bytes()
+    _refused(capsys, ["score", demo, results, "--json", results, "--force"], "--json", "different files")
+    _refused(capsys, ["score", demo, results, "--json", tmp_path / "x", "--reliability", tmp_path / "x"],
+             "--reliability", "--json")
+    assert results.read_bytes() == before and not (tmp_path / "x").exists()
+
+
 def test_out_never_replaces_a_file_of_the_datasets_root_even_with_force(demo, capsys):
     before = _digests(demo)
     for name in ("camera.json", "scenes.json"):

@@ -4,6 +4,9 @@ import hashlib
 import json
 import re
 import shutil
+import subprocess
+import sys
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -411,6 +414,44 @@ def test_existing_session_is_replaced_only_when_asked(saved, tmp_path, loaded):
     infos = list_sessions(work)
     assert sorted(s.name for s in infos) == ["base", "other"]
     assert all(s.problem is None and s.iteration == 1 and s.particles == 24 for s in infos)
+
+
+def test_two_writers_of_one_folder_never_both_save_a_new_name(saved, tmp_path):
+    """Two `serve` on one --sessions-dir saving one name at once: both said "Saved" and the first was replaced
+    without *Replace*. Another process holds the folder while it saves that name; our save waits, then sees the
+    session and is refused instead of replacing it."""
+    folder, original = saved
+    work = tmp_path / "sessions"
+    shutil.copytree(folder, work)
+    state = load_session(work / original.name)
+    other = subprocess.Popen(
+        [sys.executable, "-c", "import shutil, sys; from workbench.outputs import folder_lock\n"
+                               f"with folder_lock({str(work)!r}):\n"
+                               "    print('locked', flush=True); sys.stdin.readline()\n"
+                               f"    shutil.copy({str(original)!r}, {str(work / 'new.json')!r})"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    outcome = {}
+
+    def save():
+        try:
+            outcome["path"] = save_session(work, "new", state)
+        except InputError as err:
+            outcome["error"] = err
+
+    try:
+        assert other.stdout.readline().strip() == "locked"
+        saver = threading.Thread(target=save)
+        saver.start()
+        saver.join(0.5)
+        assert saver.is_alive() and not outcome  # waiting for the other writer, nothing written
+        other.stdin.write("go\n")
+        other.stdin.flush()
+        saver.join(60)
+    finally:
+        other.kill() if other.poll() is None else None
+        other.wait()
+    assert "exists" in outcome["error"].problem
+    assert (work / "new.json").read_bytes() == original.read_bytes()
 
 
 def test_changed_or_missing_dataset_files_are_reported(touching_dataset, tmp_path):

@@ -112,8 +112,6 @@ def problem_config(args: argparse.Namespace) -> ProblemConfig:
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
-    from workbench.runner import PosteriorFile, ResultsFile
-
     if args.dataset is None:
         raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
     # Every setting and the output path are checked before anything is loaded or started.
@@ -123,13 +121,30 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     check_workers(args.workers)
     check_count(args.max_retries, "--max-retries", low=0)
     ray = ray_config(args)
-    posterior = (None if args.posterior is None else
-                 PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
-    results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
+    posterior, results = _open_outputs(args)
     try:
         return _estimate_into(results, args, config, problem, ray, posterior)
     finally:
         results.close()
+        if posterior is not None:
+            posterior.close()
+
+
+def _open_outputs(args: argparse.Namespace):
+    """``estimate``'s and ``track``'s output files, checked to be two different files and each locked for the run
+    -> (the PosteriorFile or None, the ResultsFile)."""
+    from workbench.outputs import check_distinct
+    from workbench.runner import PosteriorFile, ResultsFile
+
+    check_distinct({"--out": args.out, "--posterior": args.posterior})
+    posterior = (None if args.posterior is None else
+                 PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
+    try:
+        return posterior, ResultsFile.open(args.out, force=args.force, resume=args.resume)
+    except BaseException:
+        if posterior is not None:
+            posterior.close()
+        raise
 
 
 def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, problem: ProblemConfig, ray,
@@ -187,12 +202,10 @@ def _cmd_track(args: argparse.Namespace) -> int:
         sequences[scene] = sequence_frames(args.dataset, scene, args.split, args.frames)
         # The camera poses, if given, all there.
         sequence_world(args.dataset, scene, args.split, args.motion, sequences[scene])
-    from workbench.runner import PosteriorFile, ResultsFile, check_resumed
+    from workbench.runner import check_resumed
     from workbench.track.run import track_sequences
 
-    posterior = (None if args.posterior is None else
-                 PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
-    results = ResultsFile.open(args.out, force=args.force, resume=args.resume)  # checked, then locked for the run
+    posterior, results = _open_outputs(args)
     failures = []
     try:
         check_resumed(results, args.dataset, args.split)
@@ -212,6 +225,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
                                   failures.append)
     finally:
         results.close()
+        if posterior is not None:
+            posterior.close()
     print(f"wrote the result rows of {tracked} frame(s) to {args.out}", file=sys.stderr)
     if failures:
         print(f"workbench: error: {len(failures)} of {len(sequences)} sequence(s) failed (each named above); the "
@@ -229,11 +244,12 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
     if not args.dataset.is_dir():
         raise InputError(args.dataset, "no such dataset folder")
+    from workbench.outputs import check_distinct
+
+    check_distinct({"the results CSV being scored": args.results, "--json": args.json, "--reliability": args.reliability})
     if args.json is not None:  # before any scoring: --json gets the guards of every file a command writes
         from workbench.outputs import check_output_file
 
-        if args.json.resolve() == args.results.resolve():
-            raise InputError(args.json, "is the results CSV being scored: --json names another file")
         check_output_file(args.json, ours=_is_score_json, force=args.force, what="a score JSON", flag="--json")
     if args.reliability is not None:
         from workbench.outputs import check_output_file

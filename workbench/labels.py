@@ -134,9 +134,13 @@ def labels_path(dataset: Path, scene_id: int, split: str | None = None) -> Path:
 
 def save_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarray, labels, obj_ids: list[int],
                 path: Path | None = None, overwrite_original: bool = False, split: str | None = None) -> Path:
-    """Write the labels (per object a (4, 4) T_world_obj, or None to leave it out) of image ``im_id`` in BOP
-    scene_gt.json form (camera frame, R row-major, t in mm), replacing that image's entry and keeping the others
-    -> the file written. By default ``scene_gt_labels.json`` beside the scene's scene_gt.json, or ``path``.
+    """Write the labels (per object a (4, 4) T_world_obj, or None for an object not labelled) of image ``im_id`` in
+    BOP scene_gt.json form (camera frame, R row-major, t in mm) -> the file written. By default
+    ``scene_gt_labels.json`` beside the scene's scene_gt.json, or ``path``.
+
+    The image's entry is merged, never replaced whole (``merge_entries``): a labelled object replaces its own entry
+    and every other entry (objects not labelled, objects outside the problem) stays as it was, so that labelling one
+    object of a frame never drops the truth of the others.
 
     A file named scene_gt.json is written only with ``overwrite_original`` (then the scene's own, after copying it
     to scene_gt.json.bak-<timestamp>); scene_gt_info.json is not updated and may no longer match."""
@@ -154,17 +158,52 @@ def save_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarra
     if len(labels) != len(obj_ids):
         raise InputError("labels", f"{len(labels)} labels for {len(obj_ids)} objects")
     T_cam_world = check_rigid(T_cam_world, "T_cam_world")
-    entries = []
+    entries: list[dict | None] = []
     for obj_id, T in zip(obj_ids, labels):
         if T is None or not np.all(np.isfinite(T)):
+            entries.append(None)
             continue
         T_cam_obj = T_cam_world @ check_rigid(T, f"label of object {obj_id}")
         entries.append({"cam_R_m2c": T_cam_obj[:3, :3].ravel().tolist(), "cam_t_m2c": (T_cam_obj[:3, 3] / MM).tolist(),
                         "obj_id": int(obj_id)})
+    old_entries = _image_entries(target, im_id)
     if overwrite_original and original.exists():
         _backup(original)
-    bop._merge_json(target, im_id, entries)
+    bop._merge_json(target, im_id, merge_entries(old_entries, list(obj_ids), entries))
     return target
+
+
+def _image_entries(path: Path, im_id: int) -> list:
+    """The entry of image ``im_id`` in the scene_gt-form file ``path`` (none if the file or image is missing);
+    InputError naming the file where the entry is not a list of objects (nothing is then written)."""
+    if not path.is_file():
+        return []
+    content = bop.read_json(path)
+    if not isinstance(content, dict):
+        raise InputError(path, "expected a JSON object keyed by image id")
+    entries = content.get(str(im_id), [])
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise InputError(path, f"image {im_id}: expected a list of objects")
+    return entries
+
+
+def merge_entries(old: list[dict], obj_ids: list[int], new: list[dict | None]) -> list[dict]:
+    """An image's scene_gt entry with the labels merged in: the n-th instance of an object in ``obj_ids`` is the
+    n-th entry of that ``obj_id`` in ``old`` (as ``load_labels`` reads them); a label (``new[k]`` not None)
+    replaces that entry in place, or is appended where the image had none; every other entry is kept as it was."""
+    out = list(old)
+    seen: dict[int, int] = {}
+    for obj_id, entry in zip(obj_ids, new):
+        n = seen.get(obj_id, 0)
+        seen[obj_id] = n + 1
+        if entry is None:
+            continue
+        slots = [j for j, e in enumerate(out) if e.get("obj_id") == obj_id]
+        if n < len(slots):
+            out[slots[n]] = entry
+        else:
+            out.append(entry)
+    return out
 
 
 def _backup(path: Path) -> Path:

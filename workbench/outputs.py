@@ -8,6 +8,7 @@
 - ``write_file``: writes through a temporary file renamed into place (so a full disk or a kill leaves the old file
   whole), through a symbolic link to its target (the link stays a link), keeping a replaced file's permissions; a
   write that fails is an ``InputError`` naming the file.
+- ``check_distinct``: the files of one command (``--out``, ``--posterior``, ``--json``, ...) are different files.
 - ``OutputLock``: an advisory lock (``flock``) beside the file, held for the whole run: a second run writing the
   same file is refused at once, naming the first run's pid. The kernel drops the lock when its process dies.
 """
@@ -19,8 +20,9 @@ import fcntl
 import os
 import stat
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from workbench.errors import InputError
 
@@ -85,6 +87,20 @@ def check_output_file(path: Path, ours: Callable[[Path], bool] | None = None, fo
         raise InputError(path, f"exists and is not {what}; it was left as it is. Choose another {flag}"
                                + (", or pass --force to replace it" if can_force else ", or move the file away"))
     return True
+
+
+def check_distinct(paths: dict[str, Path | None]) -> None:
+    """The files one command writes or reads, by flag (``{"--out": ..., "--posterior": ...}``; None for a flag not
+    given), are all different files: InputError naming the second of two that resolve to the same file (one would
+    overwrite the other, and exit 0)."""
+    seen: dict[Path, str] = {}
+    for flag, path in paths.items():
+        if path is None:
+            continue
+        target = Path(path).resolve()
+        if target in seen:
+            raise InputError(path, f"is also {seen[target]}: {flag} and {seen[target]} must name different files")
+        seen[target] = flag
 
 
 def check_creatable(path: Path, folder: Path, below: str) -> None:
@@ -200,3 +216,19 @@ class OutputLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+@contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Hold an exclusive lock on writing in ``folder`` (made if missing; the lock file ``.lock`` in it) for a short
+    check-then-write, waiting for another process holding it: two writers of one folder (two ``serve`` on one
+    --sessions-dir) then see each other's files, so that a check like "no file of that name yet" stays true until
+    the write."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing drops the lock

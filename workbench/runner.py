@@ -281,23 +281,41 @@ class PosteriorFile:
     rewritten whole after every frame like the results CSV, frames in order. Written only over a posterior file of
     ours (or with ``--force``); ``--resume`` keeps the frames already in it."""
 
-    def __init__(self, path: Path, frames: dict[tuple[int, int], dict] | None = None):
+    def __init__(self, path: Path, frames: dict[tuple[int, int], dict] | None = None,
+                 lock: OutputLock | None = None):
         self.path = Path(path)
         self.frames = dict(frames or {})
+        self.lock = lock
 
     @classmethod
     def open(cls, path: Path, force: bool = False, resume: bool = False) -> "PosteriorFile":
         """Checked before any work (``outputs.check_output_file``): InputError naming ``path`` where it may not be
-        written, or, with ``resume``, where it is not a posterior file of ours."""
+        written, or, with ``resume``, where it is not a posterior file of ours. Locked for this run like the
+        results CSV (another run writing the same file is refused, naming its pid) until ``close``."""
+        cls._frames_kept(path, force, resume)  # first: the folder exists and may be written
+        lock = OutputLock(path, flag="--posterior").acquire()
+        try:
+            return cls(path, cls._frames_kept(path, force, resume), lock)  # as it is now, locked
+        except BaseException:
+            lock.release()
+            raise
+
+    @staticmethod
+    def _frames_kept(path: Path, force: bool, resume: bool) -> dict[tuple[int, int], dict]:
         exists = check_output_file(path, ours=_is_posterior_file, force=force or resume,
                                    what="a posterior JSON written by `workbench estimate`", flag="--posterior")
         if not (exists and resume):
-            return cls(path)
+            return {}
         if not _is_posterior_file(Path(path)):
             raise InputError(path, "is not a posterior JSON written by `workbench estimate`: there is nothing to "
                                    "resume; choose another --posterior")
         document = json.loads(Path(path).read_text(encoding="utf-8"))
-        return cls(path, {(f["scene_id"], f["im_id"]): f for f in document["frames"]})
+        return {(f["scene_id"], f["im_id"]): f for f in document["frames"]}
+
+    def close(self) -> None:
+        """Let other runs write the file."""
+        if self.lock is not None:
+            self.lock.release()
 
     def add(self, rows: list[ResultRow]) -> None:
         """The posteriors the frame's rows carry (``pipeline.ModeRow``), with the frame's wall seconds and the

@@ -58,7 +58,7 @@ from workbench.inference.filter import IterationReport
 from workbench.inference.moves import MoveKind, MoveMix
 from workbench.inference.particleset import ParticleSet
 from workbench.io import bop
-from workbench.outputs import check_creatable, check_output_file, dataset_folder_of, write_file
+from workbench.outputs import check_creatable, check_output_file, dataset_folder_of, folder_lock, write_file
 from workbench.problem import Problem, ProblemConfig, build_problem
 from workbench.scene import Frame, Table
 
@@ -292,9 +292,15 @@ def restore_estimator(state: SessionState, problem: Problem, evaluator: Evaluato
 def save_session(directory: Path, name: str, state: SessionState, overwrite: bool = False) -> Path:
     """Write the session ``name`` into ``directory`` (created if missing) -> its JSON file. An existing session of
     that name is replaced only with ``overwrite``; until the new JSON is in place the old session stays whole.
-    Assumes one writer per folder (the app): the existence check and the write are not one atomic step."""
+    Safe with several writers of one folder (two ``serve`` on one --sessions-dir): the existence check and the
+    write hold the folder's lock (``outputs.folder_lock``), so one of two saves of a new name is refused."""
     json_path = session_path(directory, name)
     check_sessions_dir(directory)
+    with folder_lock(json_path.parent):
+        return _save_locked(json_path, name, state, overwrite)
+
+
+def _save_locked(json_path: Path, name: str, state: SessionState, overwrite: bool) -> Path:
     old_arrays = None
     if json_path.exists():
         if not overwrite:
