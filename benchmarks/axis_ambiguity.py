@@ -20,7 +20,7 @@ import numpy as np
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, make_pose
 from workbench.io import bop
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
 
 
 def symmetry_axis(mesh, tolerance: float = 0.08) -> np.ndarray | None:

@@ -21,7 +21,7 @@ particles, estimate, modes, truth): what each layer's drawing costs is the pause
 
 ``--root`` imports the served workbench from another checkout (e.g. an older commit unpacked with ``git archive``)
 to compare before and after a change with the same script; the browser and the probes always come from this
-checkout's ``workbench/app/headless.py``, loaded by path, so both runs are measured alike.
+checkout's ``tests/headless.py``, loaded by path, so both runs are measured alike.
 """
 
 from __future__ import annotations
@@ -70,8 +70,8 @@ def cpu_seconds(pids: dict[int, str]) -> dict[str, float]:
 
 
 def load_probes():
-    """This checkout's ``workbench/app/headless.py`` as a module of its own (not ``--root``'s)."""
-    spec = importlib.util.spec_from_file_location("_probes", HERE / "workbench" / "app" / "headless.py")
+    """This checkout's ``tests/headless.py`` as a module of its own (not ``--root``'s)."""
+    spec = importlib.util.spec_from_file_location("_probes", HERE / "tests" / "headless.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -128,8 +128,8 @@ def main() -> int:
 
     import workbench
     from workbench.app import protocol as p
-    from workbench.app.headless import free_port
-    from workbench.app.server import serve
+    from headless import free_port
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     print(f"workbench from {Path(workbench.__file__).parent}", flush=True)

@@ -1,4 +1,4 @@
-"""Fit the posterior's temperature (inference.posterior.TEMPERATURE) on frames with ground truth.
+"""Fit the posterior's temperature (inference.answer.posterior.TEMPERATURE) on frames with ground truth.
 
 usage: calibrate_posterior.py DATASET POSTERIOR.json [DATASET POSTERIOR.json ...] [--data OUT.json] [--png OUT.png]
                              [--temperature T]
@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.bench.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
-from workbench.inference.posterior import found_probability, probabilities
+from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
+from workbench.inference.answer.posterior import found_probability, probabilities
 from workbench.io import bop
-from workbench.metrics import heading_offset_deg, is_right
+from workbench.score.metrics import heading_offset_deg, is_right
 
 GRID = np.geomspace(2.0, 400.0, 60)
 
@@ -77,9 +77,9 @@ def estimate_seen_through(dataset: Path, frame_json: dict) -> np.ndarray:
     """Per object of one frame of the posterior JSON (in its order, the problem's), the share of its estimate's
     camera-facing surface that the sensor sees through (``scenepoints.object_badness``, all objects at their
     estimates) -> (K,): high where the search put an object where the depth says there is none."""
-    from workbench.inference.scenepoints import model_samples, object_badness
-    from workbench.pipeline import load_bop_problem
-    from workbench.problem import ProblemConfig
+    from workbench.inference.search.scenepoints import model_samples, object_badness
+    from workbench.problem.build import load_bop_problem
+    from workbench.problem.problem import ProblemConfig
 
     ids = [o["obj_id"] for o in frame_json["objects"]]
     _, problem = load_bop_problem(dataset, frame_json["scene_id"], frame_json["im_id"], None, ids, ProblemConfig())

@@ -450,7 +450,7 @@ def run_case(case: Case) -> tuple[bool, str]:
                 return False, f"set-up failed: {type(err).__name__}: {err}"
             if case.setup is locked:
                 holder = subprocess.Popen(
-                    [sys.executable, "-c", "import time; from workbench.outputs import OutputLock; "
+                    [sys.executable, "-c", "import time; from workbench.io.outputs import OutputLock; "
                      f"OutputLock({str(ws / 'r.csv')!r}).acquire(); print('locked', flush=True); time.sleep(120)"],
                     stdout=subprocess.PIPE, text=True, env=env_for(ws))
                 holder.stdout.readline()

@@ -16,12 +16,12 @@ import time
 from pathlib import Path
 
 from workbench.geometry import invert_pose
-from workbench.inference import datadriven
-from workbench.inference.context import SearchGeometry
-from workbench.inference.scenepoints import clusters
+from workbench.inference.search import datadriven
+from workbench.inference.search.moves.context import SearchGeometry
+from workbench.inference.search.scenepoints import clusters
 from workbench.io import bop
-from workbench.metrics import is_right
-from workbench.pipeline import load_bop_problem
+from workbench.score.metrics import is_right
+from workbench.problem.build import load_bop_problem
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ import trimesh
 
 from workbench.geometry import pose_from_xyz_rpy, rotation_angle
 from workbench.physics import STATUS_NAMES, PhysicsConfig, PhysicsProjector
-from workbench.scene import ObjectModel, Table
+from workbench.problem.scene import ObjectModel, Table
 
 
 def box_models(rng: np.random.Generator, k: int) -> list[ObjectModel]:

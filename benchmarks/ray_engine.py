@@ -27,8 +27,8 @@ from pathlib import Path
 from workbench.bench.tables import machine
 from workbench.evaluation.ray import RayConfig, connect, disconnect
 from workbench.inference.config import EstimatorConfig
-from workbench.problem import ProblemConfig
-from workbench.runner import estimate_frames
+from workbench.problem.problem import ProblemConfig
+from workbench.run.runner import estimate_frames
 from workbench.synth import make_scenes
 
 

@@ -15,7 +15,7 @@ import trimesh
 
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
 from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig
-from workbench.scene import Camera
+from workbench.problem.scene import Camera
 
 
 def roi_camera() -> Camera:

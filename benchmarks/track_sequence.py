@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.bench.scoring import score_results
+from workbench.score.scoring import score_results
 from workbench.geometry import invert_pose
 from workbench.io import bop
-from workbench.metrics import position_error, rotation_error
+from workbench.score.metrics import position_error, rotation_error
 from workbench.track.motion import read_world_poses
 
 

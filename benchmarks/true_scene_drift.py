@@ -25,10 +25,10 @@ import numpy as np
 
 from workbench.geometry import invert_pose, rotation_angle
 from workbench.io import bop
-from workbench.metrics import model_points
+from workbench.score.metrics import model_points
 from workbench.physics import STATUS_NAMES, PhysicsConfig, PhysicsProjector
 from workbench.physics.collision import collision_shape_for
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
 
 
 def movement(T_a: np.ndarray, T_b: np.ndarray, points: list[np.ndarray]) -> np.ndarray:

@@ -25,15 +25,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # the browser test tooling
 
-from workbench.app.headless import (  # noqa: E402
-    chromium,
-    dismiss_notifications,
-    free_port,
-    image_stats,
-    open_workbench,
-)
-from workbench.app.server import serve  # noqa: E402
+from headless import chromium, dismiss_notifications, free_port, image_stats, open_workbench  # noqa: E402
+from workbench.app.ui.server import serve  # noqa: E402
 from workbench.inference.config import EstimatorConfig  # noqa: E402
 
 MAX_BYTES = 400_000  # a README picture larger than this is stored with a palette of 256 colours
@@ -124,7 +119,7 @@ def run_to_the_end(page, app, timeout_s: float) -> bool:
 def real_frame(args) -> int:
     """One picture of a dataset's frame once its run finished, its objects framed, with its ground truth and (where
     the dataset has one) its colour image."""
-    from workbench.app.camera import FRAME_OBJECTS
+    from workbench.app.ui.run.camera import FRAME_OBJECTS
 
     handle = serve(args.dataset, args.scene, args.frame, block=False, port=free_port(), workers=args.workers,
                    config=EstimatorConfig(particles=args.particles, iterations=args.iterations))

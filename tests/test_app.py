@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from workbench.app import protocol as p
-from workbench.app.colors import MISSING, VIRIDIS, apply_map
-from workbench.app.headless import free_port, image_stats
-from workbench.app.views import wxyz_from_matrices
+from workbench.app.ui.widgets.colors import MISSING, VIRIDIS, apply_map
+from headless import free_port, image_stats
+from workbench.app.ui.run.views import wxyz_from_matrices
 from workbench.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, random_rotations, rot_x, rot_z
 
 pytestmark = pytest.mark.slow  # needs the engine process: pybullet and OpenGL
@@ -53,7 +53,7 @@ def test_image_stats_tell_blank_from_drawn():
 def test_dead_worker_and_dead_engine_are_restarted_and_the_run_goes_on(capfd, caplog):
     import logging
 
-    from workbench.app.server import serve
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     caplog.set_level(logging.WARNING)
@@ -107,9 +107,9 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
     file is an error message; the run that was loaded goes on."""
     from dataclasses import replace
 
-    from workbench.app.engine import Engine
+    from workbench.app.engine.engine import Engine
     from workbench.inference.config import EstimatorConfig
-    from workbench.inference.particles import Sigma
+    from workbench.inference.smc.particles import Sigma
 
     config = EstimatorConfig(particles=12, iterations=50, sigma=Sigma(x=0.007, y=0.013, z=0.003, yaw=0.1234), seed=5)
     first, second = Inbox(), Inbox()
@@ -157,9 +157,9 @@ def test_panel_shows_a_restored_config_without_changing_it():
     do not): a restored session's settings, shown and read back, must stay exactly what was saved."""
     import viser
 
-    from workbench.app.panel import build_panel
+    from workbench.app.ui.panel import build_panel
     from workbench.inference.config import EstimatorConfig
-    from workbench.inference.particles import Sigma
+    from workbench.inference.smc.particles import Sigma
 
     saved = EstimatorConfig(method="mcpf", particles=77, iterations=9, seed=3,
                             sigma=Sigma(x=0.0474, y=0.0156, z=0.0205, roll=0.0099, pitch=0.1524, yaw=0.0792))
@@ -178,7 +178,7 @@ def test_panel_shows_a_restored_config_without_changing_it():
 def test_a_running_engine_starts_an_iteration_only_once_the_server_shows_the_last():
     """Flow control between engine and server: a run never gets ahead of the display by more than the iteration
     in progress, so a Pause pressed while iteration k is shown stops it at k + 1 at the latest."""
-    from workbench.app.engine import Engine
+    from workbench.app.engine.engine import Engine
     from workbench.inference.config import EstimatorConfig
 
     engine = Engine(Inbox(), workers=1)
@@ -205,8 +205,8 @@ def test_a_running_engine_starts_an_iteration_only_once_the_server_shows_the_las
 
 
 def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message(tmp_path, capsys):
-    from workbench.app.engine import Engine
-    from workbench.app.server import serve
+    from workbench.app.engine.engine import Engine
+    from workbench.app.ui.server import serve
     from workbench.cli import main
     from workbench.inference.config import EstimatorConfig
 
@@ -252,7 +252,7 @@ def test_engine_labels_files_and_a_changed_dataset_asks_before_loading(tmp_path)
     after a backup. A session whose dataset changed is loaded only after a confirmation."""
     import shutil
 
-    from workbench.app.engine import DEMO_DIR, Engine
+    from workbench.app.engine.engine import DEMO_DIR, Engine
     from workbench.inference.config import EstimatorConfig
 
     dataset = tmp_path / "demo"
@@ -298,10 +298,10 @@ def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
     import json
     import shutil
 
-    from workbench.app.engine import demo_dataset
+    from workbench.app.engine.engine import demo_dataset
     from workbench.errors import InputError
     from workbench.io import bop
-    from workbench.scene import display_names
+    from workbench.problem.scene import display_names
 
     src = demo_dataset()
     data = tmp_path / "named"
@@ -327,7 +327,7 @@ def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
 
 
 def test_plots_columns_and_acceptance_by_move_kind():
-    from workbench.app.plots import CHARTS, legend_html
+    from workbench.app.ui.run.plots import CHARTS, legend_html
 
     def report(i, moves=None, accept=float("nan")):
         r = {"iteration": i, "best_loglik": -100.0 + i, "mean_loglik": -150.0 + i, "beta": 0.01 * (i + 1),
@@ -365,7 +365,7 @@ def test_plots_columns_and_acceptance_by_move_kind():
 def test_particles_drawn_by_default_share_one_budget_of_outlines():
     """A frame of more objects draws fewer particles each until the user sets the count: software WebGL pays per
     outline. The demo's two objects keep 32."""
-    from workbench.app.particle_display import DEFAULT_DISPLAY, MIN_DISPLAY, OUTLINE_BUDGET, default_drawn
+    from workbench.app.engine.snapshot import DEFAULT_DISPLAY, MIN_DISPLAY, OUTLINE_BUDGET, default_drawn
 
     assert default_drawn(1) == default_drawn(2) == DEFAULT_DISPLAY == 32
     assert default_drawn(4) == 16 and 4 * default_drawn(4) == OUTLINE_BUDGET
@@ -374,8 +374,8 @@ def test_particles_drawn_by_default_share_one_budget_of_outlines():
 
 
 def test_expected_distinct_particles_matches_systematic_resampling():
-    from workbench.app.particle_display import expected_distinct
-    from workbench.inference.resampling import systematic_resample
+    from workbench.app.engine.snapshot import expected_distinct
+    from workbench.inference.smc.resampling import systematic_resample
 
     rng = np.random.default_rng(3)
     logw = rng.normal(0.0, 2.0, 200)
@@ -389,8 +389,8 @@ def test_expected_distinct_particles_matches_systematic_resampling():
 def test_turns_and_laying_on_a_face_keep_the_object_on_the_table():
     import trimesh
 
-    from workbench.app.label_editor import laid_on, turned
-    from workbench.app.label_tab import FACES
+    from workbench.app.ui.labelling.editor import laid_on, turned
+    from workbench.app.ui.labelling.controls import FACES
     from workbench.geometry import make_pose
 
     box = np.asarray(trimesh.creation.box(extents=(0.1, 0.06, 0.02)).vertices)
@@ -408,9 +408,9 @@ def test_turns_and_laying_on_a_face_keep_the_object_on_the_table():
 def test_outlines_are_feature_edges_not_every_triangle():
     import trimesh
 
-    from workbench.app.observation import outline_edges
+    from workbench.app.engine.observation import outline_edges
     from workbench.app.protocol import MeshData
-    from workbench.app.views import outline_mesh, outline_segments
+    from workbench.app.ui.run.views import outline_mesh, outline_segments
 
     box = trimesh.creation.box(extents=(0.1, 0.06, 0.02))
     edges = outline_edges(box.vertices, box.faces)
@@ -426,10 +426,10 @@ def test_outlines_are_feature_edges_not_every_triangle():
 def test_particles_get_a_coarser_outline_and_a_scan_with_too_many_edges_its_box(monkeypatch):
     import trimesh
 
-    from workbench.app import observation
-    from workbench.app.observation import CLOUD_MAX_EDGES, cloud_outline, outline_edges
+    from workbench.app.engine import observation
+    from workbench.app.engine.observation import CLOUD_MAX_EDGES, cloud_outline, outline_edges
     from workbench.app.protocol import MeshData
-    from workbench.app.views import outline_mesh
+    from workbench.app.ui.run.views import outline_mesh
 
     rock = trimesh.creation.icosphere(4, radius=0.05)  # a bumpy scan: many feature edges
     rock.vertices *= 1 + 0.08 * np.random.default_rng(0).random((len(rock.vertices), 1))
@@ -448,7 +448,7 @@ def test_particles_get_a_coarser_outline_and_a_scan_with_too_many_edges_its_box(
 def test_solids_are_drawn_from_a_decimation_of_a_heavy_scan_and_boxes_as_they_are():
     import trimesh
 
-    from workbench.app.observation import SOLID_FACES, solid_mesh
+    from workbench.app.engine.observation import SOLID_FACES, solid_mesh
     from workbench.app.protocol import MeshData
 
     box = trimesh.creation.box(extents=(0.1, 0.06, 0.02))
@@ -462,7 +462,7 @@ def test_solids_are_drawn_from_a_decimation_of_a_heavy_scan_and_boxes_as_they_ar
 
 
 def test_markdown_escape_keeps_underscores():
-    from workbench.app.markdown import escape
+    from workbench.app.ui.widgets.markdown import escape
 
     assert escape("letters, digits, '.', '_' or '-'") == "letters, digits, '.', '\\_' or '-'"
     assert escape("002_master_chef_can") == "002\\_master\\_chef\\_can"
@@ -471,7 +471,7 @@ def test_markdown_escape_keeps_underscores():
 def test_panel_reads_every_field_and_reverts_the_refused_ones():
     import viser
 
-    from workbench.app.panel import build_panel
+    from workbench.app.ui.panel import build_panel
 
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:

@@ -9,21 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench.app.headless import (
-    FRAME_PROBE_JS,
-    SentMessages,
-    canvas_png,
-    chromium_path,
-    color_extent,
-    frame_counts,
-    free_port,
-    gui_input,
-    image_stats,
-    open_workbench,
-)
-from workbench.app.particle_display import DEFAULT_DISPLAY
+from headless import FRAME_PROBE_JS, SentMessages, canvas_png, chromium_path, color_extent, frame_counts, free_port, gui_input, image_stats, open_workbench
+from workbench.app.engine.snapshot import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure, Run
-from workbench.app.run_display import SCENE_INTERVAL_S
+from workbench.app.ui.run.display import SCENE_INTERVAL_S
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -45,7 +34,7 @@ def sessions_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def workbench(sessions_dir):
-    from workbench.app.server import serve
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     # One worker: the machine running the tests also runs Chromium's software WebGL.
@@ -62,7 +51,7 @@ def workbench(sessions_dir):
 
 @pytest.fixture(scope="module")
 def browser():
-    from workbench.app.headless import chromium
+    from headless import chromium
 
     with chromium() as b:
         yield b
@@ -351,7 +340,7 @@ def test_the_visibility_bar_shows_and_hides_each_layer(page, workbench):
 
 def test_the_truth_table_agrees_with_workbench_score(page, workbench, tmp_path):
     """The per-object errors against scene_gt.json, as shown, are what `workbench score` says of the same estimate."""
-    from workbench.bench.scoring import score_results
+    from workbench.score.scoring import score_results
     from workbench.io import bop
 
     app = workbench.app

@@ -12,7 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
-from workbench.app.headless import chromium_path, free_port, open_workbench
+from headless import chromium_path, free_port, open_workbench
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -31,7 +31,7 @@ def dataset(tmp_path_factory):
     """The bundled demo (one frame, two boxes, scene_gt.json) with a colour image in rgb/, as a copy."""
     from PIL import Image
 
-    from workbench.app.engine import DEMO_DIR
+    from workbench.app.engine.engine import DEMO_DIR
 
     out = tmp_path_factory.mktemp("rgb_dataset") / "demo_rgb"
     shutil.copytree(DEMO_DIR, out)
@@ -47,7 +47,7 @@ def dataset(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def workbench(dataset, tmp_path_factory):
-    from workbench.app.server import serve
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     handle = serve(dataset, 0, 0, block=False, port=free_port(), workers=1,
@@ -64,7 +64,7 @@ def workbench(dataset, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def page(workbench):
-    from workbench.app.headless import chromium
+    from headless import chromium
 
     with chromium() as browser:
         p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT)

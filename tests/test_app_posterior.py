@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from workbench.app import protocol as p
-from workbench.app.colors import view_legend_html
-from workbench.app.headless import free_port
-from workbench.app.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
+from workbench.app.ui.widgets.colors import view_legend_html
+from headless import free_port
+from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.posterior import Mode, ObjectPosterior, Posterior
+from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
 
 pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
 
@@ -65,7 +65,7 @@ def test_a_finished_run_carries_its_posterior_and_labels_take_the_chosen_mode(tm
     label" takes the mode chosen for each object (of the posterior shown: a choice made on another iteration's
     is ignored), and settles a run that has not finished, sending the snapshot again with its posterior. A
     session saved then gives the same posterior to a new engine."""
-    from workbench.app.engine import Engine
+    from workbench.app.engine.engine import Engine
 
     inbox, other = Inbox(), Inbox()
     engine = Engine(inbox, workers=1)
@@ -122,8 +122,8 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
     """Ghosts (an instance per other mode) with their probabilities as labels, hidden by the visibility bar's
     "modes"; the confidences in the legend and the Inspect tab; a dropdown of modes in the Label tab for the
     objects that have several; all gone after Reset."""
-    from workbench.app.panel import visibility_item
-    from workbench.app.server import serve
+    from workbench.app.ui.panel import visibility_item
+    from workbench.app.ui.server import serve
 
     handle = serve(hidden_handle_dataset, block=False, port=free_port(), workers=1, config=CONFIG)
     app = handle.app

@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from workbench.app.headless import FRAME_PROBE_JS, canvas_png, chromium_path, free_port, open_workbench
-from workbench.app.modes import confidence_text, mode_label, mode_option
+from headless import FRAME_PROBE_JS, canvas_png, chromium_path, free_port, open_workbench
+from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -26,7 +26,7 @@ VIEWPORT = {"width": 1000, "height": 700}
 
 @pytest.fixture(scope="module")
 def workbench(tmp_path_factory, hidden_handle_dataset):
-    from workbench.app.server import serve
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     # Three steps finish the run; the mug's hidden handle then leaves its heading open: several modes.
@@ -44,7 +44,7 @@ def workbench(tmp_path_factory, hidden_handle_dataset):
 
 @pytest.fixture(scope="module")
 def page(workbench):
-    from workbench.app.headless import chromium
+    from headless import chromium
 
     with chromium() as browser:
         p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT, init_script=FRAME_PROBE_JS)
@@ -154,7 +154,7 @@ def test_the_label_tab_takes_the_chosen_mode(page, workbench):
 
 
 def test_a_saved_session_brings_the_same_modes_back(page, workbench):
-    from workbench.app.headless import gui_input
+    from headless import gui_input
 
     app = workbench.app
     texts = list(app.display.modes.texts)

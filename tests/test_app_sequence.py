@@ -45,7 +45,7 @@ def run_first_frame(engine, dataset) -> None:
 
 
 def test_next_frame_tracks_jumps_back_and_a_session_keeps_the_position(sequence, tmp_path):
-    from workbench.app.engine import Engine
+    from workbench.app.engine.engine import Engine
 
     inbox = Inbox()
     engine = Engine(inbox, workers=1)
@@ -126,7 +126,7 @@ def test_next_frame_tracks_jumps_back_and_a_session_keeps_the_position(sequence,
 def test_a_next_frame_without_depth_is_a_message_and_the_frame_on_show_stays(sequence, tmp_path):
     import shutil
 
-    from workbench.app.engine import Engine
+    from workbench.app.engine.engine import Engine
 
     data = tmp_path / "seq"
     shutil.copytree(sequence, data)
@@ -152,7 +152,7 @@ def test_a_next_frame_without_depth_is_a_message_and_the_frame_on_show_stays(seq
 def test_a_sequence_record_round_trips_and_a_damaged_one_names_the_file(tmp_path):
     import json
 
-    from workbench.app.sequence_record import SequenceRecord, parse_record, record_json
+    from workbench.sessions.sequence_record import SequenceRecord, parse_record, record_json
     from workbench.errors import InputError
     from workbench.inference.config import EstimatorConfig
 

@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pytest
 
-from workbench.app.headless import chromium_path, color_extent, free_port, gui_input, open_workbench
+from headless import chromium_path, color_extent, free_port, gui_input, open_workbench
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -25,7 +25,7 @@ FIRST_OBJECT = (66, 135, 245)  # colors.OBJECT_COLORS[0]: the first object's lin
 
 @pytest.fixture(scope="module")
 def workbench(tmp_path_factory):
-    from workbench.app.server import serve
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
     from workbench.synth.sequence import make_sequences
 
@@ -46,7 +46,7 @@ def workbench(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def page(workbench):
-    from workbench.app.headless import chromium
+    from headless import chromium
 
     with chromium() as browser:
         p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT)

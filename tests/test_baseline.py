@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workbench import metrics, synth
+from workbench.score import metrics
+from workbench import synth
 from workbench.bench import baseline
 from workbench.geometry import invert_pose
 from workbench.io import bop

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from workbench.estimators import Estimator
+from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.default_search import fit_sink
-from workbench.metrics import position_error, rotation_error
-from workbench.pipeline import load_bop_problem
-from workbench.problem import ProblemConfig
+from workbench.inference.search.default_search import fit_sink
+from workbench.score.metrics import position_error, rotation_error
+from workbench.problem.build import load_bop_problem
+from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
@@ -106,8 +106,8 @@ def test_submitted_batches_equal_their_evaluation_whichever_is_collected_first(f
 def test_map_runs_calls_on_the_workers_in_order_behind_a_pending_batch(frame_and_problem):
     """``Evaluator.map`` (the search's candidate fits) gives what the calls give in this process, in order, also when
     queued behind a batch that has not been collected yet; that batch still comes back as ``evaluate`` gives it."""
-    from workbench.inference.datadriven import fit_scores
-    from workbench.inference.scenepoints import model_samples
+    from workbench.inference.search.datadriven import fit_scores
+    from workbench.inference.search.scenepoints import model_samples
 
     frame, problem = frame_and_problem
     truth = _ground_truth_in_table_frame(frame, problem)
@@ -247,8 +247,8 @@ def test_particle_count_and_sigma_change_between_steps(frame_and_problem):
 
 def test_reduced_state_keeps_roll_and_pitch(frame_and_problem):
     """In the paper's (x, y, z, yaw) state, diffusion never tilts an object: only physics may."""
-    from workbench.inference.gaussian import propose_joint
-    from workbench.inference.particles import Sigma
+    from workbench.inference.search.moves.gaussian import propose_joint
+    from workbench.inference.smc.particles import Sigma
 
     rng = np.random.default_rng(0)
     upright = np.tile(np.eye(4), (50, 2, 1, 1))
@@ -347,7 +347,7 @@ def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame
     once; one that loses to the estimate by more than FIT_WITHIN is another arrangement and is not fitted. A move of
     one object to another place is fitted only from a pool that asks for one (polish's moves), not among the
     assemblies (two or more)."""
-    from workbench.inference import default_search
+    from workbench.inference.search import default_search
 
     frame, problem = frame_and_problem
     gt = _ground_truth_in_table_frame(frame, problem)
@@ -386,7 +386,7 @@ def test_the_assemblies_fitted_and_the_last_polish_are_saved_with_the_search_sta
     state's JSON search entry; a fitted assembly naming an object the problem lacks is refused."""
     import json
 
-    from workbench.estimators import parse_search
+    from workbench.inference.estimator import parse_search
 
     _, problem = frame_and_problem
     evaluator = LocalEvaluator(problem)

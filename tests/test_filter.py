@@ -14,15 +14,15 @@ import pytest
 from toy import ToyEvaluator, toy_problem, toy_target
 
 from workbench.errors import InputError
-from workbench.estimators import Estimator
+from workbench.inference.estimator import Estimator
 from workbench.evaluation import Evaluation
 from workbench.geometry import make_pose
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.context import MoveContext
-from workbench.inference.filter import ParticleFilter, Proposed, Settled
-from workbench.inference.moves import MOVES, REGISTRY, MoveKind, MoveMix
-from workbench.inference.particles import Sigma
-from workbench.inference.particleset import ParticleSet
+from workbench.inference.search.moves.context import MoveContext
+from workbench.inference.smc.filter import ParticleFilter, Proposed, Settled
+from workbench.inference.search.moves.registry import MOVES, REGISTRY, MoveKind, MoveMix
+from workbench.inference.smc.particles import Sigma
+from workbench.inference.smc.particleset import ParticleSet
 
 PAPER = EstimatorConfig(proposals="paper", particles=120, iterations=25, state="xyzyaw", seed=4)
 
@@ -192,16 +192,18 @@ def test_moves_that_need_no_observation_are_valid_seeded_and_move_something(toy,
 
 
 def test_the_readme_example_kind_is_one_module_and_one_registry_line(tmp_path):
-    """README's "Adding a move kind", done to a copy of the package: the module as printed there, its name added to
-    moves.py's import and its line to MOVES. The kind then has its code, its default share and proposes."""
+    """docs/design.md's "Adding a move kind", done to a copy of the package: the module as printed there, its name
+    added to registry.py's import and its line to MOVES. The kind then has its code, its default share and proposes."""
     root = Path(__file__).resolve().parents[1]
-    example = re.search(r"```python\n# workbench/inference/spin.py\n(.*?)```", (root / "README.md").read_text(), re.S)
+    example = re.search(r"```python\n# workbench/inference/search/moves/spin.py\n(.*?)```",
+                        (root / "docs" / "design.md").read_text(), re.S)
     package = tmp_path / "workbench"
     shutil.copytree(root / "workbench", package, ignore=shutil.ignore_patterns("__pycache__"))
-    (package / "inference" / "spin.py").write_text(example.group(1))
-    moves = package / "inference" / "moves.py"
+    (package / "inference" / "search" / "moves" / "spin.py").write_text(example.group(1))
+    moves = package / "inference" / "search" / "moves" / "registry.py"
     text = moves.read_text()
-    for old, new in (("from workbench.inference import kinds\n", "from workbench.inference import kinds, spin\n"),
+    for old, new in (("from workbench.inference.search.moves import kinds\n",
+                      "from workbench.inference.search.moves import kinds, spin\n"),
                      ("    kinds.Relocate(),\n)", "    kinds.Relocate(),\n    spin.Spin(),\n)")):
         assert old in text
         text = text.replace(old, new)
@@ -209,9 +211,9 @@ def test_the_readme_example_kind_is_one_module_and_one_registry_line(tmp_path):
     check = """
 import numpy as np
 from toy import toy_problem, toy_target
-from workbench.inference.context import MoveContext
-from workbench.inference.moves import REGISTRY, MoveKind, MoveMix
-from workbench.inference.particles import Sigma
+from workbench.inference.search.moves.context import MoveContext
+from workbench.inference.search.moves.registry import REGISTRY, MoveKind, MoveMix
+from workbench.inference.smc.particles import Sigma
 assert MoveKind.SPIN == 13 and MoveKind(13).label == "spin" and MoveMix().as_dict()["spin"] == 0.05
 problem = toy_problem()
 parents = np.repeat(toy_target(problem)[None], 8, axis=0)

@@ -24,15 +24,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench import sessions
-from workbench.app.engine import DEMO_DIR
-from workbench.bench import gt_info
+from workbench.sessions import store as sessions
+from workbench.app.engine.engine import DEMO_DIR
+from workbench.score import gt_info
 from workbench.errors import InputError
-from workbench.estimators import Estimator
+from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
 
 pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
 

@@ -4,17 +4,18 @@ renderer where they are used."""
 import numpy as np
 import pytest
 
-from workbench.estimators import Estimator
+from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, make_pose, rot_z
-from workbench.inference import datadriven, refine, resting, stacking
+from workbench.inference.search import datadriven, refine
+from workbench.inference.search.moves import resting, stacking
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.context import MoveContext
-from workbench.inference.moves import MOVES, REGISTRY, MoveKind, MoveMix
-from workbench.inference.particles import Sigma, initial_particles
-from workbench.inference.relocate import random_relocations
-from workbench.inference.scenepoints import clusters, object_badness
-from workbench.pipeline import load_bop_problem
+from workbench.inference.search.moves.context import MoveContext
+from workbench.inference.search.moves.registry import MOVES, REGISTRY, MoveKind, MoveMix
+from workbench.inference.smc.particles import Sigma, initial_particles
+from workbench.inference.search.moves.relocate import random_relocations
+from workbench.inference.search.scenepoints import clusters, object_badness
+from workbench.problem.build import load_bop_problem
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
@@ -138,7 +139,7 @@ def test_resting_pose_proposal_puts_a_box_on_a_face(frame_and_problem, context):
 
 
 def test_polish_variants_change_objects_or_exchange_two(frame_and_problem, context):
-    from workbench.inference import polish
+    from workbench.inference.answer import polish
 
     frame, _ = frame_and_problem
     problem, ctx, library = context
@@ -157,7 +158,7 @@ def test_polish_tries_the_candidates_that_add_most_to_the_rest_of_the_estimate(f
     """Object 0 parked 30 cm away: a candidate on object 1's surface explains pixels object 1 already explains and
     adds little, and its truth, weighted below PER_OBJECT empty places, is tried only when the places are ranked by
     what they add (``polish.gains``)."""
-    from workbench.inference import polish
+    from workbench.inference.answer import polish
 
     frame, _ = frame_and_problem
     problem, ctx, _ = context
@@ -191,7 +192,7 @@ def test_polish_tries_the_candidates_that_add_most_to_the_rest_of_the_estimate(f
 def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_problem, context):
     """A candidate ranked below polish's PER_OBJECT places in the merged library is tried when the latest refit
     (from the points the estimate leaves unexplained) has it; a candidate both have is tried once."""
-    from workbench.inference import polish
+    from workbench.inference.answer import polish
 
     frame, _ = frame_and_problem
     problem, ctx, _ = context
@@ -223,7 +224,8 @@ def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_probl
 def test_seating_an_object_moves_the_one_on_its_place_out_of_the_way():
     """An ejection chain: the can goes back to its place, the box that sat there moves to its own free candidate,
     which pushes the marker off the box's place onto the marker's; the bowl, in nobody's way, stays."""
-    from workbench.inference import datadriven, polish
+    from workbench.inference.search import datadriven
+    from workbench.inference.answer import polish
 
     def at(x, y):
         T = np.eye(4)
@@ -248,7 +250,8 @@ def test_seating_an_object_moves_the_one_on_its_place_out_of_the_way():
 def test_seating_with_hide_puts_what_it_pushes_out_behind_the_object_that_pushed_it():
     """With ``hide``, the box on the can's place goes to its hiding place behind the can, not to its candidate,
     and the objects out of the way stay."""
-    from workbench.inference import datadriven, polish
+    from workbench.inference.search import datadriven
+    from workbench.inference.answer import polish
 
     def at(x, y):
         T = np.eye(4)
@@ -290,8 +293,8 @@ def test_an_object_at_its_hiding_place_rests_behind_the_other_out_of_sight(occlu
     """``hiding_place`` puts the generated frame's hidden box behind the base as the camera sees it: after physics it
     rests on the table on its lowest face, farther along the line of sight than the base, and the camera sees at
     most a tenth of it."""
-    from workbench.inference import hiding
-    from workbench.inference.context import SearchGeometry
+    from workbench.inference.search import hiding
+    from workbench.inference.search.moves.context import SearchGeometry
     from workbench.render.depth import DepthRenderer
 
     frame, problem = occluded_frame
@@ -324,8 +327,8 @@ def test_a_base_is_put_under_the_top_it_carries(stacked_frame):
     """The base of a stack parked 30 cm away, its top floating where it was: a stacked variant puts the base back
     under the top (within 1.5 cm and 10 degrees), and after physics that scene beats the estimate. A top resting on
     the table has no base; the bases found are distinct, best first."""
-    from workbench.inference import polish
-    from workbench.metrics import position_error, rotation_error
+    from workbench.inference.answer import polish
+    from workbench.score.metrics import position_error, rotation_error
 
     frame, problem = stacked_frame
     truth = _truth(frame, problem)
@@ -364,8 +367,8 @@ def test_a_leaning_box_is_tried_by_polish_from_its_slanted_patch_not_drawn_into_
     """The generated box leaning 44 degrees on a smaller box, parked 30 cm away: the search's leaning starts hold one
     within 1.5 cm and 10 degrees of its truth; polish tries it (and only with the leaning starts given), and after
     physics that scene beats the estimate. With leaning off there are no leaning starts."""
-    from workbench.inference import polish
-    from workbench.metrics import position_error, rotation_error
+    from workbench.inference.answer import polish
+    from workbench.score.metrics import position_error, rotation_error
 
     frame, problem = slant_frame
     truth = _truth(frame, problem)
@@ -401,7 +404,7 @@ def test_a_leaning_box_is_tried_by_polish_from_its_slanted_patch_not_drawn_into_
 def test_assembly_puts_each_object_on_its_own_place(frame_and_problem, context):
     """Each object's heavier candidate sits on the other's place; the joint assignment (by the likelihood of the
     candidates' joint depth) still puts each on its own: two objects on one place leave the other unexplained."""
-    from workbench.inference import assemble
+    from workbench.inference.answer import assemble
     from workbench.render.depth import DepthRenderer
 
     frame, _ = frame_and_problem
@@ -421,7 +424,7 @@ def test_assembly_puts_each_object_on_its_own_place(frame_and_problem, context):
 
 
 def test_an_assembly_moving_three_objects_is_also_tried_with_each_kept_where_it_was():
-    from workbench.inference import assemble
+    from workbench.inference.answer import assemble
 
     base = np.repeat(np.eye(4)[None], 4, axis=0)
     scene = base.copy()
@@ -436,7 +439,7 @@ def test_an_assembly_moving_three_objects_is_also_tried_with_each_kept_where_it_
 
 
 def test_an_object_sits_inside_itself_but_not_inside_its_neighbour(frame_and_problem, context):
-    from workbench.inference import assemble
+    from workbench.inference.answer import assemble
 
     frame, _ = frame_and_problem
     problem, ctx, _ = context
@@ -606,7 +609,7 @@ def test_observed_normals_face_the_camera_and_keep_a_thin_object_off_a_neighbour
     import trimesh
 
     from workbench.geometry import make_pose
-    from workbench.inference.scenepoints import model_samples, point_normals
+    from workbench.inference.search.scenepoints import model_samples, point_normals
 
     T = make_pose(np.eye(3), np.array([0.0, 0.0, 0.008]))
     eye = np.array([0.0, -0.5, 0.6])
@@ -633,7 +636,7 @@ def test_icp_matches_only_the_side_the_camera_sees():
     import trimesh
 
     from workbench.geometry import make_pose
-    from workbench.inference.scenepoints import model_samples
+    from workbench.inference.search.scenepoints import model_samples
 
     box = trimesh.creation.box((0.10, 0.10, 0.05))
     T_box = make_pose(np.eye(3), np.array([0.0, 0.0, 0.025]))
@@ -655,8 +658,8 @@ def test_a_flat_object_turned_over_gets_a_start_at_its_place_from_its_outline():
     import trimesh
 
     from workbench.geometry import rot_x, rotation_angle
-    from workbench.inference.footprint import CELL, footprint_starts
-    from workbench.inference.scenepoints import ModelSamples, ScenePoints, model_samples
+    from workbench.inference.search.footprint import CELL, footprint_starts
+    from workbench.inference.search.scenepoints import ModelSamples, ScenePoints, model_samples
 
     bars = [((-0.08, -0.015), (0.08, 0.015)), ((0.05, 0.015), (0.08, 0.06))]  # a long bar and a foot at one end
     thick = 0.016
@@ -696,7 +699,7 @@ def test_a_box_leaning_on_a_block_gets_a_start_at_its_place():
     import trimesh
 
     from workbench.geometry import rot_x, rotation_angle
-    from workbench.inference.leaning import leaning_starts, slanted_patches
+    from workbench.inference.search.leaning import leaning_starts, slanted_patches
 
     box = trimesh.creation.box((0.09, 0.07, 0.03))
     block = make_pose(np.eye(3), [0.0, 0.1, 0.04])  # an 8 cm cube's centre

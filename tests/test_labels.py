@@ -18,9 +18,9 @@ from workbench.labels import (
     save_labels,
     snap_to_plausible,
 )
-from workbench.metrics import position_error
+from workbench.score.metrics import position_error
 from workbench.physics import STATUS_REST
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 

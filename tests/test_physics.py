@@ -20,7 +20,7 @@ from workbench.physics import (
     PhysicsProjector,
 )
 from workbench.physics.collision import collision_shape_for
-from workbench.scene import ObjectModel, Table
+from workbench.problem.scene import ObjectModel, Table
 
 pytestmark = pytest.mark.slow  # needs pybullet
 

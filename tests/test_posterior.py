@@ -1,4 +1,4 @@
-"""The posterior per object (inference.posterior): modes up to the model's symmetries, calibrated probabilities, the
+"""The posterior per object (inference.answer.posterior): modes up to the model's symmetries, calibrated probabilities, the
 open heading of a mug whose handle is hidden. The pure parts are in the fast tier; the mug runs real physics and
 the real renderer."""
 
@@ -7,20 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from workbench import metrics
+from workbench.score import metrics
 from workbench.geometry import invert_pose, make_pose, rot_z
-from workbench.inference.posterior import (
-    DOUBTFUL,
-    Mode,
-    ObjectPosterior,
-    Posterior,
-    doubted,
-    face_turns,
-    found_probability,
-    object_modes,
-    probabilities,
-    yaw_range,
-)
+from workbench.inference.answer.posterior import DOUBTFUL, Mode, ObjectPosterior, Posterior, doubted, face_turns, found_probability, object_modes, probabilities, yaw_range
 
 BOX = metrics.box_symmetries(np.array([0.16, 0.06, 0.21]))  # a cracker box: its half turns about its own axes
 
@@ -56,7 +45,7 @@ def test_modes_merge_poses_equal_under_the_models_symmetries_and_keep_distinct_o
 
 
 def test_coverage_calibration_error_and_top1_of_modes():
-    from workbench.bench.calibration import ObjectModes, coverage, expected_calibration_error, reliability, top1
+    from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability, top1
 
     sure_right = ObjectModes(np.array([1.0]), np.array([True]))
     torn = ObjectModes(np.array([0.6, 0.4]), np.array([False, True]))  # the truth is the second mode
@@ -115,8 +104,8 @@ def test_an_estimate_the_sensor_sees_through_is_probably_elsewhere_and_its_modes
 
 @pytest.mark.slow  # a generated frame (pybullet, OpenGL)
 def test_an_object_moved_off_its_place_is_seen_through(touching_dataset):
-    from workbench.inference.scenepoints import model_samples, object_badness
-    from workbench.pipeline import load_bop_problem
+    from workbench.inference.search.scenepoints import model_samples, object_badness
+    from workbench.problem.build import load_bop_problem
 
     frame, problem = load_bop_problem(touching_dataset, 0, 0)
     truth = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
@@ -131,7 +120,7 @@ def test_an_object_moved_off_its_place_is_seen_through(touching_dataset):
 def test_face_turns_lay_an_object_on_each_face_where_it_stands_on_whatever_supports_it():
     import trimesh
 
-    from workbench.inference.resting import resting_poses
+    from workbench.inference.search.moves.resting import resting_poses
 
     mesh = trimesh.creation.box(extents=[0.11, 0.089, 0.035])  # a pudding box
     rest = resting_poses(mesh)
@@ -155,9 +144,9 @@ def test_a_particles_place_that_wins_only_sunk_into_the_table_is_a_mode_not_the_
     height draws it), physics lifts it 1 cm and it loses: it stays a mode, the estimate stays. Resting on the table
     there, it wins at rest too and replaces the estimate. The likelihood is a function the test sets (two peaks);
     the problem's geometry and renderer are real."""
-    from workbench.inference import posterior, settle
-    from workbench.inference.context import SearchGeometry
-    from workbench.pipeline import load_bop_problem
+    from workbench.inference.answer import posterior, settle
+    from workbench.inference.search.moves.context import SearchGeometry
+    from workbench.problem.build import load_bop_problem
 
     frame, problem = load_bop_problem(touching_dataset, 0, 0)
     scene = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
@@ -201,12 +190,12 @@ def _mug_posterior(touching_dataset, seeing, handle_from_view_deg: float, estima
     """A standing mug where the touching frame's first box stands, its handle turned ``handle_from_view_deg`` from
     pointing straight away from the camera; the depth is drawn from it. The estimate has the mug turned by
     ``estimate_turn_deg`` more, as physics rests it; settled, what posterior does it get?"""
-    from workbench.estimators import Estimator
+    from workbench.inference.estimator import Estimator
     from workbench.evaluation import LocalEvaluator
     from workbench.inference.config import EstimatorConfig
-    from workbench.pipeline import load_bop_problem
-    from workbench.problem import build_problem
-    from workbench.scene import ObjectModel
+    from workbench.problem.build import load_bop_problem
+    from workbench.problem.problem import build_problem
+    from workbench.problem.scene import ObjectModel
     from workbench.synth.meshes import mug_mesh
 
     frame, problem = load_bop_problem(touching_dataset, 0, 0)

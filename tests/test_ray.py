@@ -18,7 +18,7 @@ import pytest
 from workbench.cli import main
 from workbench.evaluation import ChunkedEvaluator, PoolEvaluator, WorkerCrashed
 from workbench.evaluation.ray import RayConfig, RayEvaluator
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
 from workbench.synth import make_scenes
 
 pytestmark = pytest.mark.slow  # needs Ray, pybullet and OpenGL
@@ -176,8 +176,8 @@ def test_ray_evaluator_equals_the_local_pool(cluster, dataset):
             assert np.array_equal(results[0].loglik, other.loglik)
             assert np.array_equal(results[0].status, other.status)
         # The search's candidate fits (``Evaluator.map``) give the same on the actors as on the pool and here.
-        from workbench.inference.datadriven import fit_scores
-        from workbench.inference.scenepoints import model_samples
+        from workbench.inference.search.datadriven import fit_scores
+        from workbench.inference.search.scenepoints import model_samples
 
         calls = [(hypotheses[:n, 0], model_samples(problem.models[0].mesh)) for n in (2, 5, 1)]
         mapped = [e.map(fit_scores, calls) for e in evaluators]
@@ -214,7 +214,7 @@ def test_serve_evaluates_on_ray_actors_and_survives_a_dead_one(cluster):
     import socket
 
     from workbench.app import protocol as p
-    from workbench.app.server import serve
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     with socket.socket() as s:

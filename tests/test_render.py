@@ -13,7 +13,7 @@ from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
 from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
 from workbench.render.likelihood import LikelihoodConfig, scene_loglik, scene_terms
 from workbench.render.shared import common_poses, draw_shared, drawn_loglik, render_shared
-from workbench.scene import Camera
+from workbench.problem.scene import Camera
 
 pytestmark = pytest.mark.slow  # needs OpenGL
 
@@ -315,8 +315,8 @@ def test_a_thin_object_scores_at_its_place_above_laid_on_a_distractor_beside_it(
     the block's) and leaves its own pixels to the table; at its true place it explains them. The plain outlier
     mixture prefers the block (an unexplained reading is an outlier, covering it gains about 7 per pixel, and a
     thin object's own pixels gain about 1.3); with the clutter floor the truth wins."""
-    from workbench.problem import table_depth
-    from workbench.scene import Table
+    from workbench.problem.problem import table_depth
+    from workbench.problem.scene import Table
 
     slab, block = trimesh.creation.box((0.18, 0.05, 0.016)), trimesh.creation.box((0.22, 0.12, 0.05))
     truth = make_pose(np.eye(3), np.array([-0.06, -0.06, 0.008]))

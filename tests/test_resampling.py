@@ -1,6 +1,6 @@
 import numpy as np
 
-from workbench.inference.resampling import ess, log_sum_exp, normalised_weights, systematic_resample, temper_to_ess
+from workbench.inference.smc.resampling import ess, log_sum_exp, normalised_weights, systematic_resample, temper_to_ess
 
 
 def test_log_sum_exp_survives_huge_log_weights():

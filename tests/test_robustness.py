@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from workbench import cache
+from workbench.meshes import cache
 
 # ----------------------------------------------------------------------------------------------------------------
 # Caches: verified on read, rebuilt with a warning naming the file
@@ -139,7 +139,7 @@ def _results(path: Path, *rows: str) -> Path:
 def test_a_second_run_on_the_same_out_is_refused_naming_the_first_runs_pid(demo, tmp_path, capsys):
     out = _results(tmp_path / "same.csv", ROW)
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from workbench.outputs import OutputLock; "
+        [sys.executable, "-c", "import sys, time; from workbench.io.outputs import OutputLock; "
                                f"OutputLock({str(out)!r}).acquire(); print('locked', flush=True); time.sleep(60)"],
         stdout=subprocess.PIPE, text=True)
     try:
@@ -153,7 +153,7 @@ def test_a_second_run_on_the_same_out_is_refused_naming_the_first_runs_pid(demo,
         holder.kill()
         holder.wait()
     # The lock dies with its process: the file can be written again.
-    from workbench.runner import ResultsFile
+    from workbench.run.runner import ResultsFile
 
     results = ResultsFile.open(out, resume=True)
     results.close()
@@ -161,7 +161,7 @@ def test_a_second_run_on_the_same_out_is_refused_naming_the_first_runs_pid(demo,
 
 def test_a_lock_is_released_and_taken_again_in_one_process(tmp_path):
     from workbench.errors import InputError
-    from workbench.outputs import OutputLock
+    from workbench.io.outputs import OutputLock
 
     out = tmp_path / "r.csv"
     with OutputLock(out):
@@ -186,7 +186,7 @@ def test_posterior_and_out_on_one_file_are_refused_before_any_work(demo, tmp_pat
 def test_a_second_run_on_the_same_posterior_is_refused_naming_the_first_runs_pid(demo, tmp_path, capsys):
     """Two runs with different --out but one --posterior: the second is refused, not left to replace the first's
     frames."""
-    from workbench.outputs import OutputLock
+    from workbench.io.outputs import OutputLock
 
     posterior = tmp_path / "posterior.json"
     with OutputLock(posterior, flag="--posterior"):
@@ -237,7 +237,7 @@ def test_no_frames_in_a_split_is_said_without_none(demo, capsys):
 def test_a_full_disk_keeps_the_old_results_and_says_so(tmp_path, monkeypatch):
     from workbench.errors import InputError
     from workbench.io.bop import ResultRow
-    from workbench.runner import ResultsFile
+    from workbench.run.runner import ResultsFile
 
     out = _results(tmp_path / "r.csv", ROW)
     before = out.read_bytes()
@@ -254,7 +254,7 @@ def test_a_full_disk_keeps_the_old_results_and_says_so(tmp_path, monkeypatch):
 
 def test_results_through_a_symlink_keep_the_link(tmp_path):
     from workbench.io.bop import ResultRow
-    from workbench.runner import ResultsFile
+    from workbench.run.runner import ResultsFile
 
     target = _results(tmp_path / "real.csv", ROW)
     link = tmp_path / "link.csv"
@@ -316,7 +316,7 @@ def test_bench_out_replaces_only_what_bench_wrote(demo, tmp_path, capsys):
 
 def test_sessions_are_saved_only_where_a_session_may_be(demo, tmp_path):
     from workbench.errors import InputError
-    from workbench.sessions import check_sessions_dir, save_session
+    from workbench.sessions.store import check_sessions_dir, save_session
 
     (tmp_path / "a_file").write_text("x")
     for bad, words in [(tmp_path / "a_file", "is a file"), (tmp_path / "a_file" / "below", "is a file"),
@@ -335,8 +335,8 @@ def test_sessions_are_saved_only_where_a_session_may_be(demo, tmp_path):
 def test_serve_refuses_a_session_whose_dataset_is_gone(demo, tmp_path, capsys, monkeypatch):
     from types import SimpleNamespace
 
-    from workbench import sessions
-    from workbench.app import server
+    from workbench.sessions import store as sessions
+    from workbench.app.ui import server
 
     state = SimpleNamespace(frame=SimpleNamespace(dataset=str(tmp_path / "gone"), files={"x.json": "0"}))
     monkeypatch.setattr(sessions, "load_session", lambda path: state)
@@ -508,7 +508,7 @@ def test_a_mesh_far_too_large_is_not_called_metres(demo, tmp_path, capsys):
 
 
 def test_long_work_is_announced_and_never_silent_for_longer_than_the_interval(capfd):
-    from workbench.heavy import announced
+    from workbench.meshes.heavy import announced
 
     def busy(seconds):  # holds the GIL, as open3d's decimation does
         import time
@@ -530,7 +530,7 @@ def test_long_work_is_announced_and_never_silent_for_longer_than_the_interval(ca
 
 
 def test_a_heavy_mesh_is_worked_on_as_a_lighter_one(monkeypatch):
-    from workbench import heavy
+    from workbench.meshes import heavy
 
     sphere = trimesh.creation.icosphere(5)  # 20480 faces
     monkeypatch.setattr(heavy, "HEAVY_FACES", 10_000)
@@ -543,7 +543,7 @@ def test_a_heavy_mesh_is_worked_on_as_a_lighter_one(monkeypatch):
 
 
 def test_the_search_lays_a_heavy_mesh_on_a_reduced_hull_and_once_per_shape():
-    from workbench.inference import resting
+    from workbench.inference.search.moves import resting
 
     sphere = trimesh.creation.icosphere(6, radius=0.04)  # 40962 vertices, all on its hull
     hull = resting.reduced_hull(sphere)
@@ -562,7 +562,7 @@ def test_the_search_lays_a_heavy_mesh_on_a_reduced_hull_and_once_per_shape():
 def test_loading_a_heavy_mesh_says_so_and_a_light_one_says_nothing(tmp_path, capfd, monkeypatch):
     import time
 
-    from workbench import heavy
+    from workbench.meshes import heavy
     from workbench.io import bop
 
     trimesh.creation.icosphere(3, radius=40.0).export(tmp_path / "obj_000006.ply")  # 1280 faces, mm
@@ -596,10 +596,10 @@ def test_loading_a_heavy_mesh_says_so_and_a_light_one_says_nothing(tmp_path, cap
 
 
 def test_the_particles_of_a_heavy_mesh_start_from_its_lowest_point_without_its_hull(monkeypatch):
-    from workbench import heavy
+    from workbench.meshes import heavy
     from workbench.geometry import random_rotations
-    from workbench.inference import particles
-    from workbench.scene import ObjectModel, Table
+    from workbench.inference.smc import particles
+    from workbench.problem.scene import ObjectModel, Table
 
     rotations = random_rotations(np.random.default_rng(0), 50)
     box = trimesh.creation.box(extents=(0.1, 0.06, 0.2))
@@ -622,8 +622,8 @@ def test_the_particles_of_a_heavy_mesh_start_from_its_lowest_point_without_its_h
 def test_a_heavy_model_is_named_where_a_frame_announces_it_and_a_light_frame_starts_nothing(monkeypatch, capfd):
     import subprocess
 
-    from workbench import heavy
-    from workbench.scene import ObjectModel
+    from workbench.meshes import heavy
+    from workbench.problem.scene import ObjectModel
 
     ball = ObjectModel(6, trimesh.creation.icosphere(5), source=Path("models/obj_000006.ply"))  # 20,480 faces
     box = ObjectModel(5, trimesh.creation.box())
@@ -639,8 +639,8 @@ def test_a_heavy_model_is_named_where_a_frame_announces_it_and_a_light_frame_sta
 def test_a_heavy_model_is_drawn_from_its_render_mesh_a_light_one_from_itself(monkeypatch):
     from types import SimpleNamespace
 
-    from workbench.app import observation
-    from workbench.scene import ObjectModel
+    from workbench.app.engine import observation
+    from workbench.problem.scene import ObjectModel
 
     ball = trimesh.creation.icosphere(5, radius=0.05)  # 20,480 faces: "heavy" below
     render = trimesh.creation.icosphere(2, radius=0.05)  # what the cache holds for it: 320 faces
@@ -649,7 +649,7 @@ def test_a_heavy_model_is_drawn_from_its_render_mesh_a_light_one_from_itself(mon
     calls = []
     monkeypatch.setattr(observation, "HEAVY_FACES", 10_000)
     monkeypatch.setattr("workbench.evaluation.local.prepare_meshes", lambda pr: calls.append("prepare"))
-    monkeypatch.setattr("workbench.inference.context.search_mesh", lambda m, pr: calls.append(m.obj_id) or render)
+    monkeypatch.setattr("workbench.inference.search.moves.context.search_mesh", lambda m, pr: calls.append(m.obj_id) or render)
     drawn_ball, drawn_box = observation.object_meshes(problem)
     assert calls == ["prepare", 6]  # simplified (or read from the cache) once, before anything is drawn
     assert len(drawn_ball.faces) == 20_480 and len(drawn_ball.solid[1]) == 320  # never the model's faces
@@ -677,7 +677,7 @@ def _hold_the_lock(key: str, folder: str, log: str, name: str, until: str) -> No
     import time
     from pathlib import Path
 
-    from workbench.heavy import one_at_a_time
+    from workbench.meshes.heavy import one_at_a_time
 
     def write(text: str) -> None:
         with open(log, "a") as f:

@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench import checks, labels, sessions
-from workbench.app.engine import DEMO_DIR
+from workbench import checks, labels
+from workbench.sessions import store as sessions
+from workbench.app.engine.engine import DEMO_DIR
 from workbench.errors import InputError
 from workbench.io import bop
 
@@ -108,8 +109,8 @@ def test_out_is_checked_before_any_work(demo, tmp_path):
 
 def test_results_are_written_frame_by_frame_and_resume_skips_written_frames(two_frames, tmp_path):
     from workbench.inference.config import EstimatorConfig
-    from workbench.problem import ProblemConfig
-    from workbench.runner import ResultsFile, estimate_frames
+    from workbench.problem.problem import ProblemConfig
+    from workbench.run.runner import ResultsFile, estimate_frames
 
     # A run that fails at its second frame keeps the first frame's results.
     broken = tmp_path / "broken"
@@ -134,9 +135,9 @@ def test_results_are_written_frame_by_frame_and_resume_skips_written_frames(two_
 
 
 def test_a_frame_estimated_into_a_log_file_says_how_far_it_is(demo, monkeypatch, capsys):
-    from workbench import runner
+    from workbench.run import runner
     from workbench.inference.config import EstimatorConfig
-    from workbench.problem import ProblemConfig
+    from workbench.problem.problem import ProblemConfig
 
     monkeypatch.setattr(runner, "LOG_EVERY_S", 0.0)  # every step, not every 10 s
     runner.estimate_frames(demo, [(0, 0)], EstimatorConfig(particles=6, iterations=2), ProblemConfig(), 1)
@@ -203,10 +204,10 @@ def test_bad_seed_and_other_parameters_are_refused_before_work(demo, tmp_path):
 
 
 def _saved_session(demo: Path, folder: Path) -> Path:
-    from workbench.estimators import Estimator
+    from workbench.inference.estimator import Estimator
     from workbench.evaluation import LocalEvaluator
     from workbench.inference.config import EstimatorConfig
-    from workbench.pipeline import load_bop_problem
+    from workbench.problem.build import load_bop_problem
 
     frame, problem = load_bop_problem(demo, 0, 0)
     ev = LocalEvaluator(problem)
@@ -308,7 +309,7 @@ def test_serve_fails_on_a_missing_dataset_or_frame(demo, tmp_path):
 
 
 def test_serve_prints_load_errors_to_the_terminal(demo, caplog):
-    from workbench.app.server import serve
+    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     (demo / "test" / "000000" / "depth" / "000000.png").write_bytes(b"broken")
@@ -326,7 +327,7 @@ def test_serve_prints_load_errors_to_the_terminal(demo, caplog):
 
 def test_demo_labels_are_saved_into_a_copy_never_into_the_package(workbench_home):
     from workbench.app import protocol as p
-    from workbench.app.engine import Engine
+    from workbench.app.engine.engine import Engine
     from workbench.inference.config import EstimatorConfig
 
     class Inbox(list):
@@ -355,7 +356,7 @@ def test_demo_labels_are_saved_into_a_copy_never_into_the_package(workbench_home
 
 def test_reflections_and_bad_bottom_rows_are_refused_at_the_edge(demo, tmp_path):
     from workbench.evaluation import LocalEvaluator
-    from workbench.pipeline import load_bop_problem
+    from workbench.problem.build import load_bop_problem
 
     frame, problem = load_bop_problem(demo, 0, 0)
     good = np.stack([np.eye(4), np.eye(4)])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from test_cli import _workbench
 
-from workbench.bench.scoring import instance_groups, match, report, score_results, summary
+from workbench.score.scoring import instance_groups, match, report, score_results, summary
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
 

@@ -14,27 +14,16 @@ import pytest
 from PIL import Image
 
 from workbench.errors import InputError
-from workbench.estimators import Estimator, parse_search
+from workbench.inference.estimator import Estimator, parse_search
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.particles import Sigma
+from workbench.inference.smc.particles import Sigma
 from workbench.physics import PhysicsConfig
-from workbench.pipeline import load_bop_problem
-from workbench.problem import ProblemConfig
+from workbench.problem.build import load_bop_problem
+from workbench.problem.problem import ProblemConfig
 from workbench.render.depth import RenderConfig
 from workbench.render.likelihood import LikelihoodConfig
-from workbench.sessions import (
-    check_dataset,
-    check_name,
-    frame_ref_for,
-    list_sessions,
-    load_session,
-    restore_estimator,
-    save_session,
-    session_problem,
-    session_state_from,
-    suggest_name,
-)
+from workbench.sessions.store import check_dataset, check_name, frame_ref_for, list_sessions, load_session, restore_estimator, save_session, session_problem, session_state_from, suggest_name
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
@@ -425,7 +414,7 @@ def test_two_writers_of_one_folder_never_both_save_a_new_name(saved, tmp_path):
     shutil.copytree(folder, work)
     state = load_session(work / original.name)
     other = subprocess.Popen(
-        [sys.executable, "-c", "import shutil, sys; from workbench.outputs import folder_lock\n"
+        [sys.executable, "-c", "import shutil, sys; from workbench.io.outputs import folder_lock\n"
                                f"with folder_lock({str(work)!r}):\n"
                                "    print('locked', flush=True); sys.stdin.readline()\n"
                                f"    shutil.copy({str(original)!r}, {str(work / 'new.json')!r})"],

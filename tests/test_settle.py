@@ -1,33 +1,16 @@
-"""Settling: the estimate fitted to the depth without physics, within a trust region (inference.settle)."""
+"""Settling: the estimate fitted to the depth without physics, within a trust region (inference.answer.settle)."""
 
 import numpy as np
 import pytest
 
-from workbench.estimators import Estimator
+from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose, rot_z
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.settle import (
-    TURN_MARGIN,
-    half_turn_names,
-    half_turns,
-    hop,
-    is_flat,
-    level_flips,
-    pattern_search,
-    quarter_turn_names,
-    quarter_turns,
-    ridge_moves,
-    run,
-    search,
-    single_moves,
-    small_turns,
-    turn_over,
-    within,
-)
-from workbench.metrics import position_error, rotation_error
+from workbench.inference.answer.settle import TURN_MARGIN, half_turn_names, half_turns, hop, is_flat, level_flips, pattern_search, quarter_turn_names, quarter_turns, ridge_moves, run, search, single_moves, small_turns, turn_over, within
+from workbench.score.metrics import position_error, rotation_error
 from workbench.physics import STATUS_AS_GIVEN
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
@@ -335,8 +318,8 @@ def test_settling_turns_a_flat_object_back_over_its_outlines_axis():
     from types import SimpleNamespace
 
     from workbench.geometry import pose_from_xyz_rpy, rotation_angle
-    from workbench.inference.settle import _turned
-    from workbench.scene import ObjectModel
+    from workbench.inference.answer.settle import _turned
+    from workbench.problem.scene import ObjectModel
 
     mesh = _flat_l_plate()
     truth = pose_from_xyz_rpy([0.1, 0.2, 0.0, 0.0, 0.0, 0.4])
@@ -403,7 +386,7 @@ def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem
     where physics put it. Turned about the vertical and settled, the mug gains far more than the margin."""
     from dataclasses import replace
 
-    from workbench.scene import ObjectModel
+    from workbench.problem.scene import ObjectModel
     from workbench.synth.meshes import mug_mesh
 
     frame, problem = frame_and_problem

@@ -8,8 +8,8 @@ import pytest
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_z, transform_points
-from workbench.scene import Camera, Frame
-from workbench.support import depth_noise_sigma, estimate_support
+from workbench.problem.scene import Camera, Frame
+from workbench.problem.support import depth_noise_sigma, estimate_support
 
 W, H = 320, 240
 K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])

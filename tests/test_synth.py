@@ -11,11 +11,11 @@ import pytest
 import trimesh
 from PIL import Image
 
-from workbench import metrics
+from workbench.score import metrics
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_z
 from workbench.io import bop
-from workbench.support import estimate_support
+from workbench.problem.support import estimate_support
 from workbench.synth import CATEGORIES, load_distractors, make_demo, make_scenes, true_table_pose, visible_masks
 from workbench.synth.config import DESKS, PAPER_CATEGORIES, SHAPE_CATEGORIES, SynthConfig
 from workbench.synth.objects import BOX_BY_ID, BOXES, OBJECT_BY_ID, OBJECTS, ROUND, item_mesh, tilt_deg

@@ -188,7 +188,7 @@ def test_raised_objects_rest_on_the_box_above_the_table(dataset):
 
 
 def test_the_support_found_is_the_raised_box_where_the_objects_stand_on_it_and_the_table_elsewhere(dataset):
-    from workbench.pipeline import load_bop_problem
+    from workbench.problem.build import load_bop_problem
 
     out, meta = dataset
     for m in meta:  # at 160x120: a coarse depth, as a far sensor's

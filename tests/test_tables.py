@@ -19,7 +19,7 @@ from workbench.bench.tables import (
     table_two,
 )
 from workbench.io.bop import read_results_csv
-from workbench.scene import ObjectModel
+from workbench.problem.scene import ObjectModel
 
 pytestmark = pytest.mark.slow  # needs whole benchmarks: pybullet and OpenGL
 

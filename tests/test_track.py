@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench.bench.scoring import score_results
+from workbench.score.scoring import score_results
 from workbench.cli import main
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.track_search import settle_each
+from workbench.inference.search.track_search import settle_each
 from workbench.io import bop
-from workbench.metrics import is_right
-from workbench.support import estimate_support
+from workbench.score.metrics import is_right
+from workbench.problem.support import estimate_support
 from workbench.synth.sequence import Push, TakeOut, make_sequences
 from workbench.track.config import TrackConfig
 from workbench.track.motion import depth_motion, given_motion, read_world_poses

@@ -10,11 +10,11 @@ import pytest
 import trimesh
 from test_cli import _workbench
 
-from workbench.bench.vsd import VSDConfig, diameter, distance_image, frame_vsd, object_vsd, render_alone, vsd_errors
+from workbench.score.vsd import VSDConfig, diameter, distance_image, frame_vsd, object_vsd, render_alone, vsd_errors
 from workbench.cli import DEMO_DATASET
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
-from workbench.metrics import is_right, rotation_error
+from workbench.score.metrics import is_right, rotation_error
 
 TAU, DELTA = VSDConfig().tau, VSDConfig().delta
 

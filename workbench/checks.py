@@ -115,7 +115,7 @@ MAX_FRAMEBUFFER = 16384
 
 
 def check_problem_config(config, where: str = "") -> None:
-    """What ``problem.build_problem`` would refuse only after the frame is loaded, and the bounds of the physics
+    """What ``problem.problem.build_problem`` would refuse only after the frame is loaded, and the bounds of the physics
     and render settings (``PhysicsConfig`` checks only their signs). ``where`` prefixes the settings' names."""
     config.likelihood.validate()
     lik = config.likelihood

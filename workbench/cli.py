@@ -14,9 +14,9 @@ import numpy as np
 from workbench.checks import check_count, check_estimator_config, check_problem_config, check_seed, check_workers
 from workbench.errors import InputError
 from workbench.inference.config import METHODS, EstimatorConfig
-from workbench.inference.moves import PROPOSALS
-from workbench.inference.particles import STATES, Sigma
-from workbench.problem import ProblemConfig
+from workbench.inference.search.moves.registry import PROPOSALS
+from workbench.inference.smc.particles import STATES, Sigma
+from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
 from workbench.track.config import TrackConfig
 
@@ -133,8 +133,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 def _open_outputs(args: argparse.Namespace):
     """``estimate``'s and ``track``'s output files, checked to be two different files and each locked for the run
     -> (the PosteriorFile or None, the ResultsFile)."""
-    from workbench.outputs import check_distinct
-    from workbench.runner import PosteriorFile, ResultsFile
+    from workbench.io.outputs import check_distinct
+    from workbench.run.runner import PosteriorFile, ResultsFile
 
     check_distinct({"--out": args.out, "--posterior": args.posterior})
     posterior = (None if args.posterior is None else
@@ -151,7 +151,7 @@ def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, p
                    posterior=None) -> int:
     """``estimate``'s frames, once its settings are checked and its results file is open."""
     from workbench.io import bop
-    from workbench.runner import check_resumed, estimate_frames
+    from workbench.run.runner import check_resumed, estimate_frames
 
     frames = bop.list_frames(args.dataset, split=args.split)
     if args.scene is not None:
@@ -202,7 +202,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         sequences[scene] = sequence_frames(args.dataset, scene, args.split, args.frames)
         # The camera poses, if given, all there.
         sequence_world(args.dataset, scene, args.split, args.motion, sequences[scene])
-    from workbench.runner import check_resumed
+    from workbench.run.runner import check_resumed
     from workbench.track.run import track_sequences
 
     posterior, results = _open_outputs(args)
@@ -238,21 +238,21 @@ def _cmd_track(args: argparse.Namespace) -> int:
 def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
-    from workbench.bench.scoring import report, score_results, summary
-    from workbench.bench.vsd import VSDConfig
+    from workbench.score.scoring import report, score_results, summary
+    from workbench.score.vsd import VSDConfig
     from workbench.io import bop
 
     if not args.dataset.is_dir():
         raise InputError(args.dataset, "no such dataset folder")
-    from workbench.outputs import check_distinct
+    from workbench.io.outputs import check_distinct
 
     check_distinct({"the results CSV being scored": args.results, "--json": args.json, "--reliability": args.reliability})
     if args.json is not None:  # before any scoring: --json gets the guards of every file a command writes
-        from workbench.outputs import check_output_file
+        from workbench.io.outputs import check_output_file
 
         check_output_file(args.json, ours=_is_score_json, force=args.force, what="a score JSON", flag="--json")
     if args.reliability is not None:
-        from workbench.outputs import check_output_file
+        from workbench.io.outputs import check_output_file
 
         check_output_file(args.reliability, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n",
                           force=args.force, what="a reliability diagram", flag="--reliability")
@@ -261,7 +261,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
                            results_path=args.results, vsd=vsd)
     print("\n".join(report(frames, vsd)))
     if args.reliability is not None:
-        from workbench.bench.calibration import reliability_png
+        from workbench.score.calibration import reliability_png
 
         reliability_png([m for f in frames for m in f.modes], args.reliability, f"{args.results.name}")
         print(f"# reliability diagram of the top mode: {args.reliability}")
@@ -270,7 +270,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
         # NaN is not JSON: an object without an estimate has null errors
         objects = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in o.items()}
                    for o in objects]
-        from workbench.outputs import write_file
+        from workbench.io.outputs import write_file
 
         write_file(args.json, json.dumps({"dataset": str(args.dataset), "results": str(args.results),
                                           "objects": objects, "summary": summary(frames, vsd)}, indent=1))
@@ -289,7 +289,7 @@ def _is_score_json(path: Path) -> bool:
 def _cmd_serve(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from workbench.app.server import DEFAULT_CONFIG, serve
+    from workbench.app.ui.server import DEFAULT_CONFIG, serve
 
     dataset = DEMO_DATASET if args.demo or args.dataset is None else args.dataset
     check_count(args.port, "--port", low=1, high=65535)
@@ -297,7 +297,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     run = {k: v for k, v in (("method", args.method), ("particles", args.particles),
                              ("iterations", args.iterations)) if v is not None}
     if args.session is not None:
-        from workbench.sessions import load_session
+        from workbench.sessions.store import load_session
 
         state = load_session(args.session)  # a bad session file is an input error here, before any server starts
         _check_session_frame(args.session, state)
@@ -309,7 +309,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     elif dataset != DEMO_DATASET:
         _check_frame_exists(dataset, args.scene, args.frame)
     if args.sessions_dir is not None:
-        from workbench.sessions import check_sessions_dir
+        from workbench.sessions.store import check_sessions_dir
 
         check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
@@ -323,7 +323,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 def _check_session_frame(session: Path, state) -> None:
     """The dataset files a session was made from are all there (changed ones are the app's question: load anyway?);
     InputError naming the session and the first missing file otherwise, before any server starts."""
-    from workbench.sessions import check_dataset
+    from workbench.sessions.store import check_dataset
 
     missing = [p for p in check_dataset(state) if p.endswith(("missing", "dataset folder not found"))]
     if missing:
@@ -430,8 +430,8 @@ def _check_bench_out(out: Path, methods: list[str]) -> None:
     """``bench --out`` is a folder of our tables and CSVs: never a file, never inside a dataset's folders, and the
     files it writes there replace only those an earlier bench wrote (the guards of every output file)."""
     from workbench.bench.tables import is_report_json, is_report_md
-    from workbench.outputs import check_output_file, dataset_folder_of
-    from workbench.runner import is_results_csv
+    from workbench.io.outputs import check_output_file, dataset_folder_of
+    from workbench.run.runner import is_results_csv
 
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file: --out names the folder the tables are written to")

@@ -22,10 +22,10 @@ from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose
-from workbench.inference.settle import pattern_search
+from workbench.inference.answer.settle import pattern_search
 from workbench.io import bop
-from workbench.metrics import add_s, model_points, position_error, rotation_error
-from workbench.problem import Problem
+from workbench.score.metrics import add_s, model_points, position_error, rotation_error
+from workbench.problem.problem import Problem
 from workbench.render.likelihood import scene_loglik
 
 LABELS_FILE = "scene_gt_labels.json"

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.posterior import Posterior
+from workbench.inference.answer.posterior import Posterior
 
 
 @dataclass(frozen=True)
@@ -287,7 +287,7 @@ class Chosen:
     loglik: float
     weight: float
     status: int
-    move: str  # the move kind that proposed it (inference.moves.MoveKind label)
+    move: str  # the move kind that proposed it (inference.search.moves.registry.MoveKind label)
     before: np.ndarray  # (K, 4, 4) as proposed
     after: np.ndarray  # (K, 4, 4) as projected by physics (what was rendered and weighed)
     pixel_loglik: np.ndarray  # (h, w) float32, 0 where the observation has no reading

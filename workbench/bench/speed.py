@@ -14,12 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.estimators import Estimator
+from workbench.inference.estimator import Estimator
 from workbench.evaluation import STAGES, make_evaluator
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.physics import collision_shapes
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
 from workbench.render.depth import render_mesh
 from workbench.synth import make_scenes
 

@@ -22,30 +22,21 @@ import numpy as np
 from tqdm import tqdm
 
 from workbench.bench.baseline import estimate_icp_fits
-from workbench.bench.gt_info import HIDDEN_VISIB, scene_categories, visib_fractions
+from workbench.score.gt_info import HIDDEN_VISIB, scene_categories, visib_fractions
 from workbench.errors import InputError
-from workbench.estimators import Estimator, object_confidence
+from workbench.inference.estimator import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
-from workbench.frames import FrameFailure, run_frames
+from workbench.run.frames import FrameFailure, run_frames
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
 from workbench.io import bop
 from workbench.io.bop import ResultRow
-from workbench.metrics import (
-    add_s,
-    closest_symmetric,
-    iterations_to_converge,
-    model_points,
-    mssd,
-    position_error,
-    rotation_error,
-    rpy_errors,
-)
-from workbench.outputs import write_file
-from workbench.pipeline import load_bop_problem
-from workbench.problem import Problem
-from workbench.scene import Frame, ObjectModel
+from workbench.score.metrics import add_s, closest_symmetric, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors
+from workbench.io.outputs import write_file
+from workbench.problem.build import load_bop_problem
+from workbench.problem.problem import Problem
+from workbench.problem.scene import Frame, ObjectModel
 from workbench.synth import CATEGORIES, frame_table_pose
 
 METHODS = ("icp", "pipf", "mcpf")

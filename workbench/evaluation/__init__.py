@@ -30,7 +30,7 @@ from workbench.evaluation.base import (
 )
 from workbench.evaluation.local import ChunkedEvaluator, LocalEvaluator
 from workbench.evaluation.pool import PoolEvaluator
-from workbench.problem import Problem
+from workbench.problem.problem import Problem
 
 __all__ = [
     "STAGES", "ChunkedEvaluator", "Done", "Evaluation", "Evaluator", "LocalEvaluator", "Pending", "PoolEvaluator",

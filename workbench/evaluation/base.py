@@ -17,9 +17,9 @@ import numpy as np
 
 from workbench.checks import check_rigid
 from workbench.errors import InputError
-from workbench.inference.particleset import Rows
-from workbench.problem import Problem
-from workbench.scene import Table
+from workbench.inference.smc.particleset import Rows
+from workbench.problem.problem import Problem
+from workbench.problem.scene import Table
 
 STAGES = ("projection", "render", "likelihood")
 
@@ -66,7 +66,7 @@ class Evaluator(Protocol):
         """(B, K, 4, 4) hypotheses in the table frame -> their evaluation. ``sink`` (B,) m, default 0: how far
         below the fitted table plane each hypothesis's objects rest (``PhysicsProjector.project``); the observed
         table is drawn where it was fitted either way. ``project=False`` scores the hypotheses as given, without
-        physics (``inference.settle``): ``projected`` is then the hypotheses, with status ``STATUS_AS_GIVEN``."""
+        physics (``inference.answer.settle``): ``projected`` is then the hypotheses, with status ``STATUS_AS_GIVEN``."""
         ...
 
     def submit(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Pending:

@@ -11,7 +11,7 @@ import numpy as np
 from workbench.checks import check_rigid
 from workbench.evaluation.base import Done, Evaluation, admissible, check_sink, run_here, split_batch
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
-from workbench.problem import Problem
+from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
 from workbench.render.likelihood import pixel_loglik
 from workbench.render.shared import draw_shared, drawn_loglik
@@ -19,10 +19,10 @@ from workbench.render.shared import draw_shared, drawn_loglik
 
 def prepare_meshes(problem: Problem) -> None:
     """Choose every model's collision shape and render mesh now, in this process, saying so when that takes long
-    (``heavy.announced``): a pool's workers then read them from the cache instead of each computing the same, and
+    (``meshes.heavy.announced``): a pool's workers then read them from the cache instead of each computing the same, and
     so do other processes preparing the same mesh meanwhile (Ray tasks, concurrent runs), which wait their turn
-    (``heavy.one_at_a_time``)."""
-    from workbench.heavy import announced, faces_text, mesh_key, one_at_a_time
+    (``meshes.heavy.one_at_a_time``)."""
+    from workbench.meshes.heavy import announced, faces_text, mesh_key, one_at_a_time
     from workbench.physics.projector import collision_shapes
     from workbench.render.depth import default_cache_dir, render_mesh
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from workbench.evaluation.base import Evaluation, WorkerCrashed, joined, split_batch, split_calls
 from workbench.evaluation.local import LocalEvaluator, prepare_meshes
-from workbench.problem import Problem
+from workbench.problem.problem import Problem
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.evaluation.base import Evaluation, WorkerCrashed, joined, split_batch, split_calls
 from workbench.evaluation.local import LocalEvaluator
-from workbench.problem import Problem
+from workbench.problem.problem import Problem
 
 INSTALL_HINT = "pip install 'workbench[ray]' (in a checkout: .venv/bin/pip install -e '.[ray]')"
 

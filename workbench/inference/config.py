@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.inference.moves import PROPOSALS, MoveMix
-from workbench.inference.particles import STATES, Sigma
+from workbench.inference.search.moves.registry import PROPOSALS, MoveMix
+from workbench.inference.smc.particles import STATES, Sigma
 
 METHODS = ("pipf", "mcpf")
 
@@ -43,7 +43,7 @@ class EstimatorConfig:
     # Consecutive iterations the rule must hold. PI-MCPF keeps its best particle whenever the proposals around it
     # are rejected, so a short patience stops it long before the particle set has settled.
     converge_patience: int = 10
-    # Settling (inference.settle): the estimate is fitted to the depth without physics at the end of a run, each
+    # Settling (inference.answer.settle): the estimate is fitted to the depth without physics at the end of a run, each
     # object within this far (m) and this turn (deg) of where physics put it, and each object's half turns are
     # tried; 0 turns it off, as do the paper's proposals. Measured on the real YCB-Video dev frames
     # (docs/benchmarks.md, "Settling"): 34 -> 37 and 31 -> 34 of 50 objects right (seeds 1, 2), the others ~1 mm
@@ -52,7 +52,7 @@ class EstimatorConfig:
     # the settled scenes stay as restful under physics as the annotated ones (section "Settling, third step").
     settle_shift: float = 0.015
     settle_turn: float = 12.0
-    # Leaning starts (inference.leaning): every object laid along each slanted flat patch of the observed points, the
+    # Leaning starts (inference.search.leaning): every object laid along each slanted flat patch of the observed points, the
     # best of each patch tried by polish while the estimate is stuck, never drawn into particles. In the library that
     # particles draw from, they found the generated gelatin box leaning on the wood block but sent the search astray
     # on the real desk of ycbv-real-dev, with its 5-6 slanted patches of clutter (docs/benchmarks.md).

@@ -11,7 +11,7 @@ Format (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_form
     DATASET/<split>/<scene_id:06d>/depth/<im_id:06d>.png   uint16; value x depth_scale = millimetres
     DATASET/<split>/<scene_id:06d>/rgb/<im_id:06d>.png|jpg optional
 
-Rotations are 9 numbers row-major, translations millimetres. In memory everything is metres (``scene.py``).
+Rotations are 9 numbers row-major, translations millimetres. In memory everything is metres (``problem/scene.py``).
 ``DATASET`` may be the dataset root or a split folder (then the models are in its parent). Every problem with
 the files raises ``InputError`` naming the file. The readers and checks (``read_json``, ``read_depth_png``,
 ``read_mesh``, ``parse_K``, ``parse_pose``, ``parse_T``, ``check_*``) are shared with ``plainframe.py``.
@@ -33,9 +33,9 @@ from PIL import Image, UnidentifiedImageError
 
 from workbench.errors import InputError
 from workbench.geometry import make_pose
-from workbench.heavy import loading
-from workbench.outputs import replace_file
-from workbench.scene import Camera, Frame, ObjectModel
+from workbench.meshes.heavy import loading
+from workbench.io.outputs import replace_file
+from workbench.problem.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
 _WARNED_OPEN: set[tuple[str, int, int]] = set()  # open meshes already warned about (read_mesh)

@@ -38,7 +38,7 @@ from workbench.io.bop import (
     read_json,
     read_mesh,
 )
-from workbench.scene import Camera, Frame, ObjectModel
+from workbench.problem.scene import Camera, Frame, ObjectModel
 
 UNITS = {"mm": MM, "m": 1.0}
 # Objects on a table are between these sizes (metres); outside them the unit is wrong.

@@ -31,10 +31,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from workbench import cache
+from workbench.meshes import cache
 from workbench.errors import InputError
 from workbench.geometry import make_pose
-from workbench.heavy import working_mesh
+from workbench.meshes.heavy import working_mesh
 from workbench.physics.bullet import pybullet
 
 BOX, CYLINDER, CONVEX, COMPOUND = "box", "cylinder", "convex", "compound"

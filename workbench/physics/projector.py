@@ -18,7 +18,7 @@ from workbench.physics.bullet import pybullet
 from workbench.physics.collision import CollisionShape, collision_shape_for
 from workbench.physics.config import PhysicsConfig
 from workbench.physics.world import World
-from workbench.scene import ObjectModel, Table
+from workbench.problem.scene import ObjectModel, Table
 
 STATUS_REST, STATUS_STEP_CAP, STATUS_UNSTABLE, STATUS_OFF_TABLE = 0, 1, 2, 3
 # Set by the evaluator, not here: at rest, but an object's centre lies outside the region where objects are seen, or

@@ -30,7 +30,7 @@ from workbench.geometry import invert_pose, make_pose, matrix_to_quat_wxyz, wxyz
 from workbench.physics.bullet import pybullet
 from workbench.physics.collision import BOX, COMPOUND, CYLINDER, CollisionShape
 from workbench.physics.config import PhysicsConfig
-from workbench.scene import ObjectModel, Table
+from workbench.problem.scene import ObjectModel, Table
 
 
 @dataclass(frozen=True)

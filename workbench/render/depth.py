@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from workbench import cache
+from workbench.meshes import cache
 from workbench.errors import InputError
-from workbench.heavy import working_mesh
-from workbench.scene import Camera
+from workbench.meshes.heavy import working_mesh
+from workbench.problem.scene import Camera
 
 BACKENDS = ("osmesa", "egl")
 

@@ -15,7 +15,7 @@ from PIL import Image
 from workbench.errors import InputError
 from workbench.geometry import make_pose
 from workbench.io import bop
-from workbench.metrics import box_symmetries
+from workbench.score.metrics import box_symmetries
 from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, SHAPE_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.distractors import Distractor, distractor_mesh
 from workbench.synth.objects import BOXES, ROUND, MeshItem, box_mesh, item_mesh

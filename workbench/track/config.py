@@ -8,8 +8,8 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.moves import MOVES, MoveMix
-from workbench.inference.particles import Sigma
+from workbench.inference.search.moves.registry import MOVES, MoveMix
+from workbench.inference.smc.particles import Sigma
 
 MOTIONS = ("auto", "given", "depth")
 

@@ -20,7 +20,7 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, transform_points
 from workbench.io import bop
-from workbench.scene import Frame
+from workbench.problem.scene import Frame
 
 WORLD_FILE = "scene_camera_world.json"
 

@@ -1,0 +1,363 @@
+"""The engine: owns the problem and the ``Estimator`` of the estimator process, and answers the server's commands.
+
+It runs in a process of its own (``engine_process``) so that the browser server never waits for an iteration.
+Commands are drained between iterations, so a Pause takes effect after the iteration in progress. A run starts an
+iteration only once the server has shown the last one (``protocol.Shown``): a slow display holds the run back
+instead of falling behind it, and a Pause stops the run one iteration after the one on display at the latest.
+
+Labels, sessions and sequences are handled in this process too, because they need the estimator and a renderer:
+the server only shows them (``engine_labels``, ``engine_sessions``, ``engine_sequence``).
+
+A dead evaluation worker surfaces as ``WorkerCrashed`` (or a broken pipe): the pool is rebuilt and the iteration
+retried once, and the user is told (``evaluators``). If this whole process dies, ``engine_process.EngineClient``
+(the server side) restarts it and reloads the frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+import traceback
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+from workbench.app import protocol as p
+from workbench.app.engine.labels import FrameLabels
+from workbench.app.engine.sequence import EngineSequence
+from workbench.app.engine.sessions import open_session, save_session
+from workbench.app.engine.evaluators import CRASH_ERRORS, Evaluators
+from workbench.app.engine.snapshot import ParticleDisplay
+from workbench.errors import InputError
+
+log = logging.getLogger(__name__)
+
+DEMO_DIR = Path(__file__).resolve().parents[3] / "assets" / "demo"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Loading
+
+
+def user_data_dir() -> Path:
+    """Where the workbench keeps what a user may change: ``$WORKBENCH_HOME``, else ``$XDG_DATA_HOME/workbench``,
+    else ``~/.local/share/workbench``."""
+    if os.environ.get("WORKBENCH_HOME"):
+        return Path(os.environ["WORKBENCH_HOME"]).expanduser()
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base).expanduser() / "workbench"
+
+
+def demo_dataset() -> Path:
+    """The demo the app shows, and saves labels into: ``user_data_dir()/demo``, copied once from the bundled
+    ``assets/demo`` (or written by ``synth.make_demo`` when the checkout has none), so that nothing is ever saved
+    into the installed package. An existing copy is used as it is: it may hold the user's labels."""
+    out = user_data_dir() / "demo"
+    if (out / "models" / "models_info.json").is_file():
+        return out
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out, "the demo's copy is incomplete (no models/models_info.json): move it away and the "
+                              "demo is copied again")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".demo-", dir=out.parent))  # copied whole, then renamed into place
+    try:
+        if (DEMO_DIR / "models").is_dir():
+            shutil.copytree(DEMO_DIR, tmp, dirs_exist_ok=True)
+        else:
+            from workbench.synth import make_demo
+
+            make_demo(tmp)
+        os.replace(tmp, out)  # onto a missing or empty folder
+    except OSError:
+        if not (out / "models" / "models_info.json").is_file():  # not another engine's copy, finished first
+            raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    log.info("copied the demo to %s", out)
+    return out
+
+
+def load(source: p.Source, likelihood: str):
+    """-> (dataset folder, frame, problem) for ``source``; raises ``InputError`` naming the file at fault."""
+    from workbench.io import bop
+    from workbench.problem.build import load_bop_problem
+    from workbench.problem.problem import ProblemConfig
+    from workbench.render.likelihood import LikelihoodConfig
+
+    dataset = demo_dataset() if source.demo else source.dataset
+    if dataset is None:
+        raise InputError(None, "no dataset given: type a BOP dataset folder or load the demo")
+    dataset = Path(dataset).expanduser()
+    if not dataset.exists():
+        raise InputError(dataset, "no such file or folder")
+    scene_id, im_id = source.scene_id, source.im_id
+    if scene_id is None or im_id is None:
+        frames = [f for f in bop.list_frames(dataset) if scene_id is None or f[0] == scene_id]
+        if not frames:
+            raise InputError(dataset, f"no frames{'' if scene_id is None else f' in scene {scene_id}'}")
+        scene_id, im_id = frames[0] if im_id is None else (frames[0][0], im_id)
+    config = ProblemConfig(likelihood=LikelihoodConfig(model=likelihood))
+    frame, problem = load_bop_problem(dataset, scene_id, im_id, config=config)
+    return dataset, frame, problem
+
+
+def session_source(dataset: Path, split: str | None, frame) -> p.Source:
+    """What a restarted engine reloads for a session's frame of ``dataset`` (its ``split`` folder, if any): the
+    demo when the session was saved from the demo's copy or the bundled folder."""
+    if dataset.resolve() in (DEMO_DIR, user_data_dir().resolve() / "demo"):
+        return p.Source(demo=True)
+    return p.Source(dataset / split if split else dataset, frame.scene_id, frame.im_id)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The engine
+
+
+class Engine:
+    """One estimation run on the loaded frame, answering the server's commands (``handle``). Its collaborators:
+    ``evaluators`` (the worker pool and an in-process renderer), ``display`` (what of the run is shown),
+    ``labels`` (the frame's labels) and ``sequence`` (the frames of its scene, one after another)."""
+
+    def __init__(self, results, workers: int, ray=None):
+        # results: what the engine tells the server, anything with a put (engine_process.Outbox, a test's list)
+        self.results = results
+        self.evaluators = Evaluators(results, workers, ray)
+        self.display = ParticleDisplay()
+        self.labels = FrameLabels(self)
+        self.sequence = EngineSequence(self)
+        self.problem = None
+        self.frame = None
+        self.estimator = None
+        self.config = None
+        self.running = False
+        self.unshown: int | None = None  # the iteration last published and not yet Shown by the server
+        self.stop_on_convergence = True
+
+    # -- commands
+
+    def handle(self, cmd) -> None:
+        if isinstance(cmd, p.Load):
+            self.load(cmd)
+        elif isinstance(cmd, p.Reset):
+            self.reset(cmd.config, cmd.likelihood)
+        elif isinstance(cmd, p.SetConfig):
+            self.set_config(cmd.config)
+        elif isinstance(cmd, p.Select):
+            self.display.rank = max(0, int(cmd.rank))
+            self.publish_chosen()
+        elif isinstance(cmd, p.SetDisplay):
+            self.display.max_display = max(1, int(cmd.max_particles))
+            if self.estimator is not None and self.estimator.particles is not None:
+                self.publish()
+        elif isinstance(cmd, p.Step):
+            if not self.running:
+                self.step()
+        elif isinstance(cmd, p.Run):
+            self.start(cmd.stop_on_convergence)
+        elif isinstance(cmd, p.Shown):
+            if self.unshown is not None and cmd.iteration >= self.unshown:
+                self.unshown = None
+        elif isinstance(cmd, p.Pause):
+            if self.running:
+                self.running = False
+                self.send_state("paused")
+        elif isinstance(cmd, p.SetLabels):
+            self.labels.set(cmd)
+        elif isinstance(cmd, p.SnapLabels):
+            self.aside("labels", self.labels.snap)
+        elif isinstance(cmd, p.FitLabels):
+            self.aside("labels", self.labels.fit)
+        elif isinstance(cmd, p.UseBestAsLabel):
+            self.aside("labels", lambda: self.labels.use_best(cmd.modes, cmd.iteration))
+        elif isinstance(cmd, p.SaveLabels):
+            self.aside("labels", lambda: self.labels.save(cmd.overwrite_original))
+        elif isinstance(cmd, p.SaveSession):
+            self.aside("session", lambda: self.results.put(
+                save_session(cmd, self.estimator, self.labels, self.evaluators.describe(), self.sequence.record())))
+        elif isinstance(cmd, p.LoadSession):
+            self.aside("session", lambda: self.load_session(cmd))
+        elif isinstance(cmd, p.NextFrame):
+            self.sequence.guarded(self.sequence.next)
+        elif isinstance(cmd, p.ShowFrame):
+            self.sequence.guarded(lambda: self.sequence.show(cmd.im_id))
+
+    def aside(self, topic: str, action: Callable[[], None]) -> None:
+        """A labelling or session action: bad input is reported next to its button and the run goes on (``fail``
+        would stop it)."""
+        try:
+            action()
+        except InputError as err:
+            self.results.put(p.Failure(f"{topic.capitalize()}: not done", err.problem, err.path, topic=topic))
+
+    def load(self, cmd: p.Load) -> None:
+        cmd.config.validate()
+        dataset, frame, problem = load(cmd.source, cmd.likelihood)  # on failure the old run stays
+        from workbench.app.engine.observation import build_view
+
+        view = build_view(frame, problem, cmd.source.title(frame.scene_id, frame.im_id), dataset)
+        self.replace_frame(cmd.source, view, frame, problem, cmd.config)
+        self.new_estimator()
+        self.labels.adopt_frame(dataset)
+        self.sequence.start(cmd.source, dataset, None, view)
+
+    def replace_frame(self, source: p.Source, view: p.ObservationView, frame, problem, config) -> None:
+        """Put ``frame`` in place of the loaded one and show it; the run on it is started by the caller."""
+        self.running = False
+        self.evaluators.use(problem)
+        self.frame, self.problem, self.config = frame, problem, config
+        self.display.forget()
+        self.results.put(p.Loaded(source, view))
+
+    def reset(self, config, likelihood: str) -> None:
+        if self.problem is None:
+            raise InputError(None, "nothing is loaded: load a dataset or the demo first")
+        config.validate()
+        self.config = config
+        if likelihood != self.problem.config.likelihood.model:
+            likelihood_config = replace(self.problem.config.likelihood, model=likelihood)
+            likelihood_config.validate()
+            self.problem = replace(self.problem, config=replace(self.problem.config, likelihood=likelihood_config))
+            self.evaluators.use(self.problem)
+        self.new_estimator()
+
+    def set_config(self, config) -> None:
+        config.validate()
+        self.config = config
+        if self.estimator is not None:
+            self.estimator.set_config(config)
+
+    def new_estimator(self) -> None:
+        from workbench.inference.estimator import Estimator
+
+        self.running = False
+        self.unshown = None  # a snapshot of the old run still on its way does not hold up the new one
+        self.estimator = Estimator(self.problem, self.config, self.evaluators.evaluator())
+        self.display.forget()
+        self.labels.reference = None
+        self.send_state("reset")
+
+    # -- running
+
+    def start(self, stop_on_convergence: bool) -> None:
+        if self.estimator is None:
+            raise InputError(None, "nothing is loaded: load a dataset or the demo first")
+        self.stop_on_convergence = stop_on_convergence
+        if self.finished():
+            self.results.put(p.Failure(
+                "Nothing to run",
+                f"the run is at iteration {self.estimator.iteration} of {self.estimator.config.iterations}"
+                + (" and has converged" if self.estimator.converged else "")
+                + ": raise the iteration budget, press Step, or Reset",
+            ))
+            return
+        self.running = True
+        self.send_state("running")
+
+    def may_step(self) -> bool:
+        """Running, and the server shows the last iteration (see ``protocol.Shown``)."""
+        return self.running and self.unshown is None
+
+    def finished(self) -> bool:
+        """At the run's own budget (a tracked frame's is its short search's), or converged."""
+        est = self.estimator
+        return est.iteration >= est.config.iterations or (
+            self.stop_on_convergence and est.iteration >= 0 and est.converged
+        )
+
+    def step(self) -> None:
+        from workbench.evaluation import WorkerCrashed
+
+        if self.estimator is None:
+            raise InputError(None, "nothing is loaded: load a dataset or the demo first")
+        try:
+            report = self.estimator.step()
+        except (WorkerCrashed, *CRASH_ERRORS) as err:
+            self.estimator.evaluator = self.evaluators.restart(err)
+            report = self.estimator.step()  # a second crash in a row is a Failure for the user
+        if self.running and self.finished():
+            self.running = False
+        if self.finished():
+            # The run's answer, as `workbench estimate` gives it: the estimate settled, with its posterior, which
+            # the snapshot carries. Computed once per estimate (a Step past the end settles only a new one).
+            self.estimator.settle()
+        self.publish(report)
+        if self.finished():
+            self.sequence.finished()
+        if not self.running:
+            self.send_state("converged" if report.converged else "done" if self.finished() else "paused")
+
+    def publish(self, report=None) -> None:
+        est = self.estimator
+        if report is None:
+            if not est.history:
+                return
+            report = est.history[-1]
+        self.results.put(self.display.snapshot(est, report, self.running, self.config.particles,
+                                               self.labels.reference_loglik()))
+        self.unshown = est.iteration
+        self.publish_chosen()
+        self.labels.publish_errors()
+        self.labels.publish_truth()
+
+    def publish_chosen(self) -> None:
+        if self.estimator is None:
+            return
+        chosen = self.display.chosen(self.estimator, self.evaluators.explain)
+        if chosen is not None:
+            self.results.put(chosen)
+
+    def send_state(self, reason: str) -> None:
+        it = -1 if self.estimator is None else self.estimator.iteration
+        self.results.put(p.RunState(self.running, it, reason))
+
+    def fail(self, err: BaseException) -> None:
+        """Tell the user; stop running; keep serving."""
+        self.running = False
+        if isinstance(err, InputError):
+            self.results.put(p.Failure("Input error", err.problem, err.path))
+        else:
+            log.error("engine error\n%s", traceback.format_exc())
+            self.results.put(p.Failure(f"Estimator error ({type(err).__name__})", str(err) or repr(err)))
+        self.send_state("error")
+
+    # -- sessions
+
+    def load_session(self, cmd: p.LoadSession) -> None:
+        """Continue a saved session. Everything that can fail on bad input happens before the current run is
+        touched; stepping the restored estimator then continues the saved run bit for bit, given the same worker
+        count (the tile a hypothesis is rendered in changes the last bits of its depth)."""
+        from workbench.sessions import store as sessions
+        from workbench.app.engine.observation import build_view
+
+        opened = open_session(Path(cmd.path), cmd.confirmed)
+        if isinstance(opened, p.SessionQuestion):
+            self.results.put(opened)
+            return
+        state, frame, problem = opened.state, opened.frame, opened.problem
+        source = session_source(opened.dataset, state.frame.split, frame)
+        view = build_view(frame, problem, opened.title(), opened.dataset)
+
+        # From here on the current run is replaced. In a sequence the panel's settings are the sequence's (a
+        # tracked frame's run has its own).
+        config = state.estimator_config if opened.sequence is None else opened.sequence.config
+        self.replace_frame(source, view, frame, problem, config)
+        try:
+            self.estimator = sessions.restore_estimator(state, problem, self.evaluators.evaluator())
+        except Exception:
+            self.new_estimator()  # a fresh run on the session's frame: the server shows that frame already
+            self.labels.adopt_frame(opened.dataset)
+            self.sequence.start(source, opened.dataset, state.frame.split, view)
+            raise
+        est = self.estimator
+        self.labels.adopt_frame(opened.dataset, labels=state.labels)
+        self.results.put(p.SessionRestored(opened.name, opened.path, config, problem.config.likelihood.model,
+                                           [r.as_dict() for r in est.history], opened.warnings))
+        self.sequence.start(source, opened.dataset, state.frame.split, view, opened.sequence)
+        self.send_state("restored")
+        if est.iteration >= 0:
+            self.publish()
+
+    def close(self) -> None:
+        self.evaluators.close()

@@ -1,0 +1,289 @@
+"""Editing labels in the browser: per object a pose with a transform gizmo and a magenta mesh in the 3D view, and
+the selected object's pose fields in the Label tab.
+
+A label is an object's pose T_world_obj in the table frame. The selected object has a transform gizmo, and six
+numeric fields (x, y, z in cm; roll, pitch, yaw in degrees, ``R = Rz(yaw) Ry(pitch) Rx(roll)`` about the table's
+axes) that follow it; typing into a field moves the gizmo. Labelled objects are drawn in magenta (beside their gizmo
+rather than as its child: three.js hides the children of a hidden node, and only the selected object's gizmo is
+shown). An unlabelled object's gizmo and fields show the most likely scene; moving or typing labels it. Every edit
+is sent to the engine as ``SetLabels``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import viser
+
+from workbench.app import protocol as p
+from workbench.app.ui.widgets.colors import LABEL_COLOR
+from workbench.app.ui.labelling.controls import AXES, FACES, NO_OBJECT, TURNS, LabelTab
+from workbench.app.ui.widgets.quiet import Quiet
+from workbench.app.ui.run.views import OUTLINE_WIDTH, Nodes, outline_segments, split_pose
+from workbench.geometry import (
+    euler_to_matrix,
+    make_pose,
+    matrix_to_euler,
+    quat_wxyz_to_matrix,
+    rot_x,
+    rotvec_to_matrix,
+)
+
+SEND_INTERVAL_S = 0.05  # gizmo drags report ~60 poses/s; the engine only ever renders the latest anyway
+GIMBAL_DEG = 80.0  # |pitch| beyond this: roll and yaw nearly turn about one axis and typing them stops helping
+
+
+def turned(T: np.ndarray, R: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Pose ``T`` (4, 4) rotated by ``R`` (3, 3, about the table's axes) about the object's origin, then raised or
+    lowered so that its lowest point (of ``vertices`` (V, 3), object frame) stays at the same height: an object
+    resting on the table stays on it."""
+    low = float(np.min(vertices @ T[:3, :3].T[:, 2]))
+    out = make_pose(R @ T[:3, :3], T[:3, 3])
+    out[2, 3] += low - float(np.min(vertices @ out[:3, :3].T[:, 2]))
+    return out
+
+
+def laid_on(T: np.ndarray, face: tuple[float, float, float], vertices: np.ndarray) -> np.ndarray:
+    """Pose ``T`` turned so that the object's own axis ``face`` points down, keeping its place on the table and as
+    much of its heading as the turn allows, resting on the table (lowest point at z = 0)."""
+    d = T[:3, :3] @ np.asarray(face, dtype=np.float64)  # that axis now, in the table frame
+    down = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(d, down)
+    s, c = np.linalg.norm(axis), float(np.dot(d, down))
+    if s < 1e-9:  # already down, or straight up: a half turn about the table's x
+        R = np.eye(3) if c > 0 else rot_x(np.pi)
+    else:  # the shortest rotation taking d onto down: about their cross product, by the angle between them
+        R = rotvec_to_matrix(axis / s * np.arctan2(s, c))
+    out = make_pose(R @ T[:3, :3], T[:3, 3])
+    out[2, 3] = -float(np.min(vertices @ out[:3, :3].T[:, 2]))  # lowest point on the table top
+    return out
+
+
+@dataclass
+class LabelEditor:
+    """The labels as the panel shows them (per object a (4, 4) table-frame pose or None), their gizmos and meshes,
+    and the fields of the selected object. ``send`` reaches the engine; ``on_unlabelled`` is told when the last
+    label was cleared (the label heatmap has nothing left to show)."""
+
+    server: viser.ViserServer
+    tab: LabelTab
+    send: Callable[[object], None]
+    lock: threading.RLock
+    quiet: Quiet
+    on_unlabelled: Callable[[], None] = lambda: None
+    labels: list = field(default_factory=list)
+    estimate: np.ndarray | None = None  # the most likely scene (K, 4, 4): where unlabelled objects are shown
+    names: list[str] = field(default_factory=list)
+    vertices: list = field(default_factory=list)  # per object (V, 3), object frame
+    homes: np.ndarray | None = None  # (K, 4, 4): where an object sits before there is any estimate
+    gizmos: list = field(default_factory=list)
+    meshes: list = field(default_factory=list)
+    nodes: Nodes = field(default_factory=Nodes)
+    shown: bool = True  # the labels' outlines shown (the View box's visibility bar)
+    _last_send: float = 0.0
+
+    def __post_init__(self) -> None:
+        t = self.tab
+        t.object.on_update(lambda _: self.guarded(self.selection_changed))
+        for i, h in enumerate(t.position):
+            h.on_update(lambda _, i=i: self.guarded(lambda: self.field_edited(position_axis=i)))
+        for h in t.angles:
+            h.on_update(lambda _: self.guarded(lambda: self.field_edited(position_axis=None)))
+        t.show_gizmo.on_update(lambda _: self.guarded(self.redraw))
+        for axis, h in zip(AXES, t.turns):
+            h.on_click(lambda event, axis=axis: self.guarded(lambda: self.turn(axis, event.target.value)))
+        t.lay.on_click(lambda event: self.guarded(lambda: self.lay_on(event.target.value)))
+        t.clear.on_click(lambda _: self.guarded(self.clear_selected))
+
+    def guarded(self, action: Callable[[], None]) -> None:
+        """Run a GUI callback unless the server itself is writing the controls (see ``Quiet``)."""
+        if self.quiet.active:
+            return
+        with self.lock:
+            action()
+
+    def set_frame(self, view: p.ObservationView) -> None:
+        """New frame: one gizmo and one mesh per object, nothing labelled until the engine says (under the lock)."""
+        self.nodes.clear()
+        scene = self.server.scene
+        K = len(view.meshes)
+        self.labels, self.estimate = [None] * K, None
+        self.names = [m.name for m in view.meshes]  # unique per scene (scene.display_names)
+        self.vertices = [np.asarray(m.vertices, dtype=np.float64) for m in view.meshes]
+        x0, x1, y0, y1 = view.region
+        self.homes = np.stack([
+            make_pose(np.eye(3), [(x0 + x1) / 2, (y0 + y1) / 2, -float(np.min(m.vertices[:, 2]))])
+            for m in view.meshes
+        ])
+        self.gizmos, self.meshes = [], []
+        for k, m in enumerate(view.meshes):
+            size = float(np.max(np.ptp(m.vertices, axis=0)))
+            gizmo = self.nodes.add(scene.add_transform_controls(
+                f"/label/{k}", scale=max(0.06, 1.2 * size), line_width=2.0, depth_test=False, visible=False,
+            ))
+            gizmo.on_update(lambda event, k=k: self.gizmo_moved(k, event))
+            self.gizmos.append(gizmo)
+            # An outline, as the ground truth's: the depth's points and the estimate stay visible inside it.
+            self.meshes.append(self.nodes.add(scene.add_line_segments(
+                f"/label_mesh/{k}", outline_segments(m), colors=LABEL_COLOR, thickness=OUTLINE_WIDTH + 0.5,
+                thickness_units="screen", visible=False)))
+        with self.quiet:
+            self.tab.object.options = tuple(self.names) or (NO_OBJECT,)
+            self.tab.object.value = self.tab.object.options[0]
+        self.redraw()
+
+    def set_labels(self, labels) -> None:
+        """The labels the engine holds (under the lock)."""
+        self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in labels]
+        self.redraw()
+
+    def show_estimate(self, best: np.ndarray | None) -> None:
+        """The latest most likely scene: an unlabelled selected object (gizmo and fields) follows it. Only that one:
+        this runs every iteration, and hidden gizmos are placed when they are selected."""
+        with self.lock:
+            self.estimate = None if best is None else np.asarray(best, dtype=np.float64)
+            sel = self.selected()
+            if sel is None or self.labels[sel] is not None:
+                return
+            with self.server.atomic(), self.quiet:
+                gizmo = self.gizmos[sel]
+                gizmo.wxyz, gizmo.position = split_pose(self.pose(sel))
+                self.show_fields(sel)
+
+    def selected(self) -> int | None:
+        try:
+            return self.names.index(self.tab.object.value)
+        except ValueError:
+            return None
+
+    def pose(self, k: int) -> np.ndarray:
+        """Where object k is shown: its label, else the best estimate, else its place before any estimate."""
+        if self.labels[k] is not None:
+            return self.labels[k]
+        if self.estimate is not None and len(self.estimate) == len(self.labels):
+            return self.estimate[k]
+        return self.homes[k]
+
+    def redraw(self) -> None:
+        """Gizmo, meshes and fields from the labels (the server writing: no callback may echo this back)."""
+        sel = self.selected()
+        with self.server.atomic(), self.quiet:
+            for k, (gizmo, mesh) in enumerate(zip(self.gizmos, self.meshes)):
+                q, t = split_pose(self.pose(k))
+                gizmo.wxyz, gizmo.position = q, t
+                gizmo.visible = k == sel and self.tab.show_gizmo.value
+                mesh.wxyz, mesh.position = q, t
+                mesh.visible = self.labels[k] is not None and self.shown
+            self.show_fields(sel)
+
+    def set_shown(self, shown: bool) -> None:
+        """Show or hide the labels' outlines (the View box's visibility bar)."""
+        self.shown = shown
+        with self.server.atomic():
+            for k, mesh in enumerate(self.meshes):
+                mesh.visible = self.labels[k] is not None and shown
+
+    def show_fields(self, sel: int | None) -> None:
+        t = self.tab
+        if sel is None:
+            t.state.content = "Load a frame to label its objects."
+            return
+        T = self.pose(sel)
+        xyz = T[:3, 3] * 100.0
+        rpy = np.degrees(matrix_to_euler(T[:3, :3]))
+        for h, v in zip((*t.position, *t.angles), (*xyz, *rpy)):
+            h.value = float(v)
+        if abs(rpy[1]) > GIMBAL_DEG:
+            gimbal = (f" Pitch is {rpy[1]:.0f}°: roll and yaw now turn about nearly the same axis, so use **Turn**, "
+                      "**Lay on face** or the gizmo rather than typing angles.")
+        else:
+            gimbal = ""
+        if self.labels[sel] is not None:
+            state = f"**{self.names[sel]}** is labelled.{gimbal}"
+        else:
+            shown = "the best estimate" if self.estimate is not None else "a starting place"
+            state = (f"**{self.names[sel]}** is not labelled: the fields show {shown}. Type a value or drag the gizmo "
+                     f"to label it.{gimbal}")
+        if t.state.content != state:  # markdown is re-sent on every assignment, changed or not
+            t.state.content = state
+
+
+    # -- edits
+
+    def selection_changed(self) -> None:
+        self.start_editing()
+        self.redraw()
+
+    def start_editing(self) -> None:
+        """The user is labelling: show the selected object's gizmo (off until now, see ``build_label_tab``)."""
+        if not self.tab.show_gizmo.value:
+            with self.quiet:
+                self.tab.show_gizmo.value = True
+
+    def turn(self, axis: str, which: str) -> None:
+        """A ``Turn about`` button: a quarter turn of the selected object about the table's ``axis``."""
+        k = self.selected()
+        if k is None:
+            return
+        angle = np.pi / 2 if which == TURNS[1] else -np.pi / 2
+        self.set_label(k, turned(self.pose(k), AXES[axis](angle), self.vertices[k]))
+
+    def lay_on(self, face: str) -> None:
+        """A ``Lay on face`` button: the selected object turned onto that face of its own, on the table."""
+        k = self.selected()
+        if k is None:
+            return
+        self.set_label(k, laid_on(self.pose(k), FACES[face], self.vertices[k]))
+
+    def set_label(self, k: int, T: np.ndarray) -> None:
+        self.start_editing()
+        self.labels[k] = np.asarray(T, dtype=np.float64)
+        self.redraw()
+        self.send_labels()
+
+    def field_edited(self, position_axis: int | None) -> None:
+        """A typed value: a position field changes that coordinate only; an angle field sets the rotation from
+        all three angles (so the other coordinates are kept to the last bit)."""
+        k = self.selected()
+        if k is None:
+            return
+        T = np.array(self.pose(k), dtype=np.float64)
+        if position_axis is not None:
+            T[position_axis, 3] = float(self.tab.position[position_axis].value) / 100.0
+        else:
+            T[:3, :3] = euler_to_matrix(np.radians([float(h.value) for h in self.tab.angles]))
+        self.set_label(k, T)
+
+    def gizmo_moved(self, k: int, event: viser.TransformControlsEvent) -> None:
+        with self.lock:
+            if k >= len(self.labels) or self.gizmos[k] is not event.target:
+                return  # a late event for the previous frame's gizmo
+            R = quat_wxyz_to_matrix(np.asarray(event.target.wxyz, dtype=np.float64))
+            self.labels[k] = make_pose(R, np.asarray(event.target.position, dtype=np.float64))
+            with self.server.atomic(), self.quiet:
+                mesh = self.meshes[k]
+                mesh.wxyz, mesh.position, mesh.visible = event.target.wxyz, event.target.position, True
+                if self.selected() != k:
+                    self.tab.object.value = self.names[k]
+                self.show_fields(k)
+            now = time.monotonic()
+            if event.phase != "update" or now - self._last_send >= SEND_INTERVAL_S:
+                self.send_labels()
+
+    def clear_selected(self) -> None:
+        k = self.selected()
+        if k is None:
+            return
+        self.labels[k] = None
+        if not any(T is not None for T in self.labels):
+            self.on_unlabelled()
+        self.redraw()
+        self.send_labels()
+
+    def send_labels(self) -> None:
+        self._last_send = time.monotonic()
+        self.send(p.SetLabels(tuple(self.labels), heatmap=self.tab.heatmap.value != "off"))

@@ -1,0 +1,208 @@
+"""The run as drawn: the observation, the particle cloud, the chosen particle and its heatmap, the estimate's other
+modes (the posterior) in the 3D view, and the panel's images, legends and tables beside them.
+
+While the estimator runs, the 3D view is redrawn at most once per ``SCENE_INTERVAL_S`` (``SceneThrottle``); the
+panel's text and plots follow every iteration (``server.App``).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Callable
+
+import numpy as np
+import viser
+
+from workbench.app import protocol as p
+from workbench.app.ui.widgets.colors import VIRIDIS, legend_html, view_legend_html
+from workbench.app.ui.labelling.labelling import Labelling
+from workbench.app.ui.run.modes import confidences, posterior_markdown
+from workbench.app.ui.run.ghosts import ModesLayer
+from workbench.app.ui.panel import Panel
+from workbench.app.ui.widgets.scene_throttle import SceneThrottle
+from workbench.app.ui.run.status import physics_markdown
+from workbench.app.ui.run.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
+from workbench.inference.answer.posterior import Posterior
+
+# While the estimator runs, the 3D view is redrawn at most once per this many seconds. Every batch of scene messages
+# makes viser's client draw frames for 250 ms, and a software-rendered frame costs ~0.2 s of CPU, so each redraw
+# costs ~0.5 s of CPU: a redraw per iteration (and Chosen apart from Snapshot) kept Chromium busy. The panel's text
+# and plots still follow every iteration.
+SCENE_INTERVAL_S = 1.0
+SCENE_GATHER_S = 0.1  # a deferred redraw waits this long at least, for the rest of its iteration (Chosen)
+
+
+class RunDisplay:
+    """Draws what the engine sends; ``on_pick(rank)``: a particle was clicked; ``on_error(what, err)``: a throttled
+    drawing failed."""
+
+    def __init__(self, server: viser.ViserServer, panel: Panel, lock: threading.RLock, labelling: Labelling,
+                 on_pick: Callable[[int], None], on_error: Callable[[str, Exception], None]):
+        self.server, self.panel, self.lock, self.labelling = server, panel, lock, labelling
+        self.throttle = SceneThrottle(server, lock, SCENE_INTERVAL_S, SCENE_GATHER_S, on_error)
+        light_cheaply(server)
+        self.observation = ObservationLayer(server)
+        self.particles = ParticleLayer(server, on_pick=on_pick)
+        self.chosen = ChosenLayer(server)
+        self.heatmap = HeatmapLayer(server)
+        self.modes = ModesLayer(server)
+        self.view: p.ObservationView | None = None  # the frame drawn
+        self.posterior: Posterior | None = None  # the settled estimate's, shown (None: none for this estimate)
+        self.names: list[str] = []  # the loaded objects' display names, as every part of the panel shows them
+        self.choice: p.Chosen | None = None  # the chosen particle drawn
+        self.last_heat_mode = "log-likelihood"  # what the visibility bar's heatmap toggle turns on
+
+    def set_frame(self, view: p.ObservationView) -> None:
+        """A new frame: its observation, and nothing of a run yet (the caller batches this with ``server.atomic``)."""
+        P = self.panel
+        self.throttle.cancel()
+        self.view, self.choice = view, None
+        self.observation.draw(view, self.points_visible(), P.show("truth"))
+        self.particles.set_frame(view.meshes)
+        self.chosen.set_frame(view)
+        self.heatmap.set_frame(view)
+        self.modes.set_frame(view.meshes)
+        self.posterior = None
+        P.posterior.content = posterior_markdown(None, [], -1)
+        P.depth_image.image = view.depth_image
+        P.depth_image.visible = True
+        lo, hi = view.depth_range
+        P.depth_legend.content = legend_html("depth (m)", f"{lo:.2f}", f"{hi:.2f}", VIRIDIS,
+                                             f"3D points: {view.color_legend}")
+        for image in (P.rgb_image, P.label_rgb):
+            if view.rgb_image is not None:
+                image.image = view.rgb_image
+            image.visible = view.rgb_image is not None
+        if view.where is not None:  # the Data tab names the frame on show
+            P.dataset.value, P.scene_id.value, P.im_id.value = view.where[0], str(view.where[1]), str(view.where[2])
+        P.heat_image.visible = False
+        P.legend.content = ""
+        P.physics_change.content = ""
+        P.truth.content = ""
+        P.timings.content = ""
+        P.plots.clear()
+        self.names = [m.name for m in view.meshes]
+        self.show_view_legend()
+
+    def show_view_legend(self) -> None:
+        view = self.view
+        if view is None:
+            return
+        heat = self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
+        note = "observed points replaced by a heatmap: its colours are explained beside it" if heat else ""
+        content = view_legend_html(self.names, view.color_legend, note, confidences(self.posterior, len(self.names)))
+        if self.panel.view_legend.content != content:
+            self.panel.view_legend.content = content
+
+    def show_cloud(self, cloud: p.ParticleCloud, posterior: Posterior | None, defer: bool) -> None:
+        """Draw ``cloud`` and the estimate (the settled one where the snapshot has a ``posterior``): now, or
+        (``defer``: while running) with the next throttled redraw."""
+        self.throttle.submit("particles", lambda: self.draw_particles(cloud, posterior), defer=defer)
+
+    def draw_particles(self, cloud: p.ParticleCloud, posterior: Posterior | None = None) -> None:
+        """The particle cloud and the estimate (which an unlabelled selected object's gizmo follows): the run's
+        answer where it was settled (each object's top mode: settling may have turned an object over), else the
+        most likely particle."""
+        estimate = None if posterior is None else np.stack([o.modes[0].T for o in posterior.objects])
+        self.particles.update(cloud, estimate)
+        if len(cloud.poses):
+            self.labelling.editor.show_estimate(cloud.poses[0] if estimate is None else estimate)
+
+    def show_posterior(self, posterior: Posterior | None, iteration: int, defer: bool) -> None:
+        """The settled estimate's ``posterior`` of the snapshot of ``iteration`` (None: none for its estimate): its
+        other modes as ghosts (now, or with the next throttled redraw), the confidences in the legend and the
+        Inspect tab, the modes to label with in the Label tab."""
+        if posterior is None and self.posterior is None:
+            return  # most snapshots: nothing to show, nothing shown
+        self.posterior = posterior
+        self.panel.posterior.content = posterior_markdown(posterior, self.names, iteration)
+        self.show_view_legend()
+        self.labelling.modes.show(posterior, iteration)
+        self.throttle.submit("modes", lambda: self.modes.update(posterior), defer=defer)
+
+    def show_chosen(self, chosen: p.Chosen, defer: bool) -> None:
+        """Draw ``chosen``: now, or (``defer``: while running) with the next throttled redraw."""
+        self.choice = chosen
+        self.throttle.submit("chosen", self.redraw_chosen, defer=defer)
+
+    def redraw_chosen(self) -> None:
+        with self.lock:
+            c, P = self.choice, self.panel
+            if c is None:  # nothing chosen in this run (yet): nothing of an earlier one stays drawn
+                self.chosen.clear()
+                self.heatmap.nodes.clear()
+                P.legend.content, P.heat_image.visible, P.physics_change.content = "", False, ""
+                return
+            self.chosen.update(c, P.scene_mode.value)
+            legend, image = self.heatmap.update(c, P.heatmap_mode.value)
+            P.legend.content = legend
+            if image is not None:
+                P.heat_image.image = image
+            P.heat_image.visible = image is not None
+            P.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
+
+    def heat_on(self) -> bool:
+        return self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
+
+    def points_visible(self) -> bool:
+        """The observed points show when the user wants them and no heatmap is drawn on them."""
+        return self.panel.show("points") and not self.heat_on()
+
+    def apply_visibility(self) -> None:
+        """Draw the visibility bar's choices (and the heatmap's) into the 3D view."""
+        P = self.panel
+        P.set_shown("heatmap", self.heat_on())
+        with self.server.atomic():
+            self.observation.set_visible(self.points_visible(), P.show("truth"))
+            self.particles.set_visible(P.show("particles"), P.show("estimate"))
+            self.modes.set_visible(P.show("modes"))
+            self.labelling.editor.set_shown(P.show("labels"))
+        self.show_view_legend()
+
+    def toggle(self, item: str) -> None:
+        """The visibility bar's ``item`` was clicked: show or hide that layer. The heatmap's toggle switches the
+        chosen particle's heatmap between off and the mode last used."""
+        P = self.panel
+        if item == "heatmap":
+            if self.heat_on():
+                P.heatmap_mode.value = "off"
+                P.label.heatmap.value = "off"
+            else:
+                P.heatmap_mode.value = self.last_heat_mode
+            return  # the dropdowns' callbacks redraw
+        if item in P.shown:
+            P.set_shown(item, not P.show(item))
+            self.apply_visibility()
+
+    def heatmap_mode_changed(self) -> None:
+        # The heatmap is drawn on the observed points: showing both would bury one under the other. So would the
+        # label heatmap, on the same points: one heatmap at a time. The points come back as the user left them.
+        if self.panel.heatmap_mode.value != "off":
+            self.last_heat_mode = self.panel.heatmap_mode.value
+            if self.panel.label.heatmap.value != "off":
+                self.panel.label.heatmap.value = "off"
+        self.apply_visibility()
+        self.redraw_chosen()
+
+    def label_heatmap_mode_changed(self) -> None:
+        if self.panel.label.heatmap.value != "off" and self.panel.heatmap_mode.value != "off":
+            self.panel.heatmap_mode.value = "off"
+        self.apply_visibility()
+
+    def reset(self) -> None:
+        """A new run on the same frame: no particles, no chosen one, no tables of the old run."""
+        P = self.panel
+        self.throttle.cancel()
+        P.plots.clear()
+        self.particles.set_frame(self.particles.meshes)
+        self.choice = None
+        self.chosen.clear()
+        self.heatmap.nodes.clear()
+        self.show_posterior(None, -1, defer=False)
+        P.legend.content = ""
+        P.heat_image.visible = False
+        P.physics_change.content = ""
+        P.timings.content = ""
+        P.truth.content = ""
+        self.labelling.tab.errors.content = ""
+        self.labelling.editor.show_estimate(None)

@@ -1,0 +1,90 @@
+"""The other modes of the posterior in the 3D view: each object's alternatives to the estimate (``modes[1:]``) as
+ghosts, faint outlines in a pale tint of the object's colour, each with its probability as a label.
+
+Ghosts are drawn as the particles are (``views.outline_mesh``: the feature edges of a coarse decimation, one
+instanced wireframe per object), not as solid meshes or every triangle edge: a few more instances cost software
+WebGL almost nothing, and the estimate stays readable under them. The nodes are rebuilt only when a new posterior
+arrives (a finished run, the best estimate taken as label, a restored session), never per iteration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import viser
+
+from workbench.app.ui.widgets import colors
+from workbench.app.ui.run.modes import mode_label
+from workbench.app.protocol import MeshData
+from workbench.app.ui.run.views import NO_SHADOW, Nodes, outline_mesh, split_pose
+from workbench.inference.answer.posterior import Posterior
+
+GHOST_OPACITY = 0.55
+LABEL_LIFT_M = 0.02  # a label sits this far above the ghost's highest outline point
+
+
+def label_position(segments: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Where a ghost's label goes: above the middle of its outline ``segments`` (E, 2, 3) object frame, posed by
+    ``T`` (4, 4) table frame -> (3,) table frame, m."""
+    points = segments.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    top = points[:, 2].max() if len(points) else T[2, 3]
+    centre = points.mean(axis=0) if len(points) else T[:3, 3]
+    return np.array([centre[0], centre[1], top + LABEL_LIFT_M])
+
+
+@dataclass
+class ModesLayer:
+    """Per object with other modes: one instanced outline (an instance per mode after the first) and a label per
+    mode ("p = 0.31 turned over its x axis"). ``ghosts[k]``: object k's outline handle, if it has other modes;
+    ``labels``: every label's handle; ``texts``: their texts, in the order drawn (for the tests)."""
+
+    server: viser.ViserServer
+    meshes: list[MeshData] = field(default_factory=list)
+    nodes: Nodes = field(default_factory=Nodes)
+    ghosts: dict = field(default_factory=dict)
+    labels: list = field(default_factory=list)
+    texts: list[str] = field(default_factory=list)
+    shown: bool = True
+
+    def set_frame(self, meshes: list[MeshData]) -> None:
+        self.clear()
+        self.meshes = meshes
+
+    def clear(self) -> None:
+        self.nodes.clear()
+        self.ghosts, self.labels, self.texts = {}, [], []
+
+    def update(self, posterior: Posterior | None) -> None:
+        """Draw ``posterior``'s other modes (None: none), replacing those drawn."""
+        self.clear()
+        if posterior is None or not self.meshes:
+            return
+        scene, add = self.server.scene, self.nodes.add
+        with self.server.atomic():
+            for o in posterior.objects:
+                others = o.modes[1:]
+                if not others or o.obj >= len(self.meshes):
+                    continue
+                mesh, k = self.meshes[o.obj], o.obj
+                poses = np.stack([m.T for m in others])
+                wxyz, pos = split_pose(poses)
+                vertices, faces = outline_mesh(mesh)
+                n = len(others)
+                self.ghosts[k] = add(scene.add_batched_meshes_simple(
+                    f"/modes/{k}/ghosts", vertices, faces, batched_wxyzs=wxyz, batched_positions=pos,
+                    batched_colors=np.tile(np.array(colors.ghost_color(k), np.uint8), (n, 1)),
+                    batched_opacities=np.full(n, GHOST_OPACITY, np.float32),
+                    lod="off", wireframe=True, visible=self.shown, **NO_SHADOW))
+                segments = vertices.reshape(-1, 2, 3)
+                for j, m in enumerate(others, start=1):
+                    text = mode_label(m)
+                    self.labels.append(add(scene.add_label(
+                        f"/modes/{k}/label_{j}", text, position=label_position(segments, m.T),
+                        anchor="bottom-center", visible=self.shown)))
+                    self.texts.append(text)
+
+    def set_visible(self, shown: bool) -> None:
+        self.shown = shown
+        for h in (*self.ghosts.values(), *self.labels):
+            h.visible = shown

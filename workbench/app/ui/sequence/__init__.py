@@ -1,0 +1,1 @@
+"""Sequences in the browser: the Sequence folder with its timeline, and plots across frames."""

@@ -1,0 +1,1 @@
+"""The Sessions tab: save, list and load sessions."""

@@ -1,0 +1,173 @@
+"""Assemble: whole scenes put together from the library, one candidate per object, that jointly explain the
+observed depth best without sitting inside each other.
+
+Polish changes the estimate one object (or one exchange) at a time. An estimate that went wrong early is often
+several objects each on another's place: on YCB-Video frame 2:10 the pudding box sat on the potted meat can's
+place and the marker on the banana's, while the can and the banana lay 50 cm away on flat clutter. Every
+one-object change then puts an object inside another, physics pushes both aside, and the change loses thousands of
+log-units. A beam search over the candidates finds the joint assignment directly. Each candidate is rendered once,
+alone; an assignment's depth is the nearest of its candidates' depths per pixel (what rendering them together
+draws) and is scored by the likelihood itself. Assignments in which one candidate sits inside another's hull are
+ruled out, since the likelihood cannot see a hidden overlap and physics would push the two apart.
+
+The best few assignments are then evaluated like any hypothesis (physics, then the likelihood).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from workbench.geometry import invert_pose
+from workbench.inference.search.datadriven import Library
+from workbench.inference.search.scenepoints import ModelSamples
+from workbench.problem.problem import Problem
+from workbench.render.depth import DepthRenderer
+from workbench.render.likelihood import pixel_loglik
+
+BEAM = 32  # partial assignments kept after each object
+WIDE_BEAM = 64  # ... when the search is stuck (32 lost the four objects of generated clutter frame 5)
+ASSEMBLIES = 4  # complete assignments returned
+INSIDE = 0.3  # a candidate with this share of its core inside another's hull sits inside it
+CORE = 0.7  # the core: the surface samples pulled this far towards the centroid (surface points of two objects
+# at one place lie on each other's surface, not inside it; touching objects' cores stay apart)
+MARGIN = 0.005  # m; samples less deep than this inside the other hull are touching it, not inside
+HULL_POINTS = 64  # vertices of the simplified hull used for the inside test
+TEST_POINTS = 200  # core points per object tested against the others' hulls
+
+
+@dataclass(frozen=True)
+class Solid:
+    """An object's shape for the inside test, object frame: ``planes`` (F, 4) of a simplified convex hull, unit
+    outward normal and offset (inside where ``n . x + d <= 0``); ``points`` (M, 3) its core (see CORE), metres;
+    ``radius`` (m) of a sphere about the origin holding both."""
+
+    planes: np.ndarray
+    points: np.ndarray
+    radius: float
+
+
+def solid(hull_vertices: np.ndarray, samples: ModelSamples) -> Solid:
+    """The Solid of an object from its convex hull's vertices (V, 3) and its surface samples. The hull is reduced
+    to HULL_POINTS vertices by farthest-point sampling, so it lies within the full hull (the test errs towards
+    'touching')."""
+    v = np.asarray(hull_vertices, dtype=np.float64)
+    chosen = [int(np.argmax(np.linalg.norm(v - v.mean(axis=0), axis=1)))]
+    d = np.linalg.norm(v - v[chosen[0]], axis=1)
+    while len(chosen) < min(HULL_POINTS, len(v)):
+        chosen.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(v - v[chosen[-1]], axis=1))
+    step = max(1, len(samples.points) // TEST_POINTS)
+    surface = samples.points[::step][:TEST_POINTS]
+    centre = surface.mean(axis=0)
+    core = centre + CORE * (surface - centre)
+    radius = float(max(np.linalg.norm(v, axis=1).max(), np.linalg.norm(core, axis=1).max()))
+    return Solid(ConvexHull(v[chosen]).equations, core, radius)
+
+
+def inside_share(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:
+    """Share of object a's core points inside object b's hull (deeper than MARGIN), pose by pose: Ta (P, 4, 4),
+    Tb (P, 4, 4), same frame -> (P,)."""
+    rel = invert_pose(Tb) @ Ta  # (P, 4, 4): a's frame into b's
+    p = a.points @ np.swapaxes(rel[:, :3, :3], 1, 2) + rel[:, None, :3, 3]  # (P, M, 3)
+    depth = p @ b.planes[:, :3].T + b.planes[:, 3]  # (P, M, F)
+    return (depth.max(axis=-1) < -MARGIN).mean(axis=-1)
+
+
+def conflicts(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:
+    """Whether candidate i of object a (Ta (A, 4, 4)) and candidate j of object b (Tb (B, 4, 4)) sit inside one
+    another -> (A, B) bool. Only pairs whose bounding spheres meet are tested."""
+    out = np.zeros((len(Ta), len(Tb)), bool)
+    gap = np.linalg.norm(Ta[:, None, :3, 3] - Tb[None, :, :3, 3], axis=-1)
+    i, j = np.nonzero(gap < a.radius + b.radius)
+    if len(i):
+        out[i, j] = ((inside_share(Ta[i], a, Tb[j], b) > INSIDE)
+                     | (inside_share(Tb[j], b, Ta[i], a) > INSIDE))
+    return out
+
+
+def candidate_depths(renderer: DepthRenderer, poses: np.ndarray, k: int) -> np.ndarray:
+    """Depth images (C, H, W) of object k alone at each of ``poses`` (C, 4, 4), table frame: the other objects are
+    not drawn."""
+    scenes = np.repeat(poses[:, None], renderer.n_objects, axis=1)  # the others' poses are ignored
+    drawn = np.zeros((len(poses), renderer.n_objects), dtype=bool)
+    drawn[:, k] = True
+    return renderer.render(scenes, drawn)
+
+
+def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, solids: list[Solid],
+               base: np.ndarray, order: np.ndarray, floored: bool = True, beam_width: int = BEAM) -> np.ndarray:
+    """Up to ASSEMBLIES scenes (A, K, 4, 4), best first: ``base`` (K, 4, 4) with every object that has candidates
+    put on one of them, no candidate inside another, by the likelihood of the candidates' joint depth (no
+    physics). Objects are assigned in ``order`` (K,) (largest first: they constrain the most), keeping the
+    ``beam_width`` best partial assignments after each; the objects not yet assigned are absent (the table shows
+    there). ``floored``: false leaves the clutter floor out, as the filter does before ``ParticleFilter.floor_at``."""
+    ks = [int(k) for k in order if library.has(int(k))]
+    if not ks:
+        return np.zeros((0,) + base.shape)
+    poses = [_unique(library.poses[k]) for k in ks]
+    depths = [candidate_depths(renderer, P, k).reshape(len(P), -1) for P, k in zip(poses, ks)]
+    # Only pixels some candidate covers can change the score (with the clutter floor, the whole of each clutter
+    # piece they touch: whether its bare pixels get the floor depends on how much of it is claimed); elsewhere
+    # every assignment predicts the table.
+    config = problem.config.likelihood if floored else replace(problem.config.likelihood, clutter_floor=None)
+    covered = np.any(np.concatenate(depths) > 0, axis=0)
+    pieces = problem.clutter.ravel() if config.floored else np.full(len(covered), -1)
+    touched = np.unique(pieces[covered & (pieces >= 0)])
+    cover = np.nonzero(covered | np.isin(pieces, touched))[0]
+    depths = [d[:, cover] for d in depths]
+    observed = problem.observed.reshape(1, -1)[:, cover]
+    background = problem.background.reshape(1, -1)[:, cover]
+    segments = pieces[None, cover]
+    clash = {(i, j): conflicts(poses[i], solids[ks[i]], poses[j], solids[ks[j]])
+             for i in range(len(ks)) for j in range(i)}
+    beam = [(np.zeros(0, int), np.zeros(len(cover), np.float32))]  # (candidate per assigned object, joint depth)
+    for i in range(len(ks)):
+        grown = []
+        for chosen, joint in beam:
+            ok = np.ones(len(poses[i]), bool)
+            for j, c in enumerate(chosen):
+                ok &= ~clash[(i, j)][:, c]
+            d = depths[i][ok]
+            nearer = (d > 0) & ((joint == 0) | (d < joint))
+            merged = np.where(nearer, d, joint)  # (n_ok, P)
+            score = pixel_loglik(observed, background, merged[:, None], config, segments)[:, 0].sum(axis=1,
+                                                                                             dtype=np.float64)
+            grown += [(float(sc), np.append(chosen, c), m) for sc, c, m in zip(score, np.nonzero(ok)[0], merged)]
+        if not grown:  # every candidate sits inside an assigned object: no consistent assignment from here
+            return np.zeros((0,) + base.shape)
+        grown.sort(key=lambda g: -g[0])  # stable: ties keep the earlier state and candidate
+        beam = [(c, m) for _, c, m in grown[:beam_width]]
+    out = []
+    for chosen, _ in beam[:ASSEMBLIES]:
+        scene = base.copy()
+        for i, c in enumerate(chosen):
+            scene[ks[i]] = poses[i][c]
+        out.append(scene)
+    return np.array(out)
+
+
+def moved(scene: np.ndarray, base: np.ndarray) -> list[int]:
+    """The objects whose poses differ between ``scene`` and ``base`` (K, 4, 4), in order."""
+    return [k for k in range(len(base)) if not np.allclose(scene[k], base[k])]
+
+
+def one_kept(scene: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Variants of an assembled ``scene`` (K, 4, 4) that moves three or more objects of ``base`` (K, 4, 4): for each
+    object it moves, the scene with that one object kept where ``base`` has it -> (V, K, 4, 4), V = 0 when it
+    moves fewer. An assembly puts every object on a candidate, so the right arrangement of some objects can come
+    with another moved wrongly: generated clutter frame 5's fitted assembly put four objects right and the fifth,
+    right in the estimate, 47 cm away."""
+    changed = moved(scene, base)
+    out = np.repeat(scene[None], len(changed) if len(changed) >= 3 else 0, axis=0)
+    for i, k in enumerate(changed[:len(out)]):
+        out[i, k] = base[k]
+    return out
+
+
+def _unique(poses: np.ndarray) -> np.ndarray:
+    """The distinct poses of (C, 4, 4), first occurrences in order (merged libraries repeat candidates)."""
+    _, first = np.unique(np.round(poses.reshape(len(poses), -1), 9), axis=0, return_index=True)
+    return poses[np.sort(first)]

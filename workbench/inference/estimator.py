@@ -1,0 +1,294 @@
+"""The estimator a user runs: PI-PF or PI-MCPF (``inference.smc.filter``) with the paper's search or the default one
+(``inference.search.paper_search``, ``inference.search.default_search``), its settings, its answer, and its state for sessions.
+
+``Estimator.run`` steps the filter until the iteration budget or the paper's convergence rule, then returns the
+search's answer (``settle``): for the default search the estimate fitted to the depth, with its near ties.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from workbench.sessions.answer import Answer, answer_json, parse_answer
+from workbench.checks import check_rigid
+from workbench.errors import InputError
+from workbench.evaluation import Evaluator
+from workbench.inference.search import datadriven
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.search.default_search import DefaultSearch
+from workbench.inference.smc.filter import IterationReport, ParticleFilter, Search
+from workbench.inference.search.moves.registry import MoveKind
+from workbench.inference.search.paper_search import PaperSearch
+from workbench.inference.answer.posterior import Posterior
+from workbench.inference.answer.settle import Tie
+from workbench.io.bop import MAX_TABLE_DISTANCE
+from workbench.problem.problem import Problem
+
+
+def make_search(problem: Problem, proposals: str) -> Search:
+    """The search of ``EstimatorConfig.proposals``."""
+    return PaperSearch() if proposals == "paper" else DefaultSearch(problem)
+
+
+class Estimator:
+    """A particle filter (``filter``) stepped with a search (``search``), and the run's answer. The particle set is
+    ``particles`` (``ParticleSet``, table frame); the estimate (``best``) is the best scene ever evaluated, with
+    ``best_loglik``: it never gets worse from one iteration to the next. ``run`` returns it settled (``settle``)."""
+
+    def __init__(self, problem: Problem, config: EstimatorConfig, evaluator: Evaluator | None,
+                 search: Search | None = None):
+        """``search``: another search than ``config.proposals``' (a tracked frame's, ``track_search``)."""
+        config.validate()
+        self.problem = problem
+        self.search = make_search(problem, config.proposals) if search is None else search
+        self.filter = ParticleFilter(problem, config, evaluator, self.search)
+        self.settle_scenes = 0  # scenes settling scored as given (a render each, no physics)
+        self.settled: np.ndarray | None = None  # the estimate fitted to the depth (``settle``), once asked for
+        self.settled_loglik = float("-inf")  # its log-likelihood as given (no physics)
+        self.ties: list[Tie] = []  # the settled estimate's near ties, found with it
+        self.posterior: Posterior | None = None  # per object, the modes the view leaves open, found with it
+        self._settled_from: np.ndarray | None = None  # the estimate it was settled from
+
+    @property
+    def config(self) -> EstimatorConfig:
+        return self.filter.config
+
+    @property
+    def evaluator(self) -> Evaluator | None:
+        return self.filter.evaluator
+
+    @evaluator.setter
+    def evaluator(self, evaluator: Evaluator) -> None:
+        """A new evaluator, e.g. a fresh pool after a worker died; results do not depend on which one runs."""
+        self.filter.evaluator = evaluator
+
+    def set_config(self, config: EstimatorConfig) -> None:
+        """Takes effect at the next step; the particle set is kept (its size changes at the next resampling), and
+        so is the seed. Another ``proposals`` switches the search (the default one fits its library anew)."""
+        config.validate()
+        if config.proposals != self.config.proposals:
+            self.search = self.filter.search = make_search(self.problem, config.proposals)
+        self.filter.config = replace(config, seed=self.config.seed)
+        self._settled_from = None  # settle again, with the new region
+
+    # The filter's state, read by the command line, the benchmarks and the workbench.
+    particles = property(lambda self: self.filter.particles)
+    iteration = property(lambda self: self.filter.iteration)
+    history = property(lambda self: self.filter.history)
+    best_history = property(lambda self: self.filter.best_history)
+    rng = property(lambda self: self.filter.rng)
+    sink = property(lambda self: self.filter.sink)
+    evaluations = property(lambda self: self.filter.evaluations)  # hypotheses projected and weighed so far
+    best = property(lambda self: self.filter.best, doc="The estimate: the best scene (K, 4, 4) so far, table frame.")
+    best_loglik = property(lambda self: self.filter.map_loglik)
+    best_kind = property(lambda self: self.filter.map_kind)
+    converged = property(lambda self: self.filter.converged)
+
+    @property
+    def best_index(self) -> int:
+        """The most likely particle of the current set."""
+        return int(np.argmax(self.particles.loglik))
+
+    def weights(self) -> np.ndarray:
+        """(N,) normalised weights of the current particles, with this iteration's tempering."""
+        return self.filter.weights()
+
+    def step(self) -> IterationReport:
+        return self.filter.step()
+
+    def run(self, iterations: int | None = None, stop_on_convergence: bool = True, callback=None) -> np.ndarray:
+        """Step until ``iterations`` (default: the config's) or convergence -> the best scene (K, 4, 4), settled."""
+        total = self.config.iterations if iterations is None else iterations
+        while self.iteration < total:
+            report = self.step()
+            if callback is not None:
+                callback(report)
+            if stop_on_convergence and report.converged:
+                break
+        return self.settle()
+
+    def settle(self) -> np.ndarray:
+        """The search's answer from the estimate (``Search.finish``; the default search fits it to the observed
+        depth without physics) -> (K, 4, 4); also kept in ``settled``, with its log-likelihood as given in
+        ``settled_loglik``, its near ties in ``ties`` and the posterior per object in ``posterior``. Computed once
+        per estimate: stepping on and settling again starts from the new estimate."""
+        if self.answer_current:
+            return self.settled
+        self.filter.weigh_floor_in()  # the answer is judged by the whole likelihood (stopped early or not)
+        estimate = self.filter.map
+        answer = self.search.finish(self.filter)
+        self.settled, self.settled_loglik, self.ties = answer.scene, answer.loglik, answer.ties
+        self.posterior = answer.posterior
+        self.settle_scenes += answer.scored
+        self._settled_from = None if estimate is None else estimate.copy()
+        return self.settled
+
+    @property
+    def answer_current(self) -> bool:
+        """Whether ``settled`` (with ``ties`` and ``posterior``) is the answer for the current estimate: settled
+        since the estimate last changed, and since the settings last changed."""
+        m = self.filter.map
+        return self._settled_from is not None and m is not None and np.array_equal(self._settled_from, m)
+
+    @property
+    def current_posterior(self) -> Posterior | None:
+        """The posterior of the current estimate, or None (not settled since it changed, or the paper's search)."""
+        return self.posterior if self.answer_current else None
+
+    # ------------------------------------------------------------------------------------------------ sessions
+    def state_dict(self) -> dict:
+        """Everything ``step`` continues from besides the problem, config and evaluator, as copies: loaded with
+        ``load_state`` into a new Estimator of the same problem and config, the next steps equal this one's bit
+        for bit. ``rng`` is numpy's ``bit_generator.state`` (plain strings and ints, JSON-serialisable);
+        ``particles`` the ``ParticleSet``, None before the first step. ``search``: the estimate and the
+        data-driven candidates, as plain lists (JSON-serialisable). ``answer``: the settled answer of the current
+        estimate (``answer_json``: scene, log-likelihood, ties, posterior) as plain lists, None when not settled,
+        so that a restored estimator shows the same posterior without settling again."""
+        f = self.filter
+        lib = getattr(self.search, "library", None)
+        return {
+            "iteration": f.iteration,
+            "rng": f.rng.bit_generator.state,
+            "particles": None if f.particles is None else f.particles.copy(),
+            "history": [replace(r, timings=dict(r.timings), moves={k: dict(v) for k, v in r.moves.items()})
+                        for r in f.history],
+            "best_history": [b.copy() for b in f.best_history],
+            "beta": f.beta,
+            "calm": f.calm,
+            "search": {
+                "map": None if f.map is None else f.map.tolist(),
+                "map_loglik": f.map_loglik if np.isfinite(f.map_loglik) else None,
+                "map_kind": int(f.map_kind),
+                "floor_in": f.floor_in,
+                "sink": f.sink,
+                "evaluations": f.evaluations,
+                "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
+                                                     "weights": [w.tolist() for w in lib.weights]},
+                **self._search_memory(),
+            },
+            "answer": answer_json(Answer(self.settled, self.settled_loglik, self.ties, self.posterior))
+            if self.answer_current else None,
+        }
+
+    def _search_memory(self) -> dict:
+        """What the default search remembers between polishes, as plain lists: the scenes it ``fitted`` (each
+        a list of [object, 16 pose entries]) and ``polished_at`` (None before the first polish)."""
+        if not isinstance(self.search, DefaultSearch):
+            return {}
+        s = self.search
+        return {"fitted": [[[k, list(pose)] for k, pose in key] for key in sorted(s.fitted)],
+                "polished_at": float(s.polished_at) if np.isfinite(s.polished_at) else None}
+
+    def load_state(self, state: dict) -> None:
+        """Continue from a ``state_dict()``. The caller vouches that it belongs to this problem and config
+        (``sessions.store.load_session`` checks a saved one, ``search`` included)."""
+        f = self.filter
+        f.rng.bit_generator.state = state["rng"]  # raises ValueError for another kind of generator
+        f.iteration = int(state["iteration"])
+        f.particles = None if state["particles"] is None else state["particles"].copy()
+        f.history = [replace(r, timings=dict(r.timings)) for r in state["history"]]
+        f.best_history = [np.array(b) for b in state["best_history"]]
+        f.beta = float(state["beta"])
+        f.calm = int(state["calm"])
+        search = parse_search(state.get("search"), self.problem.n_objects)
+        f.map, f.map_loglik, f.map_kind = search["map"], search["map_loglik"], search["map_kind"]
+        f.floor_in = search["floor_in"]
+        f.sink, f.evaluations = search["sink"], search["evaluations"]
+        if isinstance(self.search, DefaultSearch):
+            self.search.library = search["library"]
+            self.search.fitted, self.search.polished_at = search["fitted"], search["polished_at"]
+        answer = parse_answer(state.get("answer"), self.problem.n_objects)
+        if answer is not None and f.map is None:
+            raise ValueError("answer: a settled answer without an estimate to belong to")
+        self.settled = None if answer is None else answer.scene
+        self.settled_loglik = float("-inf") if answer is None else answer.loglik
+        self.ties = [] if answer is None else list(answer.ties)
+        self.posterior = None if answer is None else answer.posterior
+        self._settled_from = None if answer is None else f.map.copy()
+
+
+def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:
+    a = np.asarray(value, dtype=dtype)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise ValueError(f"search.{where} must be finite numbers of shape {shape}, got shape {a.shape}")
+    return a
+
+
+def _poses(value, shape: tuple, where: str) -> np.ndarray:
+    """Scene poses of the given ``shape`` (..., 4, 4), table frame, m: rigid, and within MAX_TABLE_DISTANCE of the
+    table's origin. A corrupt session's pose 1e308 m away would otherwise overflow the search's distances."""
+    a = _array(value, shape, np.float64, where)
+    try:
+        check_rigid(a, f"search.{where}")
+    except InputError as e:
+        raise ValueError(e.problem) from e
+    if np.abs(a[..., :3, 3]).max(initial=0.0) > MAX_TABLE_DISTANCE:
+        raise ValueError(f"search.{where}: a position lies more than {MAX_TABLE_DISTANCE:g} m from the table")
+    return a
+
+
+def _bool(value, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise ValueError(f"search.{where} must be true or false, got {value!r}")
+    return value
+
+
+def parse_search(search, K: int) -> dict:
+    """The ``search`` entry of a ``state_dict`` (plain JSON lists) for K objects -> ``map`` (K, 4, 4) or None,
+    ``map_loglik``, ``map_kind`` (MoveKind), ``floor_in`` (``ParticleFilter.floor_in``; true in states saved
+    before it existed), ``sink`` (m), ``evaluations``, ``library`` (datadriven.Library or
+    None), ``fitted`` and ``polished_at`` (``DefaultSearch``'s; none fitted and never polished in states saved
+    before they existed). None (a state saved before the search existed) gives the neutral values. Raises
+    ValueError naming what is malformed."""
+    if search is None:
+        search = {}
+    if not isinstance(search, dict):
+        raise ValueError("search must be an object")
+    try:
+        m = search.get("map")
+        ll = search.get("map_loglik")
+        sink = float(_array(search.get("sink", 0.0), (), np.float64, "sink"))
+        if not 0.0 <= sink <= 1.0:
+            raise ValueError(f"search.sink must lie in [0, 1] m, got {sink}")
+        lib = search.get("library")
+        library = None
+        if lib is not None:
+            poses = [_poses(p, (len(p), 4, 4), "library.poses") if len(p) else np.zeros((0, 4, 4))
+                     for p in lib["poses"]]
+            weights = [_array(w, (len(p),), np.float64, "library.weights") for w, p in zip(lib["weights"], poses)]
+            if len(poses) != K or len(weights) != K:
+                raise ValueError(f"search.library must list {K} objects")
+            if any(len(w) and (np.any(w < 0) or abs(w.sum() - 1.0) > 1e-6) for w in weights):
+                raise ValueError("search.library.weights must be probabilities: >= 0, summing to 1 per object")
+            library = datadriven.Library(poses, weights)
+        fitted = set()
+        for key in search.get("fitted", []):
+            pairs = tuple((int(k), tuple(_array(pose, (16,), np.float64, "fitted").tolist())) for k, pose in key)
+            if not pairs or any(not 0 <= k < K for k, _ in pairs):
+                raise ValueError(f"search.fitted must list assemblies of objects 0 to {K - 1}")
+            fitted.add(pairs)
+        polished_at = search.get("polished_at")
+        return {
+            "map": None if m is None else _poses(m, (K, 4, 4), "map"),
+            "map_loglik": float("-inf") if ll is None else float(_array(ll, (), np.float64, "map_loglik")),
+            "map_kind": MoveKind(int(search.get("map_kind", 0))),
+            "floor_in": _bool(search.get("floor_in", True), "floor_in"),
+            "sink": sink,
+            "evaluations": int(_array(search.get("evaluations", 0), (), np.int64, "evaluations")),
+            "library": library,
+            "fitted": fitted,
+            "polished_at": float("-inf") if polished_at is None
+            else float(_array(polished_at, (), np.float64, "polished_at")),
+        }
+    except (TypeError, KeyError, IndexError, OverflowError) as e:
+        raise ValueError(f"malformed search entry ({type(e).__name__}: {e})") from e
+
+
+def object_confidence(problem: Problem, projected: np.ndarray, weights: np.ndarray, best: np.ndarray,
+                      radius: float = 0.02) -> np.ndarray:
+    """Per object, the weight share of particles that place it within ``radius`` of the best scene -> (K,) in [0, 1].
+    Used as the BOP result score."""
+    near = np.linalg.norm(projected[:, :, :3, 3] - best[None, :, :3, 3], axis=-1) < radius  # (N, K)
+    return (weights[:, None] * near).sum(axis=0)

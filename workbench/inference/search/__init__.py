@@ -1,0 +1,1 @@
+"""Where hypotheses come from: the searches (``default_search``, ``paper_search``, ``track_search``) and the geometry they draw on (clusters, candidates fitted to them, leaning and hiding places, ICP). Move kinds are in ``moves``."""
