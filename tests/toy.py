@@ -14,8 +14,8 @@ import trimesh
 from workbench.evaluation import Done, Evaluation, admissible, run_here
 from workbench.geometry import make_pose, rot_z, rotation_angle
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST
-from workbench.problem import Problem, ProblemConfig
-from workbench.scene import Camera, ObjectModel, Table
+from workbench.problem.problem import Problem, ProblemConfig
+from workbench.problem.scene import Camera, ObjectModel, Table
 
 
 def toy_problem(sizes=((0.10, 0.06, 0.04), (0.05, 0.05, 0.12))) -> Problem:
