@@ -17,7 +17,7 @@ import numpy as np
 
 from workbench.errors import InputError
 
-# Memory one evaluation worker needs: the README's speed table measured 433 MB peak per worker (4 objects, 1444
+# Memory one evaluation worker needs: docs/benchmarks.md's speed table measured 433 MB peak per worker (4 objects, 1444
 # particles); the rest is headroom for larger meshes and the main process's share.
 WORKER_MEMORY_BYTES = 600 * 2**20
 MAX_SEED = 2**64 - 1

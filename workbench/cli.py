@@ -38,7 +38,7 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
                    metavar="LOG_DENSITY",
                    help="robust likelihood: what a reading of a piece of unmodelled clutter that the objects do not "
                         f"claim scores at least (default {LikelihoodConfig.clutter_floor}; 'none': an outlier, as "
-                        "before; see README, The likelihood)")
+                        "before; see docs/design.md, The likelihood)")
     p.add_argument("--floor-from", type=float, default=EstimatorConfig.floor_from, metavar="SHARE",
                    help="with --clutter-floor: the share of the iterations searched without the floor before it "
                         f"is weighed in (default {EstimatorConfig.floor_from})")
@@ -50,10 +50,10 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-early-stop", action="store_true", help="run all iterations even after convergence")
     p.add_argument("--leaning", action=argparse.BooleanOptionalAction, default=True,
                    help="polish also tries objects laid along slanted flat patches, as an object leaning on another "
-                        "shows (default on; see README, Data-driven starts)")
+                        "shows (default on; see docs/design.md, The search)")
     p.add_argument("--no-settle", action="store_true",
                    help="return the search's estimate as physics put it, not fitted to the depth at the end "
-                        "(within 1.5 cm and 12 degrees; see README, Settling)")
+                        "(within 1.5 cm and 12 degrees; see docs/design.md, Settling)")
 
 
 def estimator_config(args: argparse.Namespace) -> EstimatorConfig:

@@ -64,7 +64,7 @@ class Budget:
 
 # Sized so that the 42-scene suite (7 per category) runs in <= 30 min per method on 2 cores with 2 workers
 # (measured ~450-1500 evaluations/s with 2 objects; 3-4 objects ~700-1450/s in the reduced state, ~300-430/s in
-# 6-DoF: docs/benchmarks.md). Clutter gets the paper's reduced (x, y, z, yaw) state, as the paper did for its 3-
+# 6-DoF: docs/journal/2026-11.md). Clutter gets the paper's reduced (x, y, z, yaw) state, as the paper did for its 3-
 # and 4-object scenes; 6-DoF there took 2-3x the time on a trial and was no more accurate.
 FULL_BUDGETS = {2: Budget(400, 60, "6dof"), 3: Budget(300, 50, "xyzyaw"), 4: Budget(300, 50, "xyzyaw")}
 QUICK_BUDGET = Budget(48, 4, "6dof")

@@ -17,7 +17,7 @@ METHODS = ("pipf", "mcpf")
 @dataclass(frozen=True)
 class EstimatorConfig:
     method: str = "pipf"
-    # Measured (docs/benchmarks.md, "The search, fifth step"): 200 x 20 is as accurate as 400 x 60 on the real
+    # Measured (docs/journal/2026-11.md, "The search, fifth step"): 200 x 20 is as accurate as 400 x 60 on the real
     # YCB-Video dev frames and the generated suite, in a third to a half of the time.
     particles: int = 200
     iterations: int = 20
@@ -32,7 +32,7 @@ class EstimatorConfig:
     # With the clutter floor on (``LikelihoodConfig.clutter_floor``): the share of the iterations weighed without
     # it. The plain mixture makes an object's readings pull it hard (an unexplained reading is an outlier, about
     # -3.4, not the floor's 2), so the search first puts every object on readings it explains, and the floor then
-    # decides between what it found and the scenes that leave clutter to itself. Measured in docs/benchmarks.md,
+    # decides between what it found and the scenes that leave clutter to itself. Measured in docs/journal/2026-11.md,
     # "The floor weighed in halfway".
     floor_from: float = 0.5
     library_every: int = 2  # iterations between refits of the candidates to what the estimate leaves unexplained
@@ -46,7 +46,7 @@ class EstimatorConfig:
     # Settling (inference.answer.settle): the estimate is fitted to the depth without physics at the end of a run, each
     # object within this far (m) and this turn (deg) of where physics put it, and each object's half turns are
     # tried; 0 turns it off, as do the paper's proposals. Measured on the real YCB-Video dev frames
-    # (docs/benchmarks.md, "Settling"): 34 -> 37 and 31 -> 34 of 50 objects right (seeds 1, 2), the others ~1 mm
+    # (docs/journal/2026-11.md, "Settling"): 34 -> 37 and 31 -> 34 of 50 objects right (seeds 1, 2), the others ~1 mm
     # and ~1 degree closer to their annotated poses. 1 cm and 8 degrees held a fifth of the objects at the region's
     # edge, the banana 10 degrees off where physics rolls it; 1.5 cm and 12 degrees let them reach the depth while
     # the settled scenes stay as restful under physics as the annotated ones (section "Settling, third step").
@@ -55,7 +55,7 @@ class EstimatorConfig:
     # Leaning starts (inference.search.leaning): every object laid along each slanted flat patch of the observed points, the
     # best of each patch tried by polish while the estimate is stuck, never drawn into particles. In the library that
     # particles draw from, they found the generated gelatin box leaning on the wood block but sent the search astray
-    # on the real desk of ycbv-real-dev, with its 5-6 slanted patches of clutter (docs/benchmarks.md).
+    # on the real desk of ycbv-real-dev, with its 5-6 slanted patches of clutter (docs/journal/2026-11.md).
     leaning: bool = True
 
     def validate(self) -> None:

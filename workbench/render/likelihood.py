@@ -39,7 +39,7 @@ class LikelihoodConfig:
     # docstring). Without it such a pixel is an outlier (about -3.4) and an object laid over part of a tall
     # distractor gains about 7 per pixel, which outweighs a thin object's own pixels (about 1.3 each). With it,
     # claiming part of a piece costs the floor on the rest of it. 2 is the Gaussian's value 1.8 sigma from its
-    # centre. None: no floor. Measured in docs/benchmarks.md, "The floor weighed in halfway" (with the search's
+    # centre. None: no floor. Measured in docs/journal/2026-11.md, "The floor weighed in halfway" (with the search's
     # schedule, EstimatorConfig.floor_from; from the start it lost dev frames, "Clutter pieces").
     clutter_floor: float | None = 2.0
 

@@ -5,7 +5,7 @@ few) of a common scene and leaves the others where they are. A software renderer
 draws, so drawing every scene's unmoved objects again is most of such a batch's cost. Here each scene draws only
 its own objects, the objects it shares with the others are drawn once per batch (per set of objects shared), and
 each pixel keeps the nearer of the two surfaces: what a z-buffer drawing them together keeps. On a frame of three
-YCB-Video objects a scene of one object moved renders in about half the time (docs/benchmarks.md).
+YCB-Video objects a scene of one object moved renders in about half the time (docs/journal/2026-11.md).
 """
 
 from __future__ import annotations

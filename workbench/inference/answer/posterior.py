@@ -33,7 +33,7 @@ none of the modes (``elsewhere``) is a logistic function of that share (``ELSEWH
 ``benchmarks/calibrate_posterior.py`` on the same frames). It is reported beside the modes, not folded into them:
 the modes' probabilities are conditional on the object being found and sum to 1. Folded in, it made the whole
 suite's top modes better calibrated but the real dev frames' worse (their objects are all found, while a base rate
-of misses that the depth does not show, clutter the object was laid on, came with it; docs/benchmarks.md, "The
+of misses that the depth does not show, clutter the object was laid on, came with it; docs/journal/2026-11.md, "The
 posterior, third step"). A robot or a labeller thus tells an ambiguous view (several modes) from a doubtful
 estimate (a large ``elsewhere``).
 
@@ -65,7 +65,7 @@ from workbench.problem.scene import display_names
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on 207 objects: the 50 of ycbv-real-dev, 109 of 44 generated frames of every make-scenes category and
 # 48 of 18 generated frames of YCB-Video models lying free (default estimate, seed 0; benchmarks/calibration/,
-# docs/benchmarks.md, "The posterior, second step"): 24.7 (the same on the dev frames and the posterior's own
+# docs/journal/2026-11.md, "The posterior, second step"): 24.7 (the same on the dev frames and the posterior's own
 # categories alone; flat from 17 to 50).
 TEMPERATURE = 25.0
 YAW_STEP_DEG = 30.0
@@ -78,7 +78,7 @@ MIN_PROBABILITY = 1e-3  # a mode less likely than this is not reported
 HOPELESS = 1500.0  # log-units: a candidate this far below the estimate as given is not settled
 # The logistic (intercept, slope) of the chance that the truth is among an object's modes, in the share of its
 # camera-facing surface that the sensor sees through: fitted by benchmarks/calibrate_posterior.py (maximum likelihood
-# of "the truth is among the modes") on 324 objects (docs/benchmarks.md, "The posterior, third step").
+# of "the truth is among the modes") on 324 objects (docs/journal/2026-11.md, "The posterior, third step").
 ELSEWHERE = (2.91, -22.1)
 # An object whose chance of being elsewhere is at least this is named in the frame's line (seen through >= 13 %).
 DOUBTFUL = 0.5
@@ -380,11 +380,11 @@ def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Scor
         scored += len(again)
         found = [(k, f"turned {name}", again[i], float(again_ll[i])) for i, (k, name, _, _) in enumerate(turns)]
     # Down to settling's 0.5 mm steps: stopping at 2 mm scored 30 % fewer scenes, but a hidden mug handle's headings
-    # then lost enough that its top mode rose from about 0.5 to 0.8 (docs/benchmarks.md, "The posterior, third step").
+    # then lost enough that its top mode rose from about 0.5 to 0.8 (docs/journal/2026-11.md, "The posterior, third step").
     # Two kinds of candidate stop early, since neither would be a mode of its own: one still too far below the
     # estimate to be reported once it has converged at settling's first two steps, and one that has moved into the
     # estimate's own mode after them. On YCB-Video models lying free, such candidates took most of the sweep's
-    # scenes, in their last millimetres (docs/benchmarks.md, "The posterior, fourth step").
+    # scenes, in their last millimetres (docs/journal/2026-11.md, "The posterior, fourth step").
     unreported = loglik - settle.TURN_MARGIN - temperature * np.log(1.0 / MIN_PROBABILITY)
     searches = [settle.search(s, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES, max_shift_m=max_shift_m,
                               max_turn_deg=max_turn_deg, objects=[k], give_up_below=unreported,

@@ -2,7 +2,7 @@
 
 Physics projection keeps a scene plausible, but our models of the world are not the world: on the real YCB-Video
 frames the annotated objects rest 4-12 mm below the plane fitted to the table's depth, and projecting the true
-scene moves the banana by 6 mm and turns it by 5 degrees (docs/benchmarks.md). The search's estimate is such a
+scene moves the banana by 6 mm and turns it by 5 degrees (docs/journal/2026-11.md). The search's estimate is such a
 projected scene, a few millimetres and degrees from what the depth shows. Settling fits it to the depth with a
 pattern search on the likelihood of the scene as given, each object kept within a small trust region around its
 pose in the estimate, so the physics that chose the scene (support, stacking, what hides what) still holds to
@@ -39,7 +39,7 @@ Rest = Callable[[np.ndarray], np.ndarray]  # scenes (B, K, 4, 4) -> the same sce
 SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees
 # A half turn of one object (half_turns) replaces it only when the settled scene gains more than this many
 # log-units: turning over a symmetric box, which changes nothing the camera sees, and settling it again gained up to
-# 24 on the YCB-Video dev frames (docs/benchmarks.md, "Settling").
+# 24 on the YCB-Video dev frames (docs/journal/2026-11.md, "Settling").
 TURN_MARGIN = 30.0
 # Settled objects restart this many degrees away about each table axis (``hop``).
 HOP_DEGREES = 8.0

@@ -59,7 +59,7 @@ LEVEL_HEADINGS = 12  # headings tried on a horizontal surface, 30 degrees apart
 # Headings tried at a cluster's centre and spread points, 30 degrees apart from its principal axis. A thin object
 # lying flat (scissors, a clamp) barely turns under ICP: its top pins the tilt, and only its low rim the heading.
 # With 4 headings (90 degrees apart), the best start of a generated frame's scissors was 17 degrees off, and ICP
-# took it to 31 (docs/benchmarks.md, "Observed normals").
+# took it to 31 (docs/journal/2026-11.md, "Observed normals").
 CENTRE_HEADINGS = 12
 PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally) are at one place
 # A fitted candidate is slid along its horizontal axes in these steps (each at most SLIDE_ROUNDS times) while its

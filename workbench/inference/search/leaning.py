@@ -11,7 +11,7 @@ fall against whatever holds it.
 Those starts are tried by polish only (``library``: the best of each patch), while the estimate is stuck, and never
 drawn into particles: a real desk shows many slanted patches that are no leaning object (ycbv-real-dev scene 2: 5-6
 per frame), and in the library that every particle draws from, objects laid on them sent the search astray
-(docs/benchmarks.md, "Leaning starts"). Tried on the estimate, such a start wins only where the whole scene, after
+(docs/journal/2026-11.md, "Leaning starts"). Tried on the estimate, such a start wins only where the whole scene, after
 physics, scores better with it.
 """
 
