@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator
 from workbench.inference.search.default_search import fit_sink
-from workbench.score.metrics import position_error, rotation_error
 from workbench.problem.build import load_bop_problem
 from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
+from workbench.score.metrics import position_error, rotation_error
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
@@ -295,8 +295,8 @@ def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_pro
     try:
         estimator = Estimator(sunk_problem, EstimatorConfig(particles=4, seed=0), evaluator)
         resting = evaluator.evaluate(gt[None])
-        estimator.filter.map, estimator.filter.map_loglik = resting.projected[0], float(resting.loglik[0])
-        fit_sink(estimator.filter)
+        estimator.filter.estimate, estimator.filter.estimate_loglik = resting.projected[0], float(resting.loglik[0])
+        estimator.filter.apply(fit_sink(estimator.filter))
         assert 0.006 <= estimator.sink <= 0.010
         assert estimator.best_loglik > float(resting.loglik[0])
         for k in range(problem.n_objects):  # the estimate rests at the sink, where the objects were drawn
@@ -360,8 +360,8 @@ def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame
         filt, search = estimator.filter, estimator.search
         estimate = off.copy()
         estimate[:, 0, 3] += 0.1  # both objects elsewhere, so the assembly moves both
-        near_miss = filt.map_loglik - default_search.FIT_WITHIN / 2
-        far = filt.map_loglik - 2 * default_search.FIT_WITHIN
+        near_miss = filt.estimate_loglik - default_search.FIT_WITHIN / 2
+        far = filt.estimate_loglik - 2 * default_search.FIT_WITHIN
 
         def fitted(scene: np.ndarray, loglik: float, least: int) -> np.ndarray:
             return search._fitted(filt, [(scene[None], np.array([loglik]), least, 2)], estimate)[0]
@@ -427,8 +427,8 @@ def test_polish_puts_back_two_objects_that_took_each_others_places(frame_and_pro
     try:
         estimator = _run(problem, evaluator, 1)
         wrong = evaluator.evaluate(swapped[None])
-        estimator.filter.map, estimator.filter.map_loglik = wrong.projected[0], float(wrong.loglik[0])
-        estimator.search.polish(estimator.filter)
+        estimator.filter.estimate, estimator.filter.estimate_loglik = wrong.projected[0], float(wrong.loglik[0])
+        estimator.filter.apply(estimator.search.polish(estimator.filter))
     finally:
         evaluator.close()
     assert estimator.best_loglik > float(wrong.loglik[0])

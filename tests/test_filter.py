@@ -14,13 +14,13 @@ import pytest
 from toy import ToyEvaluator, toy_problem, toy_target
 
 from workbench.errors import InputError
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import Evaluation
 from workbench.geometry import make_pose
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator
 from workbench.inference.search.moves.context import MoveContext
-from workbench.inference.smc.filter import ParticleFilter, Proposed, Settled
 from workbench.inference.search.moves.registry import MOVES, REGISTRY, MoveKind, MoveMix
+from workbench.inference.smc.filter import ParticleFilter, Proposed, Settled, Started
 from workbench.inference.smc.particles import Sigma
 from workbench.inference.smc.particleset import ParticleSet
 
@@ -74,7 +74,7 @@ class _FixedSearch:
         self.start_scenes, self.dx = start, dx
 
     def start(self, filt):
-        return self.start_scenes.copy(), np.full(len(self.start_scenes), int(MoveKind.START), np.int8)
+        return Started(self.start_scenes.copy(), np.full(len(self.start_scenes), int(MoveKind.START), np.int8))
 
     def propose(self, filt, parents):
         out = parents.copy()
@@ -83,10 +83,10 @@ class _FixedSearch:
         return Proposed(out, np.zeros(n), np.full(n, int(MoveKind.JOINT), np.int8), filt.evaluate(out), 0.0)
 
     def after_step(self, filt):
-        pass
+        return ()
 
     def finish(self, filt):
-        return Settled(filt.best.copy(), filt.map_loglik)
+        return Settled(filt.best.copy(), filt.estimate_loglik)
 
 
 @pytest.mark.parametrize("dx,accepted", [(0.01, 1.0), (-0.01, 0.0)])

@@ -230,7 +230,7 @@ def _mug_posterior(touching_dataset, seeing, handle_from_view_deg: float, estima
     try:
         estimator = Estimator(seen, EstimatorConfig(particles=4, seed=0), evaluator)
         estimator.step()  # a particle set for the spread
-        estimator.filter.map, estimator.filter.map_loglik = rested.projected[1].copy(), float(rested.loglik[1])
+        estimator.filter.estimate, estimator.filter.estimate_loglik = rested.projected[1].copy(), float(rested.loglik[1])
         estimator.settle()
     finally:
         evaluator.close()

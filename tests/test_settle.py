@@ -134,11 +134,11 @@ def test_settling_fits_the_estimate_to_a_scene_physics_cannot_rest(frame_and_pro
     try:
         estimator = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0), evaluator)
         resting = evaluator.evaluate(gt[None])
-        estimator.filter.map, estimator.filter.map_loglik = resting.projected[0].copy(), float(resting.loglik[0])
+        estimator.filter.estimate, estimator.filter.estimate_loglik = resting.projected[0].copy(), float(resting.loglik[0])
         settled = estimator.settle()
         as_given = evaluator.evaluate(resting.projected, project=False).loglik[0]
         paper = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0, proposals="paper"), evaluator)
-        paper.filter.map, paper.filter.map_loglik = estimator.filter.map, estimator.filter.map_loglik
+        paper.filter.estimate, paper.filter.estimate_loglik = estimator.filter.estimate, estimator.filter.estimate_loglik
         unsettled = paper.settle()
     finally:
         evaluator.close()
@@ -364,7 +364,7 @@ def test_a_box_turned_about_the_vertical_is_a_tie_unless_the_model_declares_the_
         evaluator = LocalEvaluator(prob)
         try:
             estimator = Estimator(prob, EstimatorConfig(particles=4, seed=0), evaluator)
-            estimator.filter.map, estimator.filter.map_loglik = scene.copy(), float(rested.loglik[0])
+            estimator.filter.estimate, estimator.filter.estimate_loglik = scene.copy(), float(rested.loglik[0])
             settled = estimator.settle()
         finally:
             evaluator.close()
@@ -409,7 +409,7 @@ def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem
     evaluator = LocalEvaluator(seen)
     try:
         estimator = Estimator(seen, EstimatorConfig(particles=4, seed=0), evaluator)
-        estimator.filter.map, estimator.filter.map_loglik = rested.projected[1].copy(), float(rested.loglik[1])
+        estimator.filter.estimate, estimator.filter.estimate_loglik = rested.projected[1].copy(), float(rested.loglik[1])
         settled = estimator.settle()
     finally:
         evaluator.close()

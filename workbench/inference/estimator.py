@@ -11,20 +11,20 @@ from dataclasses import replace
 
 import numpy as np
 
-from workbench.sessions.answer import Answer, answer_json, parse_answer
 from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import Evaluator
-from workbench.inference.search import datadriven
-from workbench.inference.config import EstimatorConfig
-from workbench.inference.search.default_search import DefaultSearch
-from workbench.inference.smc.filter import IterationReport, ParticleFilter, Search
-from workbench.inference.search.moves.registry import MoveKind
-from workbench.inference.search.paper_search import PaperSearch
 from workbench.inference.answer.posterior import Posterior
 from workbench.inference.answer.settle import Tie
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.search import datadriven
+from workbench.inference.search.default_search import DefaultSearch
+from workbench.inference.search.moves.registry import MoveKind
+from workbench.inference.search.paper_search import PaperSearch
+from workbench.inference.smc.filter import IterationReport, ParticleFilter, Search
 from workbench.io.bop import MAX_TABLE_DISTANCE
 from workbench.problem.problem import Problem
+from workbench.sessions.answer import Answer, answer_json, parse_answer
 
 
 def make_search(problem: Problem, proposals: str) -> Search:
@@ -82,8 +82,8 @@ class Estimator:
     sink = property(lambda self: self.filter.sink)
     evaluations = property(lambda self: self.filter.evaluations)  # hypotheses projected and weighed so far
     best = property(lambda self: self.filter.best, doc="The estimate: the best scene (K, 4, 4) so far, table frame.")
-    best_loglik = property(lambda self: self.filter.map_loglik)
-    best_kind = property(lambda self: self.filter.map_kind)
+    best_loglik = property(lambda self: self.filter.estimate_loglik)
+    best_kind = property(lambda self: self.filter.estimate_kind)
     converged = property(lambda self: self.filter.converged)
 
     @property
@@ -117,7 +117,7 @@ class Estimator:
         if self.answer_current:
             return self.settled
         self.filter.weigh_floor_in()  # the answer is judged by the whole likelihood (stopped early or not)
-        estimate = self.filter.map
+        estimate = self.filter.estimate
         answer = self.search.finish(self.filter)
         self.settled, self.settled_loglik, self.ties = answer.scene, answer.loglik, answer.ties
         self.posterior = answer.posterior
@@ -129,7 +129,7 @@ class Estimator:
     def answer_current(self) -> bool:
         """Whether ``settled`` (with ``ties`` and ``posterior``) is the answer for the current estimate: settled
         since the estimate last changed, and since the settings last changed."""
-        m = self.filter.map
+        m = self.filter.estimate
         return self._settled_from is not None and m is not None and np.array_equal(self._settled_from, m)
 
     @property
@@ -141,72 +141,31 @@ class Estimator:
     def state_dict(self) -> dict:
         """Everything ``step`` continues from besides the problem, config and evaluator, as copies: loaded with
         ``load_state`` into a new Estimator of the same problem and config, the next steps equal this one's bit
-        for bit. ``rng`` is numpy's ``bit_generator.state`` (plain strings and ints, JSON-serialisable);
-        ``particles`` the ``ParticleSet``, None before the first step. ``search``: the estimate and the
-        data-driven candidates, as plain lists (JSON-serialisable). ``answer``: the settled answer of the current
-        estimate (``answer_json``: scene, log-likelihood, ties, posterior) as plain lists, None when not settled,
-        so that a restored estimator shows the same posterior without settling again."""
-        f = self.filter
-        lib = getattr(self.search, "library", None)
-        return {
-            "iteration": f.iteration,
-            "rng": f.rng.bit_generator.state,
-            "particles": None if f.particles is None else f.particles.copy(),
-            "history": [replace(r, timings=dict(r.timings), moves={k: dict(v) for k, v in r.moves.items()})
-                        for r in f.history],
-            "best_history": [b.copy() for b in f.best_history],
-            "beta": f.beta,
-            "calm": f.calm,
-            "search": {
-                "map": None if f.map is None else f.map.tolist(),
-                "map_loglik": f.map_loglik if np.isfinite(f.map_loglik) else None,
-                "map_kind": int(f.map_kind),
-                "floor_in": f.floor_in,
-                "sink": f.sink,
-                "evaluations": f.evaluations,
-                "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
-                                                     "weights": [w.tolist() for w in lib.weights]},
-                **self._search_memory(),
-            },
-            "answer": answer_json(Answer(self.settled, self.settled_loglik, self.ties, self.posterior))
-            if self.answer_current else None,
-        }
-
-    def _search_memory(self) -> dict:
-        """What the default search remembers between polishes, as plain lists: the scenes it ``fitted`` (each
-        a list of [object, 16 pose entries]) and ``polished_at`` (None before the first polish)."""
-        if not isinstance(self.search, DefaultSearch):
-            return {}
-        s = self.search
-        return {"fitted": [[[k, list(pose)] for k, pose in key] for key in sorted(s.fitted)],
-                "polished_at": float(s.polished_at) if np.isfinite(s.polished_at) else None}
+        for bit. The filter's state (``ParticleFilter.state_dict``), its ``search`` entry with the search's memory
+        added (``Search.state_dict``, plain JSON values), and ``answer``: the settled answer of the current
+        estimate (``sessions.answer``: scene, log-likelihood, ties, posterior) as plain lists, None when not
+        settled, so that a restored estimator shows the same posterior without settling again."""
+        state = self.filter.state_dict()
+        state["search"].update(self.search.state_dict())
+        state["answer"] = (answer_json(Answer(self.settled, self.settled_loglik, self.ties, self.posterior))
+                           if self.answer_current else None)
+        return state
 
     def load_state(self, state: dict) -> None:
         """Continue from a ``state_dict()``. The caller vouches that it belongs to this problem and config
         (``sessions.store.load_session`` checks a saved one, ``search`` included)."""
-        f = self.filter
-        f.rng.bit_generator.state = state["rng"]  # raises ValueError for another kind of generator
-        f.iteration = int(state["iteration"])
-        f.particles = None if state["particles"] is None else state["particles"].copy()
-        f.history = [replace(r, timings=dict(r.timings)) for r in state["history"]]
-        f.best_history = [np.array(b) for b in state["best_history"]]
-        f.beta = float(state["beta"])
-        f.calm = int(state["calm"])
         search = parse_search(state.get("search"), self.problem.n_objects)
-        f.map, f.map_loglik, f.map_kind = search["map"], search["map_loglik"], search["map_kind"]
-        f.floor_in = search["floor_in"]
-        f.sink, f.evaluations = search["sink"], search["evaluations"]
-        if isinstance(self.search, DefaultSearch):
-            self.search.library = search["library"]
-            self.search.fitted, self.search.polished_at = search["fitted"], search["polished_at"]
+        self.filter.load_state(state, search)
+        self.search.load_state(search)
         answer = parse_answer(state.get("answer"), self.problem.n_objects)
-        if answer is not None and f.map is None:
+        estimate = self.filter.estimate
+        if answer is not None and estimate is None:
             raise ValueError("answer: a settled answer without an estimate to belong to")
         self.settled = None if answer is None else answer.scene
         self.settled_loglik = float("-inf") if answer is None else answer.loglik
         self.ties = [] if answer is None else list(answer.ties)
         self.posterior = None if answer is None else answer.posterior
-        self._settled_from = None if answer is None else f.map.copy()
+        self._settled_from = None if answer is None else estimate.copy()
 
 
 def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:

@@ -26,9 +26,22 @@ import numpy as np
 
 from workbench.geometry import rotation_angle
 from workbench.inference.answer import settle
-from workbench.inference.answer.posterior import MIN_PROBABILITY, RANGE_GAP, YAW_STEP_DEG, Mode, ObjectPosterior, Posterior, position_spread, probabilities, turn_centre, turned_about_vertical, yaw_range, yaw_turns
-from workbench.score.metrics import is_right
+from workbench.inference.answer.posterior import (
+    MIN_PROBABILITY,
+    RANGE_GAP,
+    YAW_STEP_DEG,
+    Mode,
+    ObjectPosterior,
+    Posterior,
+    position_spread,
+    probabilities,
+    turn_centre,
+    turned_about_vertical,
+    yaw_range,
+    yaw_turns,
+)
 from workbench.problem.problem import Problem
+from workbench.score.metrics import is_right
 
 LAST_ESTIMATE = "the last frame's estimate"
 ESTIMATE = "the estimate"

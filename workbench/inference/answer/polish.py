@@ -19,10 +19,10 @@ from workbench.evaluation import run_here
 from workbench.geometry import rot_z, rotation_angle
 from workbench.inference.search.datadriven import Library, fit_scores, overlaps, place_order
 from workbench.inference.search.hiding import Hide
-from workbench.inference.search.refine import refit
 from workbench.inference.search.moves.resting import RestingPoses, highest_point, lowest_point
-from workbench.inference.search.scenepoints import ModelSamples, ScenePoints, unclaimed
 from workbench.inference.search.moves.stacking import BASE_MIN, bases_under
+from workbench.inference.search.refine import refit
+from workbench.inference.search.scenepoints import ModelSamples, ScenePoints, unclaimed
 from workbench.problem.problem import Problem
 
 MEMO_LIMIT = 2000  # tops whose bases ``stacked`` remembers

@@ -54,13 +54,13 @@ import numpy as np
 from workbench.evaluation.base import Run, run_here
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference.answer import settle
-from workbench.inference.search.moves.context import SearchGeometry
 from workbench.inference.search.datadriven import elsewhere
+from workbench.inference.search.moves.context import SearchGeometry
 from workbench.inference.search.moves.resting import RestingPoses, lowest_point
 from workbench.inference.search.scenepoints import object_badness
-from workbench.score.metrics import is_right
 from workbench.problem.problem import Problem
 from workbench.problem.scene import display_names
+from workbench.score.metrics import is_right
 
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on 207 objects: the 50 of ycbv-real-dev, 109 of 44 generated frames of every make-scenes category and

@@ -29,8 +29,8 @@ from typing import Callable, Generator
 import numpy as np
 
 from workbench.geometry import euler_to_matrix, rotation_angle, rotvec_to_matrix
-from workbench.score.metrics import is_right
 from workbench.problem.problem import Problem
+from workbench.score.metrics import is_right
 
 Score = Callable[[np.ndarray], np.ndarray]  # scenes (B, K, 4, 4) as given -> log-likelihoods (B,)
 Rest = Callable[[np.ndarray], np.ndarray]  # scenes (B, K, 4, 4) -> the same scenes at rest under physics

@@ -25,8 +25,8 @@ from workbench.evaluation import run_here
 from workbench.geometry import euler_to_matrix, make_pose, principal_heading, rot_z, rotation_angle
 from workbench.inference.search.footprint import footprint_starts
 from workbench.inference.search.moves.proposal import Proposal, pick_objects
-from workbench.inference.search.refine import NEAR, STAGES, icp_batch, near
 from workbench.inference.search.moves.resting import RestingPoses, height
+from workbench.inference.search.refine import NEAR, STAGES, icp_batch, near
 from workbench.inference.search.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, ScenePoints
 from workbench.problem.problem import Problem
 

@@ -6,7 +6,7 @@
   to make go to the workers first, the library is refitted when due, then the data-driven and ICP moves are made
   while the workers project the others.
 - ``after_step``: every ``library_every`` iterations the sink is fitted and the estimate polished (one- and
-  two-object variants, stacks, assemblies).
+  two-object variants, stacks, assemblies), each handed to the filter as an ``Update``.
 - ``finish``: the estimate settled on the depth without physics, with its half and quarter turns tried and its near
   ties named (``settle``).
 Every hypothesis still goes through physics and the likelihood; only where hypotheses come from differs from
@@ -16,6 +16,7 @@ the paper.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from functools import partial
 
 import numpy as np
@@ -25,11 +26,11 @@ from workbench.inference.answer import assemble, polish, posterior, settle
 from workbench.inference.search import datadriven, hiding, leaning
 from workbench.inference.search.moves import gaussian
 from workbench.inference.search.moves.context import MoveContext, SearchGeometry
-from workbench.inference.smc.filter import ParticleFilter, Proposed, Settled
 from workbench.inference.search.moves.registry import REGISTRY, MoveKind
+from workbench.inference.search.scenepoints import clusters, object_badness, unexplained
+from workbench.inference.smc.filter import ParticleFilter, Proposed, Settled, Started, Update
 from workbench.inference.smc.particles import initial_particles
 from workbench.inference.smc.particleset import ParticleSet
-from workbench.inference.search.scenepoints import clusters, object_badness, unexplained
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
 
@@ -54,19 +55,20 @@ FIT_MIN_STEP = 0.002  # m
 FIT_ROUNDS = 10
 
 
-def fit_sink(filt: ParticleFilter) -> None:
+def fit_sink(filt: ParticleFilter) -> Update:
     """The sink that maximises the estimate's likelihood: the estimate, lowered to each value of SINK_GRID,
-    projected and weighed there. Kept only if it beats the estimate as it stands, so the estimate never gets
-    worse. The particles keep the log-likelihoods they had under the old sink until their next move."""
-    if filt.map is None:  # every particle failed physics so far
-        return
-    scenes = np.repeat(filt.map[None], len(SINK_GRID), axis=0)
+    projected and weighed there -> that sink with the estimate at it, only if it beats the estimate as it stands,
+    so the estimate never gets worse (else no change). The particles keep the log-likelihoods they had under the
+    old sink until their next move."""
+    if filt.estimate is None:  # every particle failed physics so far
+        return Update()
+    scenes = np.repeat(filt.estimate[None], len(SINK_GRID), axis=0)
     scenes[:, :, 2, 3] -= (SINK_GRID - filt.sink)[:, None]
     ev = filt.evaluate(scenes, SINK_GRID)
     i = int(np.argmax(ev.loglik))
-    if ev.loglik[i] > filt.map_loglik:
-        filt.sink = float(SINK_GRID[i])
-        filt.map, filt.map_loglik = ev.projected[i].copy(), float(ev.loglik[i])
+    if ev.loglik[i] > filt.estimate_loglik:
+        return Update(sink=float(SINK_GRID[i]), estimate=(ev.projected[i].copy(), float(ev.loglik[i])))
+    return Update()
 
 
 class DefaultSearch:
@@ -97,7 +99,7 @@ class DefaultSearch:
         return self._geometry
 
     # ------------------------------------------------------------------------------------------------ hooks
-    def start(self, filt: ParticleFilter) -> tuple[np.ndarray, np.ndarray]:
+    def start(self, filt: ParticleFilter) -> Started:
         """Random scenes over the object region, most objects taken from the data-driven candidates instead (some
         stay uniform, so that nothing is ruled out), and the assemblies first."""
         cfg = filt.config
@@ -111,7 +113,7 @@ class DefaultSearch:
         joint = self._assemblies(filt, start[0])[: cfg.particles]
         start[: len(joint)] = joint
         kinds[: len(joint)] = int(MoveKind.ASSEMBLE)
-        return start, kinds
+        return Started(start, kinds)
 
     def propose(self, filt: ParticleFilter, parents: np.ndarray) -> Proposed:
         """The moves that are cheap to make go to the evaluator first; this process then refits the library (when
@@ -136,10 +138,10 @@ class DefaultSearch:
         ev = Evaluation.interleave(first, pending.result(), filt.evaluate(out[~first]))
         return Proposed(out, log_q, kinds, ev, time.perf_counter() - t0 + self._map_wait)
 
-    def after_step(self, filt: ParticleFilter) -> None:
+    def after_step(self, filt: ParticleFilter) -> Iterator[Update]:
         if filt.iteration % filt.config.library_every == 0:
-            fit_sink(filt)
-            self.polish(filt)
+            yield fit_sink(filt)
+            yield self.polish(filt)
 
     def finish(self, filt: ParticleFilter) -> Settled:
         """The estimate fitted to the observed depth without physics (``settle.pattern_search``), each object
@@ -148,11 +150,11 @@ class DefaultSearch:
         (``settle.hop``), and the posterior of what it settled on (``posterior.sweep``). The estimate itself, with no
         posterior, when settling is off."""
         cfg = filt.config
-        if filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
-            return Settled(filt.best.copy(), filt.map_loglik)
+        if filt.estimate is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
+            return Settled(filt.best.copy(), filt.estimate_loglik)
         score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
         scene, loglik, scored = settle.pattern_search(
-            filt.map, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
+            filt.estimate, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
             max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
         rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
         before = scene
@@ -162,7 +164,7 @@ class DefaultSearch:
         # then no longer does. A turned object was settled from a fresh start; the others restart where physics
         # put them.
         kept = [k for k in range(len(scene)) if np.array_equal(scene[k], before[k])]
-        scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, filt.map, cfg.settle_shift,
+        scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, filt.estimate, cfg.settle_shift,
                                            cfg.settle_turn, kept)
         if filt.particles is None:  # settled before any step (a label fitted, a test): no particles to spread
             projected, weights = np.zeros((0, *scene.shape)), np.zeros(0)
@@ -174,6 +176,24 @@ class DefaultSearch:
                                                       run=lambda fn, calls: self._run(filt, fn, calls))
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
         return Settled(final, loglik, ties, scored + turned + hopped + swept, found)
+
+    # ------------------------------------------------------------------------------------------------ sessions
+    def state_dict(self) -> dict:
+        """What the search remembers between steps, as plain JSON values: the candidate ``library`` (None before
+        the first fit), the scenes already ``fitted`` (each a list of [object, 16 pose entries]) and ``polished_at``
+        (None before the first polish). The caches are made again on use."""
+        lib = self.library
+        return {
+            "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
+                                                 "weights": [w.tolist() for w in lib.weights]},
+            "fitted": [[[k, list(pose)] for k, pose in key] for key in sorted(self.fitted)],
+            "polished_at": float(self.polished_at) if np.isfinite(self.polished_at) else None,
+        }
+
+    def load_state(self, search: dict) -> None:
+        """Continue from a parsed ``search`` entry (``estimator.parse_search``)."""
+        self.library = search["library"]
+        self.fitted, self.polished_at = search["fitted"], search["polished_at"]
 
     # -------------------------------------------------------------------------------------------------- parts
     @staticmethod
@@ -202,7 +222,7 @@ class DefaultSearch:
         """Candidates from the clusters of observed points the estimate (or ``scene`` (K, 4, 4), when given) does
         not explain (all of them before the first estimate), merged with the earlier candidates."""
         g = self.geometry(filt)
-        loose = unexplained(self.problem, g.points, filt.map if scene is None else scene, g.samples)
+        loose = unexplained(self.problem, g.points, filt.estimate if scene is None else scene, g.samples)
         groups = clusters(g.points.points[loose])
         fresh = datadriven.build_library(self.problem, groups, g.points, g.rest, g.samples, g.hulls,
                                          self._cluster_memo, partial(self._run, filt))
@@ -255,7 +275,7 @@ class DefaultSearch:
                 moved = assemble.moved(scenes[i], estimate)
                 far = datadriven.elsewhere(scenes[i, moved], estimate[moved])
                 key = tuple((k, tuple(np.round(scenes[i, k], 6).ravel().tolist())) for k in moved)
-                if not filt.map_loglik - FIT_WITHIN < loglik[i] <= filt.map_loglik or far.sum() < least \
+                if not filt.estimate_loglik - FIT_WITHIN < loglik[i] <= filt.estimate_loglik or far.sum() < least \
                         or key in self.fitted:
                     continue
                 self.fitted.add(key)
@@ -268,18 +288,18 @@ class DefaultSearch:
         fitted = np.array([scene for scene, _, _ in found]).reshape(-1, *estimate.shape)
         return np.split(fitted, np.cumsum(counts)[:-1])
 
-    def polish(self, filt: ParticleFilter) -> None:
+    def polish(self, filt: ParticleFilter) -> Update:
         """Evaluate the estimate's one- and two-object variants (``polish.variants``), the stacks it could be
-        (``polish.stacked``) and the assemblies; those that beat the estimate replace the worst particles (at most
-        a tenth of them), the best becomes the estimate."""
-        if filt.map is None or self.library is None:
-            return
-        g, estimate = self.geometry(filt), filt.map
+        (``polish.stacked``) and the assemblies -> the update: all of them offered for the estimate, those that beat
+        it to replace the worst particles (at most a tenth of them)."""
+        if filt.estimate is None or self.library is None:
+            return Update()
+        g, estimate = self.geometry(filt), filt.estimate
         # The estimate stuck since the last polish: leaning starts, and a wider beam. A leaning object is rare, and
         # a real desk's clutter shows slanted patches: tried at every polish, leaning starts won early on
         # ycbv-real-dev (the banana, the can, each soon moved on) and sent the search elsewhere.
-        stuck = filt.map_loglik - self.polished_at < STUCK
-        self.polished_at = filt.map_loglik
+        stuck = filt.estimate_loglik - self.polished_at < STUCK
+        self.polished_at = filt.estimate_loglik
         parts = [polish.variants(estimate, self.library, g.points, g.samples, g.reach, g.radius, self.unexplained,
                                  hiding.hider(self.problem, g.rest, g.hulls),
                                  polish.gains(self.problem, estimate, g.samples),
@@ -292,7 +312,7 @@ class DefaultSearch:
                           [len(p) for p in parts])
         scenes = np.concatenate([p.reshape(-1, *estimate.shape) for p in parts])
         if not len(scenes):
-            return
+            return Update()
         ev = filt.evaluate(scenes)
         # The assemblies and one-object moves to other places that nearly beat the estimate, fitted to the depth
         # (``_fitted``); each fitted assembly also with one of its objects kept where the estimate has it.
@@ -306,7 +326,6 @@ class DefaultSearch:
             kinds = np.append(kinds, np.repeat(np.array([MoveKind.ASSEMBLE, MoveKind.POLISH, MoveKind.ASSEMBLE],
                                                         np.int8), [len(assemblies), len(ones), len(kept)]))
             ev = Evaluation.concatenate([ev, filt.evaluate(fitted)])
-        better = np.nonzero(ev.loglik > filt.map_loglik)[0]
-        filt.offer(ev, kinds)
+        better = np.nonzero(ev.loglik > filt.estimate_loglik)[0]
         better = better[np.argsort(-ev.loglik[better], kind="stable")][: max(1, len(filt.particles) // 10)]
-        filt.replace_worst(ParticleSet.evaluated(scenes, ev, kinds)[better])
+        return Update(offered=(ev, kinds), replacements=ParticleSet.evaluated(scenes, ev, kinds)[better])

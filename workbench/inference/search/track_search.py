@@ -18,20 +18,21 @@ default search's hooks, narrowed:
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from workbench.inference.answer import carried_posterior, settle
+from workbench.inference.answer.posterior import Posterior, doubted
 from workbench.inference.search import datadriven
+from workbench.inference.search.default_search import DefaultSearch
 from workbench.inference.search.moves import gaussian
 from workbench.inference.search.moves.context import SearchGeometry
-from workbench.inference.search.default_search import DefaultSearch
-from workbench.inference.smc.filter import ParticleFilter, Settled
 from workbench.inference.search.moves.registry import MoveKind
-from workbench.inference.answer.posterior import Posterior, doubted
-from workbench.inference.smc.resampling import systematic_resample
 from workbench.inference.search.scenepoints import object_badness, observed_points
+from workbench.inference.smc.filter import ParticleFilter, Settled, Started, Update
+from workbench.inference.smc.resampling import systematic_resample
 from workbench.problem.problem import Problem
 
 # Log-units a settled object must gain over its last answer to move from it: the estimator's margin for a turn
@@ -141,10 +142,9 @@ class TrackSearch(DefaultSearch):
             self._geometry = replace(self.carried.geometry, points=observed_points(self.problem))
         return self._geometry
 
-    def start(self, filt: ParticleFilter) -> tuple[np.ndarray, np.ndarray]:
+    def start(self, filt: ParticleFilter) -> Started:
         cfg, c = filt.config, self.carried
         n, K = cfg.particles, self.problem.n_objects
-        filt.sink = c.sink  # the same table plane: the same sink
         idx = systematic_resample(np.log(np.maximum(c.weights, 1e-300)), filt.rng, n)
         start = gaussian.propose_joint(filt.rng, c.particles[idx], cfg.sigma, np.ones(K), cfg.state).hypotheses
         kinds = np.full(n, int(MoveKind.JOINT), np.int8)
@@ -156,27 +156,27 @@ class TrackSearch(DefaultSearch):
             take[2:, self.lost] = filt.rng.random((max(n - 2, 0), len(self.lost))) < cfg.data_start
             start = datadriven.sequential_start(filt.rng, self.library, n, self.geometry(filt).radius, take, start)
             kinds[take.any(axis=1)] = int(MoveKind.DATA_START)
-        return start, kinds
+        return Started(start, kinds, Update(sink=c.sink))  # the same table plane: the same sink
 
     def refit_library(self, filt: ParticleFilter, scene: np.ndarray | None = None) -> None:
         """Only while re-searching lost objects: the carried candidates serve a tracked frame, and refitting them
         costs more than the rest of the frame. Before the first estimate, against the carried scene."""
         if self.lost:
-            super().refit_library(filt, self.carried.settled if scene is None and filt.map is None else scene)
+            super().refit_library(filt, self.carried.settled if scene is None and filt.estimate is None else scene)
 
-    def after_step(self, filt: ParticleFilter) -> None:
+    def after_step(self, filt: ParticleFilter) -> Iterator[Update]:
         if self.lost:
-            super().after_step(filt)
+            yield from super().after_step(filt)
 
     def finish(self, filt: ParticleFilter) -> Settled:
         """Re-searching: the default search's finish. Tracked: the last answer settled on this frame's depth, object
         by object (``settle_each``), and the carried posterior weighed again (none when the first frame had
         none)."""
         cfg = filt.config
-        if self.lost or filt.map is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
+        if self.lost or filt.estimate is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return super().finish(filt)
         score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
-        scene, loglik, scored = settle_each(filt.map, self.carried.settled, score, cfg.settle_shift, cfg.settle_turn,
+        scene, loglik, scored = settle_each(filt.estimate, self.carried.settled, score, cfg.settle_shift, cfg.settle_turn,
                                             STILL_MARGIN)
         if self.carried.posterior is None:
             return Settled(scene, loglik, [], scored)

@@ -3,6 +3,11 @@ step, the estimate (MAP) and the paper's convergence rule. Where hypotheses come
 (``Search``: its hooks start, propose, after_step and finish), as ``particles``' ``SMC`` leaves it to its
 ``FeynmanKac`` model: ``paper_search.PaperSearch`` (the paper's) and ``default_search.DefaultSearch``.
 
+The filter is the one owner of its state: a search reads it, and hands what it changes back as an ``Update``
+(scenes offered for the estimate, particles to replace the worst, a new sink), which only ``ParticleFilter.apply``
+writes. ``after_step`` yields its updates one by one, each applied before the search goes on, so that a later
+part of the step (polish after the sink is fitted) sees the state the earlier one left.
+
 One ``step()`` is one iteration:
 - PI-PF: resample the projected particles by their tempered likelihood, move them (the search's proposals),
   evaluate (project to rest, render, weigh).
@@ -15,6 +20,7 @@ Both evaluate N hypotheses per iteration, so their costs compare one to one. Ite
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol
 
@@ -22,12 +28,12 @@ import numpy as np
 
 from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
 from workbench.geometry import rotation_angle
+from workbench.inference.answer.posterior import Posterior
+from workbench.inference.answer.settle import Tie
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.moves.registry import MoveKind
 from workbench.inference.smc.particleset import ParticleSet
-from workbench.inference.answer.posterior import Posterior
 from workbench.inference.smc.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
-from workbench.inference.answer.settle import Tie
 from workbench.problem.problem import Problem
 
 
@@ -81,6 +87,30 @@ class Settled:
 
 
 @dataclass
+class Update:
+    """What a search changes in the filter's state, applied by ``ParticleFilter.apply`` in this order: the ``sink``
+    (m) for every later evaluation; an ``estimate`` (scene (K, 4, 4), its log-likelihood) that replaces the
+    estimate, keeping the kind that made it (the same scene at a better sink); ``offered`` scenes (an
+    ``Evaluation`` and their (B,) MoveKind) that compete for the estimate; ``replacements``, particles that take
+    the places of the least likely ones."""
+
+    sink: float | None = None
+    estimate: tuple[np.ndarray, float] | None = None
+    offered: tuple[Evaluation, np.ndarray] | None = None
+    replacements: ParticleSet | None = None
+
+
+@dataclass
+class Started:
+    """What a search's ``start`` returns: the (N, K, 4, 4) initial ``hypotheses``, their (N,) int8 MoveKind
+    ``kinds``, and an ``update`` applied before they are evaluated (a tracked frame's sink)."""
+
+    hypotheses: np.ndarray
+    kinds: np.ndarray
+    update: Update = field(default_factory=Update)
+
+
+@dataclass
 class _WithoutFloor:
     """A pending evaluation whose log-likelihoods leave out the clutter floor's part (before
     ``ParticleFilter.floor_at``)."""
@@ -93,20 +123,33 @@ class _WithoutFloor:
 
 
 class Search(Protocol):
-    def start(self, filt: "ParticleFilter") -> tuple[np.ndarray, np.ndarray]:
-        """Iteration 0 -> (N, K, 4, 4) initial hypotheses, (N,) int8 their MoveKind."""
+    """The hooks the filter calls. A search reads the filter's state and never writes it: what it changes comes
+    back as ``Started``/``Update`` for the filter to apply. Its own memory between steps (candidates, scenes
+    already fitted) is saved with sessions through ``state_dict``/``load_state``."""
+
+    def start(self, filt: "ParticleFilter") -> Started:
+        """Iteration 0: the initial hypotheses and their kinds."""
         ...
 
     def propose(self, filt: "ParticleFilter", parents: np.ndarray) -> Proposed:
         """One move per resampled parent (N, K, 4, 4), evaluated (``filt.submit``)."""
         ...
 
-    def after_step(self, filt: "ParticleFilter") -> None:
-        """After an iteration's particles and estimate are updated (``filt.iteration`` not yet incremented)."""
+    def after_step(self, filt: "ParticleFilter") -> Iterable[Update]:
+        """After an iteration's particles and estimate are updated (``filt.iteration`` not yet incremented): the
+        updates, each applied before the next is made."""
         ...
 
     def finish(self, filt: "ParticleFilter") -> Settled:
-        """The run's answer from the estimate ``filt.map``."""
+        """The run's answer from the estimate ``filt.estimate``."""
+        ...
+
+    def state_dict(self) -> dict:
+        """The search's memory between steps as plain JSON values (the ``search`` entry of a session)."""
+        ...
+
+    def load_state(self, search: dict) -> None:
+        """Continue from a parsed ``search`` entry (``estimator.parse_search``)."""
         ...
 
 
@@ -121,8 +164,8 @@ def symmetric_angle(problem: Problem, A: np.ndarray, B: np.ndarray) -> np.ndarra
 
 class ParticleFilter:
     """Holds the particle set (``particles``, table frame) and steps it with ``search``'s proposals. The estimate
-    (``map``, with ``map_loglik`` and the ``map_kind`` that produced it) is the best scene ever evaluated,
-    accepted or not: it never gets worse from one iteration to the next.
+    (``estimate``, with ``estimate_loglik`` and the ``estimate_kind`` that produced it) is the best scene ever
+    evaluated, accepted or not: it never gets worse from one iteration to the next.
 
     ``sink`` (m): how far below the fitted table plane (z = 0) the objects rest in physics, for every hypothesis
     evaluated. On real frames the objects' depth puts them several millimetres *into* the plane fitted to the
@@ -141,9 +184,9 @@ class ParticleFilter:
         self.best_history: list[np.ndarray] = []
         self.beta = 1.0
         self.calm = 0
-        self.map: np.ndarray | None = None
-        self.map_loglik = float("-inf")
-        self.map_kind = MoveKind.START
+        self.estimate: np.ndarray | None = None
+        self.estimate_loglik = float("-inf")
+        self.estimate_kind = MoveKind.START
         self.sink = 0.0
         self.evaluations = 0
         self.floor_in = self.floor_at <= 0
@@ -164,19 +207,21 @@ class ParticleFilter:
             return
         self.floor_in = True
         self.calm = 0
-        if self.map is not None:
-            self.map_loglik = float(self.evaluate(self.map[None], project=False).loglik[0])
+        if self.estimate is not None:
+            self.estimate_loglik = float(self.evaluate(self.estimate[None], project=False).loglik[0])
         if self.particles is not None and np.isfinite(self.particles.loglik).any():
             ok = np.nonzero(np.isfinite(self.particles.loglik))[0]
             ev = self.evaluate(self.particles.projected[ok], project=False)
             self.particles.loglik[ok] = ev.loglik
-            self.offer(ev, self.particles.kinds[ok])
+            self._offer(ev, self.particles.kinds[ok])
             self.beta = temper_to_ess(self.particles.loglik, self.config.target_ess)
 
     @property
     def best(self) -> np.ndarray:
         """The estimate (K, 4, 4); before any scene was evaluated successfully, the current set's best."""
-        return self.map if self.map is not None else self.particles.projected[int(np.argmax(self.particles.loglik))]
+        if self.estimate is not None:
+            return self.estimate
+        return self.particles.projected[int(np.argmax(self.particles.loglik))]
 
     @property
     def converged(self) -> bool:
@@ -202,17 +247,65 @@ class ParticleFilter:
     def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
         return self.submit(hypotheses, sink, project).result()
 
-    def offer(self, ev: Evaluation, kinds: np.ndarray) -> None:
+    def _offer(self, ev: Evaluation, kinds: np.ndarray) -> None:
         """Every evaluated scene, accepted or not, competes for the estimate."""
         i = int(np.argmax(ev.loglik))
-        if ev.loglik[i] > self.map_loglik:
-            self.map, self.map_loglik = ev.projected[i].copy(), float(ev.loglik[i])
-            self.map_kind = MoveKind(int(kinds[i]))
+        if ev.loglik[i] > self.estimate_loglik:
+            self.estimate, self.estimate_loglik = ev.projected[i].copy(), float(ev.loglik[i])
+            self.estimate_kind = MoveKind(int(kinds[i]))
 
-    def replace_worst(self, scenes: ParticleSet) -> None:
-        """The least likely particles become ``scenes`` (at most as many as there are particles)."""
-        worst = np.argsort(self.particles.loglik, kind="stable")[: len(scenes)]
-        self.particles.put(worst, scenes)
+    def apply(self, update: Update) -> None:
+        """A search's changes (``Update``, in its order). The replacements take the least likely particles' places
+        (at most as many as there are particles)."""
+        if update.sink is not None:
+            self.sink = update.sink
+        if update.estimate is not None:
+            scene, loglik = update.estimate
+            self.estimate, self.estimate_loglik = scene, loglik
+        if update.offered is not None:
+            self._offer(*update.offered)
+        if update.replacements is not None:
+            worst = np.argsort(self.particles.loglik, kind="stable")[: len(update.replacements)]
+            self.particles.put(worst, update.replacements)
+
+    # ------------------------------------------------------------------------------------------------ sessions
+    def state_dict(self) -> dict:
+        """Everything ``step`` continues from besides the problem, config, evaluator and the search's own memory,
+        as copies. ``rng`` is numpy's ``bit_generator.state`` (plain strings and ints); ``particles`` the
+        ``ParticleSet``, None before the first step; ``search`` the estimate, the sink and the counts as plain
+        JSON values (the search adds its memory to this entry; the keys are the session format's)."""
+        return {
+            "iteration": self.iteration,
+            "rng": self.rng.bit_generator.state,
+            "particles": None if self.particles is None else self.particles.copy(),
+            "history": [replace(r, timings=dict(r.timings), moves={k: dict(v) for k, v in r.moves.items()})
+                        for r in self.history],
+            "best_history": [b.copy() for b in self.best_history],
+            "beta": self.beta,
+            "calm": self.calm,
+            "search": {
+                "map": None if self.estimate is None else self.estimate.tolist(),
+                "map_loglik": self.estimate_loglik if np.isfinite(self.estimate_loglik) else None,
+                "map_kind": int(self.estimate_kind),
+                "floor_in": self.floor_in,
+                "sink": self.sink,
+                "evaluations": self.evaluations,
+            },
+        }
+
+    def load_state(self, state: dict, search: dict) -> None:
+        """Continue from a ``state_dict()`` whose ``search`` entry was parsed (``estimator.parse_search``)."""
+        self.rng.bit_generator.state = state["rng"]  # raises ValueError for another kind of generator
+        self.iteration = int(state["iteration"])
+        self.particles = None if state["particles"] is None else state["particles"].copy()
+        self.history = [replace(r, timings=dict(r.timings)) for r in state["history"]]
+        self.best_history = [np.array(b) for b in state["best_history"]]
+        self.beta = float(state["beta"])
+        self.calm = int(state["calm"])
+        self.estimate, self.estimate_loglik = search["map"], search["map_loglik"]
+        self.estimate_kind = search["map_kind"]
+        self.floor_in = search["floor_in"]
+        self.sink, self.evaluations = search["sink"], search["evaluations"]
 
     # --------------------------------------------------------------------------------------------------- steps
     def step(self) -> IterationReport:
@@ -222,7 +315,9 @@ class ParticleFilter:
         if self.iteration + 1 >= self.floor_at:
             self.weigh_floor_in()
         if self.iteration < 0:
-            start, kinds = self.search.start(self)
+            started = self.search.start(self)
+            self.apply(started.update)
+            start, kinds = started.hypotheses, started.kinds
             t_resample = time.perf_counter() - t0
             ev = self.evaluate(start)
             self.particles = ParticleSet.evaluated(start, ev, kinds)
@@ -242,8 +337,9 @@ class ParticleFilter:
                 accept_rate = float(accepted.mean())
                 parents.copyto(proposed, accepted)
                 self.particles = parents
-        self.offer(ev, kinds)
-        self.search.after_step(self)
+        self._offer(ev, kinds)
+        for update in self.search.after_step(self):
+            self.apply(update)
         self.iteration += 1
         self.beta = temper_to_ess(self.particles.loglik, cfg.target_ess)
         moves = self._move_counts(kinds, accepted)
@@ -280,7 +376,7 @@ class ParticleFilter:
         timings["total"] = t_total
         return IterationReport(
             iteration=self.iteration,
-            best_loglik=self.map_loglik,
+            best_loglik=self.estimate_loglik,
             mean_loglik=float(loglik[finite].mean()) if finite.any() else float("-inf"),
             ess=ess(self.beta * loglik),
             beta=self.beta,
@@ -291,6 +387,6 @@ class ParticleFilter:
             accept_rate=accept_rate,
             timings={k: float(timings.get(k, 0.0)) for k in (*STAGES, "resampling", "total")},
             moves=moves,
-            best_kind=self.map_kind.label,
+            best_kind=self.estimate_kind.label,
             sink_m=self.sink,
         )

@@ -9,13 +9,13 @@ from typing import ClassVar
 import numpy as np
 import trimesh
 
-from workbench.meshes.heavy import HEAVY_FACES, working_mesh
 from workbench.inference.answer import assemble
-from workbench.inference.search.moves import resting
 from workbench.inference.search.datadriven import Library
-from workbench.inference.smc.particles import Sigma
+from workbench.inference.search.moves import resting
 from workbench.inference.search.moves.proposal import Proposal
 from workbench.inference.search.scenepoints import ModelSamples, ScenePoints, model_samples, observed_points
+from workbench.inference.smc.particles import Sigma
+from workbench.meshes.heavy import HEAVY_FACES, working_mesh
 from workbench.problem.problem import Problem
 from workbench.problem.scene import ObjectModel
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.geometry import euler_to_matrix
-from workbench.inference.smc.particles import Sigma
 from workbench.inference.search.moves.proposal import Proposal, pick_objects
+from workbench.inference.smc.particles import Sigma
 
 
 def _step(rng: np.random.Generator, poses: np.ndarray, s: np.ndarray) -> np.ndarray:

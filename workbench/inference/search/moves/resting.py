@@ -15,8 +15,8 @@ import numpy as np
 import trimesh
 
 from workbench.geometry import rot_z
-from workbench.meshes.heavy import mesh_key
 from workbench.inference.search.moves.proposal import Proposal, pick_objects
+from workbench.meshes.heavy import mesh_key
 
 BOX_FILL = 0.85
 # A side of a non-box mesh is proposed with at least this probability: a drop rarely lands a marker on its end,
