@@ -17,7 +17,7 @@ from pathlib import Path
 
 from workbench.geometry import invert_pose
 from workbench.inference.search import datadriven
-from workbench.inference.search.moves.context import SearchGeometry
+from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.scenepoints import clusters
 from workbench.io import bop
 from workbench.score.metrics import is_right
@@ -37,8 +37,7 @@ def main() -> None:
         gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
         g = SearchGeometry.of(problem, upright=False)
         t0 = time.perf_counter()
-        library = datadriven.build_library(problem, clusters(g.points.points), g.points, g.rest, g.samples,
-                                           g.hulls)
+        library = datadriven.build_library(problem, clusters(g.points.points), g)
         seconds += time.perf_counter() - t0
         row = [any(is_right(gt[k], T, m.symmetries) for T in library.poses[k]) for k, m in enumerate(problem.models)]
         objects, right = objects + len(row), right + sum(row)

@@ -364,7 +364,8 @@ def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame
         far = filt.estimate_loglik - 2 * default_search.FIT_WITHIN
 
         def fitted(scene: np.ndarray, loglik: float, least: int) -> np.ndarray:
-            return search._fitted(filt, [(scene[None], np.array([loglik]), least, 2)], estimate)[0]
+            return default_search.fit_near_misses(filt, [(scene[None], np.array([loglik]), least, 2)], estimate,
+                                                  search.fitted)[0]
 
         assert len(fitted(off, far, 2)) == 0
         both, again = fitted(off, near_miss, 2), fitted(off, near_miss, 2)

@@ -144,14 +144,14 @@ def test_polish_variants_change_objects_or_exchange_two(frame_and_problem, conte
     frame, _ = frame_and_problem
     problem, ctx, library = context
     truth = _truth(frame, problem)
-    scenes = polish.variants(truth, library, ctx.points, ctx.samples, ctx.reach, ctx.radius)
+    scenes = polish.variants(truth, library, ctx)
     K = problem.n_objects
     assert scenes.ndim == 4 and scenes.shape[1:] == (K, 4, 4) and np.all(np.isfinite(scenes))
     assert np.allclose(scenes[:, :, :3, :3] @ np.swapaxes(scenes[:, :, :3, :3], 2, 3), np.eye(3), atol=1e-9)
     changed = np.any(np.abs(scenes - truth[None]) > 1e-12, axis=(2, 3)).sum(axis=1)
     pairs = K * (K - 1) // 2
     assert np.all(changed[-pairs:] == 2) and np.all(changed[:-pairs] >= 1)
-    assert np.array_equal(scenes, polish.variants(truth, library, ctx.points, ctx.samples, ctx.reach, ctx.radius))
+    assert np.array_equal(scenes, polish.variants(truth, library, ctx))
 
 
 def test_polish_tries_the_candidates_that_add_most_to_the_rest_of_the_estimate(frame_and_problem, context):
@@ -180,7 +180,7 @@ def test_polish_tries_the_candidates_that_add_most_to_the_rest_of_the_estimate(f
     weights = np.append(np.full(polish.PER_OBJECT, 2.0), 1.0)
     library = datadriven.Library([np.stack(places + [truth[0]])] + [np.zeros((0, 4, 4))] * (K - 1),
                                  [weights / weights.sum()] + [np.zeros(0)] * (K - 1))
-    args = (library, ctx.points, ctx.samples, ctx.reach, ctx.radius)
+    args = (library, ctx)
 
     def tried(scenes):
         return sum(np.allclose(s[0], truth[0]) for s in scenes)
@@ -209,9 +209,8 @@ def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_probl
     target, shared = places[-1], places[0]
     fresh = datadriven.Library([np.stack([target, shared])] + [np.zeros((0, 4, 4))] * (K - 1),
                                [np.array([0.5, 0.5])] + [np.zeros(0)] * (K - 1))
-    args = (ctx.points, ctx.samples, ctx.reach, ctx.radius)
-    without = polish.variants(truth, merged, *args)
-    with_fresh = polish.variants(truth, merged, *args, unexplained=fresh)
+    without = polish.variants(truth, merged, ctx)
+    with_fresh = polish.variants(truth, merged, ctx, unexplained=fresh)
 
     def count_at(scenes, T):
         return sum(np.allclose(s[0], T) for s in scenes)
@@ -294,7 +293,7 @@ def test_an_object_at_its_hiding_place_rests_behind_the_other_out_of_sight(occlu
     rests on the table on its lowest face, farther along the line of sight than the base, and the camera sees at
     most a tenth of it."""
     from workbench.inference.search import hiding
-    from workbench.inference.search.moves.context import SearchGeometry
+    from workbench.inference.search.geometry import SearchGeometry
     from workbench.render.depth import DepthRenderer
 
     frame, problem = occluded_frame
@@ -339,7 +338,7 @@ def test_a_base_is_put_under_the_top_it_carries(stacked_frame):
     estimate = truth.copy()
     estimate[base, 0, 3] += 0.3
     memo: dict = {}
-    args = (est.search.library, None, ctx.rest, ctx.hulls, ctx.samples, ctx.radius)
+    args = (est.search.library, None, ctx)
     scenes = polish.stacked(problem, estimate, *args, memo)
     symmetries = problem.models[base].symmetries
     under = [s for s in scenes if position_error(truth[base], s[base]) < 0.015
@@ -387,7 +386,7 @@ def test_a_leaning_box_is_tried_by_polish_from_its_slanted_patch_not_drawn_into_
     starts = search.leaning_starts(est.filter)
     start = at_truth(starts.poses[lean])
     assert start
-    args = (estimate, search.library, ctx.points, ctx.samples, ctx.reach, ctx.radius, search.unexplained)
+    args = (estimate, search.library, ctx, search.unexplained)
     gain = polish.gains(problem, estimate, ctx.samples)
     tried = [s for s in polish.variants(*args, gain=gain, leaning=starts) if np.allclose(s[lean], start[0])]
     assert tried and not any(np.allclose(s[lean], start[0]) for s in polish.variants(*args, gain=gain))
@@ -560,7 +559,7 @@ def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_a
     a call without it; a cluster it has not seen is still fitted."""
     problem, ctx, _ = context
     groups = clusters(ctx.points.points)
-    args = (problem, groups, ctx.points, ctx.rest, ctx.samples, ctx.hulls)
+    args = (problem, groups, ctx)
     plain = datadriven.build_library(*args)
     memo: dict = {}
     first = datadriven.build_library(*args, memo)
@@ -774,7 +773,7 @@ def test_every_cluster_keeps_its_best_fit_of_every_object(context, monkeypatch):
             id(own): [(60.0, at(0.33, 0.03)), (55.0, at(0.35, 0.03)),  # one place (2 cm apart)
                       (50.0, at(0.38, 0.03)), (45.0, at(0.38, 0.08))]}  # a second place, and a third
     monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: list(fits[id(cluster)]))
-    library = datadriven.build_library(problem, [large, own], ctx.points, ctx.rest, ctx.samples, ctx.hulls)
+    library = datadriven.build_library(problem, [large, own], ctx)
     for poses in library.poses:
         assert len(poses) == datadriven.PER_OBJECT + 2
         assert np.all(poses[:-2, 0, 3] < 0.1) and np.all(poses[:-2, 1, 3] < 0.1)  # the 12 best overall
@@ -790,7 +789,7 @@ def test_every_listed_object_and_a_few_distractors_get_a_cluster(context, monkey
     fitted = []
     monkeypatch.setattr(datadriven, "cluster_candidates", lambda _problem, cluster, *a: fitted.append(cluster) or [])
     monkeypatch.setattr(datadriven, "MAX_CLUSTERS", 1)
-    datadriven.build_library(problem, groups, ctx.points, ctx.rest, ctx.samples, ctx.hulls)
+    datadriven.build_library(problem, groups, ctx)
     K = problem.n_objects
     assert len(fitted) == (K + datadriven.DISTRACTOR_CLUSTERS) * K
     assert all(any(f is g for g in groups[:K + datadriven.DISTRACTOR_CLUSTERS]) for f in fitted)  # the largest first

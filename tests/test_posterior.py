@@ -145,7 +145,7 @@ def test_a_particles_place_that_wins_only_sunk_into_the_table_is_a_mode_not_the_
     there, it wins at rest too and replaces the estimate. The likelihood is a function the test sets (two peaks);
     the problem's geometry and renderer are real."""
     from workbench.inference.answer import posterior, settle
-    from workbench.inference.search.moves.context import SearchGeometry
+    from workbench.inference.search.geometry import SearchGeometry
     from workbench.problem.build import load_bop_problem
 
     frame, problem = load_bop_problem(touching_dataset, 0, 0)

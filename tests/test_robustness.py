@@ -649,7 +649,7 @@ def test_a_heavy_model_is_drawn_from_its_render_mesh_a_light_one_from_itself(mon
     calls = []
     monkeypatch.setattr(observation, "HEAVY_FACES", 10_000)
     monkeypatch.setattr("workbench.evaluation.local.prepare_meshes", lambda pr: calls.append("prepare"))
-    monkeypatch.setattr("workbench.inference.search.moves.context.search_mesh", lambda m, pr: calls.append(m.obj_id) or render)
+    monkeypatch.setattr("workbench.inference.search.geometry.search_mesh", lambda m, pr: calls.append(m.obj_id) or render)
     drawn_ball, drawn_box = observation.object_meshes(problem)
     assert calls == ["prepare", 6]  # simplified (or read from the cache) once, before anything is drawn
     assert len(drawn_ball.faces) == 20_480 and len(drawn_ball.solid[1]) == 320  # never the model's faces

@@ -10,7 +10,7 @@ long: a line when a step has taken over ``FIRST_S`` seconds, then one every ``EV
 silence is longer than that. Loading such a model (``io.bop.read_mesh``: reading the file, merging its vertices)
 is announced the same way (``loading``), as it takes seconds on every load. The evaluators prepare a problem's
 meshes once in the main process (``evaluation.local.prepare_meshes``); the workers then read them from the cache.
-The search's geometry (``inference.search.moves.context.search_mesh``) is computed from the render mesh of a heavy model, its
+The search's geometry (``inference.search.geometry.search_mesh``) is computed from the render mesh of a heavy model, its
 stable poses from a hull of at most ``resting.MAX_HULL_VERTICES`` vertices, and the lowest points of its particles
 from a sample of its vertices (``lowest_points``: the convex hull of a 1.3M-face sphere, whose 655k vertices all
 lie on it, took 14 s).

@@ -28,7 +28,7 @@ from workbench.geometry import invert_pose
 from workbench.inference.answer.carried_posterior import filled
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator, object_confidence
-from workbench.inference.search.moves.context import SearchGeometry
+from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.scenepoints import object_badness
 from workbench.inference.search.track_search import Carried, TrackSearch
 from workbench.io import bop

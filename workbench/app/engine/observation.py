@@ -150,7 +150,7 @@ def object_meshes(problem: Problem) -> list[MeshData]:
     heavy = [len(m.mesh.faces) > HEAVY_FACES for m in problem.models]
     if any(heavy):
         from workbench.evaluation.local import prepare_meshes
-        from workbench.inference.search.moves.context import search_mesh
+        from workbench.inference.search.geometry import search_mesh
 
         prepare_meshes(problem)
     out = []

@@ -15,14 +15,13 @@ The best few assignments are then evaluated like any hypothesis (physics, then t
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
-from scipy.spatial import ConvexHull
 
 from workbench.geometry import invert_pose
 from workbench.inference.search.datadriven import Library
-from workbench.inference.search.scenepoints import ModelSamples
+from workbench.inference.search.geometry import Solid
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
 from workbench.render.likelihood import pixel_loglik
@@ -31,40 +30,7 @@ BEAM = 32  # partial assignments kept after each object
 WIDE_BEAM = 64  # ... when the search is stuck (32 lost the four objects of generated clutter frame 5)
 ASSEMBLIES = 4  # complete assignments returned
 INSIDE = 0.3  # a candidate with this share of its core inside another's hull sits inside it
-CORE = 0.7  # the core: the surface samples pulled this far towards the centroid (surface points of two objects
-# at one place lie on each other's surface, not inside it; touching objects' cores stay apart)
 MARGIN = 0.005  # m; samples less deep than this inside the other hull are touching it, not inside
-HULL_POINTS = 64  # vertices of the simplified hull used for the inside test
-TEST_POINTS = 200  # core points per object tested against the others' hulls
-
-
-@dataclass(frozen=True)
-class Solid:
-    """An object's shape for the inside test, object frame: ``planes`` (F, 4) of a simplified convex hull, unit
-    outward normal and offset (inside where ``n . x + d <= 0``); ``points`` (M, 3) its core (see CORE), metres;
-    ``radius`` (m) of a sphere about the origin holding both."""
-
-    planes: np.ndarray
-    points: np.ndarray
-    radius: float
-
-
-def solid(hull_vertices: np.ndarray, samples: ModelSamples) -> Solid:
-    """The Solid of an object from its convex hull's vertices (V, 3) and its surface samples. The hull is reduced
-    to HULL_POINTS vertices by farthest-point sampling, so it lies within the full hull (the test errs towards
-    'touching')."""
-    v = np.asarray(hull_vertices, dtype=np.float64)
-    chosen = [int(np.argmax(np.linalg.norm(v - v.mean(axis=0), axis=1)))]
-    d = np.linalg.norm(v - v[chosen[0]], axis=1)
-    while len(chosen) < min(HULL_POINTS, len(v)):
-        chosen.append(int(np.argmax(d)))
-        d = np.minimum(d, np.linalg.norm(v - v[chosen[-1]], axis=1))
-    step = max(1, len(samples.points) // TEST_POINTS)
-    surface = samples.points[::step][:TEST_POINTS]
-    centre = surface.mean(axis=0)
-    core = centre + CORE * (surface - centre)
-    radius = float(max(np.linalg.norm(v, axis=1).max(), np.linalg.norm(core, axis=1).max()))
-    return Solid(ConvexHull(v[chosen]).equations, core, radius)
 
 
 def inside_share(Ta: np.ndarray, a: Solid, Tb: np.ndarray, b: Solid) -> np.ndarray:

@@ -12,18 +12,30 @@ becomes the estimate and replaces the worst particles, so the particle set searc
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from workbench.evaluation import run_here
 from workbench.geometry import rot_z, rotation_angle
-from workbench.inference.search.datadriven import Library, fit_scores, overlaps, place_order
+from workbench.inference.search.datadriven import (
+    Library,
+    fit_scores,
+    overlaps,
+    place_order,
+)
 from workbench.inference.search.hiding import Hide
-from workbench.inference.search.moves.resting import RestingPoses, highest_point, lowest_point
+from workbench.inference.search.moves.resting import (
+    highest_point,
+    lowest_point,
+)
 from workbench.inference.search.moves.stacking import BASE_MIN, bases_under
 from workbench.inference.search.refine import refit
-from workbench.inference.search.scenepoints import ModelSamples, ScenePoints, unclaimed
+from workbench.inference.search.scenepoints import ModelSamples, unclaimed
 from workbench.problem.problem import Problem
+
+if TYPE_CHECKING:  # annotations only: the geometry module imports this one's neighbours
+    from workbench.inference.search.geometry import SearchGeometry
 
 MEMO_LIMIT = 2000  # tops whose bases ``stacked`` remembers
 MEMO_CELL = 0.01  # m; tops whose centres and bottoms fall in one cell of this size share their bases
@@ -36,15 +48,14 @@ LIFT = 0.005  # m; exchanged objects start this far above their old height, and 
 Gain = Callable[[int, np.ndarray], np.ndarray]  # (object k, its candidate poses (C, 4, 4)) -> what each adds (C,)
 
 
-def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples: list[ModelSamples],
-             reach: np.ndarray, radii: np.ndarray, unexplained: Library | None = None, hide: Hide | None = None,
-             gain: Gain | None = None, leaning: Library | None = None) -> np.ndarray:
-    """Variants of the estimate (K, 4, 4):
+def variants(estimate: np.ndarray, library: Library, geometry: SearchGeometry, unexplained: Library | None = None,
+             hide: Hide | None = None, gain: Gain | None = None, leaning: Library | None = None) -> np.ndarray:
+    """Variants of the estimate (K, 4, 4), with the objects' ``geometry``:
     - one object turned by 90, 180 or 270 degrees about the vertical through its centre and refitted by ICP to the
-      observed points ``cloud`` near it (``refine.refit``; ``reach`` (K,) m);
+      observed points near it (``refine.refit``);
     - one object put on its best library candidate at one of its ``PER_OBJECT`` best places
       (``datadriven.place_order``), for every object and candidate that differs from its pose in the estimate,
-      the objects it would sit inside moved out of its way (``seat``; ``radii`` (K,) m); the candidates of
+      the objects it would sit inside moved out of its way (``seat``); the candidates of
       ``unexplained`` (the latest refit alone: fitted to what the estimate leaves unexplained) are tried first,
       at their own ``PER_OBJECT`` best places; with ``gain`` (``gains``), the best places by what each candidate
       adds to the rest of the estimate, not by its weight; then its leaning starts at its LEANING_PER_OBJECT
@@ -53,6 +64,7 @@ def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples
     - every pair of objects exchanging their places (x, y), each keeping its own orientation and height.
     -> (V, K, 4, 4), V <= K * (4 PER_OBJECT + 2 LEANING_PER_OBJECT + 3) + K (K - 1) / 2."""
     K = len(estimate)
+    cloud, samples, reach, radii = geometry.points, geometry.samples, geometry.reach, geometry.radius
     out = []
     for k in range(K):
         turned = np.repeat(estimate[k][None], 3, axis=0)
@@ -81,19 +93,19 @@ def variants(estimate: np.ndarray, library: Library, cloud: ScenePoints, samples
 
 
 def stacked(problem: Problem, estimate: np.ndarray, library: Library, unexplained: Library | None,
-            rest: list[RestingPoses], hulls: list[np.ndarray], samples: list[ModelSamples], radii: np.ndarray,
-            memo: dict, run: Callable | None = None) -> np.ndarray:
+            geometry: SearchGeometry, memo: dict, run: Callable | None = None) -> np.ndarray:
     """Variants of the estimate (K, 4, 4) that build a stack: a top object on a candidate that does not rest on
     the table (its pose in the estimate, or one tried by ``variants``), and under it, as its base, every other
-    object at each of its best places there (``stacking.bases_under``: by their resting faces ``rest``, convex-hull
-    vertices ``hulls`` and surface ``samples``); the top is lifted onto a base taller than its bottom,
-    and the objects either would sit inside are seated elsewhere (``seat``; ``radii`` (K,) m). ``memo`` keeps each
+    object at each of its best places there (``stacking.bases_under``: by their resting faces, convex hulls and
+    surface samples in ``geometry``); the top is lifted onto a base taller than its bottom,
+    and the objects either would sit inside are seated elsewhere (``seat``). ``memo`` keeps each
     top's bases between calls (the library changes slowly); ``run(fn, calls)`` runs the base searches
     (``Evaluator.map``; default ``evaluation.run_here``). -> (V, K, 4, 4).
 
     No one-object change can build such a stack when the base is hidden: the base alone, wherever it goes, explains
     almost nothing, and the top alone on its candidate floats and falls."""
     K = len(estimate)
+    rest, hulls, samples, radii = geometry.rest, geometry.hulls, geometry.samples, geometry.radius
     out = []
     if len(memo) > MEMO_LIMIT:
         memo.clear()

@@ -55,7 +55,7 @@ from workbench.evaluation.base import Run, run_here
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference.answer import settle
 from workbench.inference.search.datadriven import elsewhere
-from workbench.inference.search.moves.context import SearchGeometry
+from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves.resting import RestingPoses, lowest_point
 from workbench.inference.search.scenepoints import object_badness
 from workbench.problem.problem import Problem

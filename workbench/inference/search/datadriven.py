@@ -17,18 +17,33 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from workbench.evaluation import run_here
-from workbench.geometry import euler_to_matrix, make_pose, principal_heading, rot_z, rotation_angle
+from workbench.geometry import (
+    euler_to_matrix,
+    make_pose,
+    principal_heading,
+    rot_z,
+    rotation_angle,
+)
 from workbench.inference.search.footprint import footprint_starts
 from workbench.inference.search.moves.proposal import Proposal, pick_objects
 from workbench.inference.search.moves.resting import RestingPoses, height
 from workbench.inference.search.refine import NEAR, STAGES, icp_batch, near
-from workbench.inference.search.scenepoints import EXPLAINED, SEEN_THROUGH, ModelSamples, ScenePoints
+from workbench.inference.search.scenepoints import (
+    EXPLAINED,
+    SEEN_THROUGH,
+    ModelSamples,
+    ScenePoints,
+)
 from workbench.problem.problem import Problem
+
+if TYPE_CHECKING:  # annotations only: the geometry module imports this one's neighbours
+    from workbench.inference.search.geometry import SearchGeometry
 
 JITTER_POS = 0.005  # m
 JITTER_ANG = np.radians(3.0)
@@ -235,21 +250,21 @@ def _in_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (b[at] == a) if len(b) else np.zeros(len(a), dtype=bool)
 
 
-def build_library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoints,
-                  rest: list[RestingPoses], samples: list[ModelSamples], hulls: list[np.ndarray],
+def build_library(problem: Problem, clusters: list[np.ndarray], geometry: SearchGeometry,
                   memo: dict | None = None, run: Callable | None = None) -> Library:
     """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
-    all observed points ``cloud`` near each start. -> Library.
+    all observed points (``geometry.points``) near each start. -> Library.
 
     Coarse to fine: every start gets a few cheap ICP steps on a few points and is scored; only the best
     ``REFINED_PER_PLACE`` of each place go on to the full ICP. On the real dev frames this keeps as many right
     candidates as fitting every start fully (21 against 22 of 50 objects) at a sixth of the time.
 
-    ``memo``: a dict kept by the caller across calls with the same problem, ``cloud`` and models. A cluster's
+    ``memo``: a dict kept by the caller across calls with the same problem, geometry and models. A cluster's
     candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
     explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
     without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``evaluation.run_here``), the
     same library either way."""
+    cloud, rest, samples, hulls = geometry.points, geometry.rest, geometry.samples, geometry.hulls
     K = len(rest)
     found: list[list[Candidate]] = [[] for _ in range(K)]
     clusters = fitted_clusters(clusters, K)

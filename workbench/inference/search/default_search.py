@@ -24,11 +24,18 @@ import numpy as np
 from workbench.evaluation import Evaluation, run_here
 from workbench.inference.answer import assemble, polish, posterior, settle
 from workbench.inference.search import datadriven, hiding, leaning
+from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves import gaussian
-from workbench.inference.search.moves.context import MoveContext, SearchGeometry
+from workbench.inference.search.moves.context import MoveContext
 from workbench.inference.search.moves.registry import REGISTRY, MoveKind
 from workbench.inference.search.scenepoints import clusters, object_badness, unexplained
-from workbench.inference.smc.filter import ParticleFilter, Proposed, Settled, Started, Update
+from workbench.inference.smc.filter import (
+    ParticleFilter,
+    Proposed,
+    Settled,
+    Started,
+    Update,
+)
 from workbench.inference.smc.particles import initial_particles
 from workbench.inference.smc.particleset import ParticleSet
 from workbench.problem.problem import Problem
@@ -39,7 +46,7 @@ from workbench.render.depth import DepthRenderer
 SINK_GRID = np.arange(0.0, 0.0201, 0.002)  # m
 # Only while the estimate is stuck (gained less than STUCK since the last polish) does polish assemble with the wide
 # beam and try leaning starts. The assemblies that lose to the estimate by less than FIT_WITHIN are fitted to the depth
-# (``DefaultSearch._fitted``), the best FIT_ASSEMBLIES of them, coarsely (steps down to FIT_MIN_STEP, at most
+# (``fit_near_misses``), the best FIT_ASSEMBLIES of them, coarsely (steps down to FIT_MIN_STEP, at most
 # FIT_ROUNDS rounds). Fitting recovers a few centimetres of misfit per object, worth hundreds of log-units
 # (generated clutter frame 5: -191 to +21 coarsely, +297 finely); an assembly losing by thousands is another
 # arrangement, not a misfit. Fitting those too cost real-shape frames 19-48 % of their time and won none of them.
@@ -71,9 +78,44 @@ def fit_sink(filt: ParticleFilter) -> Update:
     return Update()
 
 
+def fit_near_misses(filt: ParticleFilter, pools: list[tuple[np.ndarray, np.ndarray, int, int]], estimate: np.ndarray,
+                    done: set) -> list[np.ndarray]:
+    """Per pool (evaluated scenes (S, K, 4, 4), their log-likelihoods (S,), ``least``, ``most``): the best ``most``
+    of its scenes that lost to the estimate (K, 4, 4) by less than FIT_WITHIN, move ``least`` or more of its
+    objects to other places (more than ``datadriven.PLACE_M`` away) and were not fitted before (their keys in
+    ``done``, which gets theirs), each fitted to
+    the depth without physics (``settle.search``, coarsely) in the objects it moves, all pools' in lockstep ->
+    per pool (F, K, 4, 4). A scene that keeps the estimate's places is the same arrangement, which settling fits
+    anyway.
+    Each candidate was fitted alone to its cluster, so one partly hidden by another is often a few centimetres
+    off, and the right arrangement then loses to the estimate after physics: generated clutter frame 5 (four
+    objects moved together) scored 191 below it as assembled and 21 above it fitted."""
+    cfg, searches, counts = filt.config, [], []
+    for scenes, loglik, least, most in pools:
+        chosen = 0
+        for i in np.argsort(-loglik, kind="stable"):
+            if chosen == most:
+                break
+            moved = assemble.moved(scenes[i], estimate)
+            far = datadriven.elsewhere(scenes[i, moved], estimate[moved])
+            key = tuple((k, tuple(np.round(scenes[i, k], 6).ravel().tolist())) for k in moved)
+            if not filt.estimate_loglik - FIT_WITHIN < loglik[i] <= filt.estimate_loglik or far.sum() < least \
+                    or key in done:
+                continue
+            done.add(key)
+            searches.append(settle.search(scenes[i], min_step_m=FIT_MIN_STEP, max_rounds=FIT_ROUNDS,
+                                          max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn,
+                                          objects=moved))
+            chosen += 1
+        counts.append(chosen)
+    found = settle.run(searches, lambda scenes: filt.evaluate(scenes, project=False).loglik)
+    fitted = np.array([scene for scene, _, _ in found]).reshape(-1, *estimate.shape)
+    return np.split(fitted, np.cumsum(counts)[:-1])
+
+
 class DefaultSearch:
     """The data-driven search's state: the candidate ``library``, the assemblies and one-object moves already
-    ``fitted`` (``_fitted``: per scene, the (object, pose) pairs it moves, each pose its 16 entries rounded to
+    ``fitted`` (``fit_near_misses``: per scene, the (object, pose) pairs it moves, each pose its 16 entries rounded to
     1e-6) and the estimate's log-likelihood at the last polish (``polished_at``), all saved with sessions; the
     latest refit's candidates alone (``unexplained``: fitted where the estimate leaves points unexplained; polish
     tries them first; made and used within one step, so not saved), and caches: the per-object geometry, the
@@ -224,8 +266,7 @@ class DefaultSearch:
         g = self.geometry(filt)
         loose = unexplained(self.problem, g.points, filt.estimate if scene is None else scene, g.samples)
         groups = clusters(g.points.points[loose])
-        fresh = datadriven.build_library(self.problem, groups, g.points, g.rest, g.samples, g.hulls,
-                                         self._cluster_memo, partial(self._run, filt))
+        fresh = datadriven.build_library(self.problem, groups, g, self._cluster_memo, partial(self._run, filt))
         self.library = fresh if self.library is None else self.library.merged(fresh)
         self.unexplained = fresh
 
@@ -238,8 +279,7 @@ class DefaultSearch:
             return None
         if self._leaning is None:
             g = self.geometry(filt)
-            self._leaning = leaning.library(self.problem, clusters(g.points.points), g.points, g.rest, g.samples,
-                                            g.hulls)
+            self._leaning = leaning.library(self.problem, clusters(g.points.points), g)
         return self._leaning
 
     def _assemblies(self, filt: ParticleFilter, base: np.ndarray, beam_width: int = assemble.BEAM) -> np.ndarray:
@@ -255,39 +295,6 @@ class DefaultSearch:
         finally:
             renderer.close()
 
-    def _fitted(self, filt: ParticleFilter, pools: list[tuple[np.ndarray, np.ndarray, int, int]],
-                estimate: np.ndarray) -> list[np.ndarray]:
-        """Per pool (evaluated scenes (S, K, 4, 4), their log-likelihoods (S,), ``least``, ``most``): the best ``most``
-        of its scenes that lost to the estimate (K, 4, 4) by less than FIT_WITHIN, move ``least`` or more of its
-        objects to other places (more than ``datadriven.PLACE_M`` away) and were not fitted before, each fitted to
-        the depth without physics (``settle.search``, coarsely) in the objects it moves, all pools' in lockstep ->
-        per pool (F, K, 4, 4). A scene that keeps the estimate's places is the same arrangement, which settling fits
-        anyway.
-        Each candidate was fitted alone to its cluster, so one partly hidden by another is often a few centimetres
-        off, and the right arrangement then loses to the estimate after physics: generated clutter frame 5 (four
-        objects moved together) scored 191 below it as assembled and 21 above it fitted."""
-        cfg, searches, counts = filt.config, [], []
-        for scenes, loglik, least, most in pools:
-            chosen = 0
-            for i in np.argsort(-loglik, kind="stable"):
-                if chosen == most:
-                    break
-                moved = assemble.moved(scenes[i], estimate)
-                far = datadriven.elsewhere(scenes[i, moved], estimate[moved])
-                key = tuple((k, tuple(np.round(scenes[i, k], 6).ravel().tolist())) for k in moved)
-                if not filt.estimate_loglik - FIT_WITHIN < loglik[i] <= filt.estimate_loglik or far.sum() < least \
-                        or key in self.fitted:
-                    continue
-                self.fitted.add(key)
-                searches.append(settle.search(scenes[i], min_step_m=FIT_MIN_STEP, max_rounds=FIT_ROUNDS,
-                                              max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn,
-                                              objects=moved))
-                chosen += 1
-            counts.append(chosen)
-        found = settle.run(searches, lambda scenes: filt.evaluate(scenes, project=False).loglik)
-        fitted = np.array([scene for scene, _, _ in found]).reshape(-1, *estimate.shape)
-        return np.split(fitted, np.cumsum(counts)[:-1])
-
     def polish(self, filt: ParticleFilter) -> Update:
         """Evaluate the estimate's one- and two-object variants (``polish.variants``), the stacks it could be
         (``polish.stacked``) and the assemblies -> the update: all of them offered for the estimate, those that beat
@@ -300,12 +307,11 @@ class DefaultSearch:
         # ycbv-real-dev (the banana, the can, each soon moved on) and sent the search elsewhere.
         stuck = filt.estimate_loglik - self.polished_at < STUCK
         self.polished_at = filt.estimate_loglik
-        parts = [polish.variants(estimate, self.library, g.points, g.samples, g.reach, g.radius, self.unexplained,
-                                 hiding.hider(self.problem, g.rest, g.hulls),
+        parts = [polish.variants(estimate, self.library, g, self.unexplained, hiding.hider(self.problem, g),
                                  polish.gains(self.problem, estimate, g.samples),
                                  self.leaning_starts(filt) if stuck else None),
-                 polish.stacked(self.problem, estimate, self.library, self.unexplained, g.rest, g.hulls, g.samples,
-                                g.radius, self._base_memo, partial(self._run, filt))]
+                 polish.stacked(self.problem, estimate, self.library, self.unexplained, g, self._base_memo,
+                                partial(self._run, filt))]
         joint = self._assemblies(filt, estimate, assemble.WIDE_BEAM if stuck else assemble.BEAM)
         parts.append(joint)
         kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.BASE, MoveKind.ASSEMBLE], np.int8),
@@ -315,10 +321,11 @@ class DefaultSearch:
             return Update()
         ev = filt.evaluate(scenes)
         # The assemblies and one-object moves to other places that nearly beat the estimate, fitted to the depth
-        # (``_fitted``); each fitted assembly also with one of its objects kept where the estimate has it.
+        # (``fit_near_misses``); each fitted assembly also with one of its objects kept where the estimate has it.
         n_variants, joint_ll = len(parts[0]), ev.loglik[len(scenes) - len(joint):]
-        assemblies, ones = self._fitted(filt, [(joint, joint_ll, 2, FIT_ASSEMBLIES),
-                                               (parts[0], ev.loglik[:n_variants], 1, FIT_MOVES)], estimate)
+        assemblies, ones = fit_near_misses(filt, [(joint, joint_ll, 2, FIT_ASSEMBLIES),
+                                                  (parts[0], ev.loglik[:n_variants], 1, FIT_MOVES)], estimate,
+                                           self.fitted)
         kept = np.concatenate([assemble.one_kept(f, estimate) for f in assemblies] + [ones[:0]])
         fitted = np.concatenate([assemblies, ones, kept])
         if len(fitted):

@@ -17,7 +17,12 @@ from scipy import fft, ndimage
 
 from workbench.geometry import make_pose, rot_z
 from workbench.inference.search.moves.resting import RestingPoses, height
-from workbench.inference.search.scenepoints import TABLE_CELL, ModelSamples, ScenePoints, table_cells
+from workbench.inference.search.scenepoints import (
+    TABLE_CELL,
+    ModelSamples,
+    ScenePoints,
+    table_cells,
+)
 
 CELL = TABLE_CELL  # m; the grid the footprints are aligned on (that of ``ScenePoints.table``)
 TURNS = 72  # headings tried per face, 5 degrees apart

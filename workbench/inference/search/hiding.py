@@ -11,12 +11,16 @@ offers an object it has to move out of the way a place behind the object that pu
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from workbench.geometry import invert_pose, rot_z
 from workbench.inference.search.moves.resting import RestingPoses
 from workbench.problem.problem import Problem
+
+if TYPE_CHECKING:  # annotations only: the geometry module imports this one's neighbours
+    from workbench.inference.search.geometry import SearchGeometry
 
 GAP = 0.005  # m left between the hiding object and the one it hides behind; physics closes or keeps it
 LIFT = 0.005  # m above its resting height that a hidden object starts; physics sets it down
@@ -59,7 +63,7 @@ def hiding_place(problem: Problem, scene: np.ndarray, k: int, i: int, rest: Rest
     return T
 
 
-def hider(problem: Problem, rest: list[RestingPoses], hulls: list[np.ndarray]) -> Hide:
-    """``hiding_place`` for the problem's objects, given their resting poses ``rest`` and convex hulls ``hulls``
-    (per object, ``context.SearchGeometry``)."""
+def hider(problem: Problem, geometry: SearchGeometry) -> Hide:
+    """``hiding_place`` for the problem's objects, given their resting poses and convex hulls (``geometry``)."""
+    rest, hulls = geometry.rest, geometry.hulls
     return lambda scene, k, i: hiding_place(problem, scene, k, i, rest[k], hulls[k], hulls[i])

@@ -17,13 +17,26 @@ physics, scores better with it.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from workbench.geometry import make_pose, principal_heading, rot_z, rotvec_to_matrix
-from workbench.inference.search.datadriven import Library, candidate_weights, fit_scores, fitted_clusters
+from workbench.inference.search.datadriven import (
+    Library,
+    candidate_weights,
+    fit_scores,
+    fitted_clusters,
+)
 from workbench.inference.search.moves.resting import RestingPoses, height
-from workbench.inference.search.scenepoints import ModelSamples, ScenePoints, point_normals
+from workbench.inference.search.scenepoints import (
+    ModelSamples,
+    point_normals,
+)
 from workbench.problem.problem import Problem
+
+if TYPE_CHECKING:  # annotations only: the geometry module imports this one's neighbours
+    from workbench.inference.search.geometry import SearchGeometry
 
 TILT_MIN = np.radians(15.0)  # a patch less tilted is a top, which the level starts cover
 TILT_MAX = np.radians(75.0)  # a patch more tilted is a wall: an upright side, which the upright starts cover
@@ -99,14 +112,14 @@ def leaning_starts(patches: list[tuple[np.ndarray, np.ndarray, np.ndarray]], res
     return out
 
 
-def library(problem: Problem, clusters: list[np.ndarray], cloud: ScenePoints, rest: list[RestingPoses],
-            samples: list[ModelSamples], hulls: list[np.ndarray]) -> Library:
+def library(problem: Problem, clusters: list[np.ndarray], geometry: SearchGeometry) -> Library:
     """Per object, its best leaning start (``leaning_starts``, scored by ``datadriven.fit_scores``, not fitted
     further) on each slanted patch of the ``clusters`` (list of (P_i, 3), largest first; those
-    ``datadriven.fitted_clusters`` keeps), seen from ``cloud.viewpoint`` -> Library.
+    ``datadriven.fitted_clusters`` keeps), seen from the observed points' viewpoint -> Library.
 
     Not fitted: ICP slides a leaning box off its patch, onto whatever it leans on (the generated gelatin box on
     the wood block ended 2 cm and 74 degrees from a start 0.5 cm and 6 degrees from it)."""
+    cloud, rest, samples, hulls = geometry.points, geometry.rest, geometry.samples, geometry.hulls
     K = len(rest)
     found: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(K)]
     for cluster in fitted_clusters(clusters, K):

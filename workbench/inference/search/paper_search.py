@@ -10,7 +10,13 @@ import numpy as np
 
 from workbench.inference.search.moves import gaussian
 from workbench.inference.search.moves.registry import MoveKind
-from workbench.inference.smc.filter import ParticleFilter, Proposed, Settled, Started, Update
+from workbench.inference.smc.filter import (
+    ParticleFilter,
+    Proposed,
+    Settled,
+    Started,
+    Update,
+)
 from workbench.inference.smc.particles import initial_particles
 
 

@@ -27,8 +27,8 @@ from workbench.inference.answer import carried_posterior, settle
 from workbench.inference.answer.posterior import Posterior, doubted
 from workbench.inference.search import datadriven
 from workbench.inference.search.default_search import DefaultSearch
+from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves import gaussian
-from workbench.inference.search.moves.context import SearchGeometry
 from workbench.inference.search.moves.registry import MoveKind
 from workbench.inference.search.scenepoints import object_badness, observed_points
 from workbench.inference.smc.filter import ParticleFilter, Settled, Started, Update

@@ -33,7 +33,12 @@ from workbench.inference.answer.settle import Tie
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.moves.registry import MoveKind
 from workbench.inference.smc.particleset import ParticleSet
-from workbench.inference.smc.resampling import ess, normalised_weights, systematic_resample, temper_to_ess
+from workbench.inference.smc.resampling import (
+    ess,
+    normalised_weights,
+    systematic_resample,
+    temper_to_ess,
+)
 from workbench.problem.problem import Problem
 
 

@@ -12,7 +12,12 @@ import numpy as np
 from workbench.geometry import rot_z
 from workbench.inference.search.datadriven import fit_scores
 from workbench.inference.search.moves.proposal import Proposal, pick_objects
-from workbench.inference.search.moves.resting import RestingPoses, height, highest_point, lowest_point
+from workbench.inference.search.moves.resting import (
+    RestingPoses,
+    height,
+    highest_point,
+    lowest_point,
+)
 from workbench.inference.search.scenepoints import ModelSamples
 from workbench.problem.problem import Problem
 
