@@ -7,9 +7,20 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from workbench.score import metrics
 from workbench.geometry import invert_pose, make_pose, rot_z
-from workbench.inference.answer.posterior import DOUBTFUL, Mode, ObjectPosterior, Posterior, doubted, face_turns, found_probability, object_modes, probabilities, yaw_range
+from workbench.inference.answer.posterior import (
+    DOUBTFUL,
+    Mode,
+    ObjectPosterior,
+    Posterior,
+    doubted,
+    face_turns,
+    found_probability,
+    object_modes,
+    probabilities,
+    yaw_range,
+)
+from workbench.score import metrics
 
 BOX = metrics.box_symmetries(np.array([0.16, 0.06, 0.21]))  # a cracker box: its half turns about its own axes
 
@@ -45,7 +56,13 @@ def test_modes_merge_poses_equal_under_the_models_symmetries_and_keep_distinct_o
 
 
 def test_coverage_calibration_error_and_top1_of_modes():
-    from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability, top1
+    from workbench.score.calibration import (
+        ObjectModes,
+        coverage,
+        expected_calibration_error,
+        reliability,
+        top1,
+    )
 
     sure_right = ObjectModes(np.array([1.0]), np.array([True]))
     torn = ObjectModes(np.array([0.6, 0.4]), np.array([False, True]))  # the truth is the second mode
@@ -167,9 +184,9 @@ def test_a_particles_place_that_wins_only_sunk_into_the_table_is_a_mode_not_the_
 
     particles = np.repeat(scene[None], 4, axis=0)
     particles[:2, 0] = peak
-    found, _, final, _ = posterior.sweep(problem, scene, float(score(scene[None])[0]), score, rest, [], scene,
-                                         SearchGeometry.of(problem, upright=False), particles, np.full(4, 0.25),
-                                         0.015, 12.0)
+    start = posterior.SweepStart(scene, float(score(scene[None])[0]), [], scene, particles, np.full(4, 0.25))
+    found, _, final, _ = posterior.sweep(problem, start, settle.Scorer(score, rest, 0.015, 12.0),
+                                         SearchGeometry.of(problem, upright=False))
     modes = found.objects[0].modes
     assert any(np.linalg.norm(m.T[:3, 3] - peak[:3, 3]) < 0.005 for m in modes)  # listed either way
     assert np.array_equal(final[0], scene[0]) == sunk
@@ -190,9 +207,9 @@ def _mug_posterior(touching_dataset, seeing, handle_from_view_deg: float, estima
     """A standing mug where the touching frame's first box stands, its handle turned ``handle_from_view_deg`` from
     pointing straight away from the camera; the depth is drawn from it. The estimate has the mug turned by
     ``estimate_turn_deg`` more, as physics rests it; settled, what posterior does it get?"""
-    from workbench.inference.estimator import Estimator
     from workbench.evaluation import LocalEvaluator
     from workbench.inference.config import EstimatorConfig
+    from workbench.inference.estimator import Estimator
     from workbench.problem.build import load_bop_problem
     from workbench.problem.problem import build_problem
     from workbench.problem.scene import ObjectModel

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from workbench.evaluation.base import Run, run_here
+from workbench.evaluation.base import run_here
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference.answer import settle
 from workbench.inference.search.datadriven import elsewhere
@@ -305,24 +305,35 @@ def centre_call(problem: Problem, points: np.ndarray, vertical: np.ndarray) -> n
     return turn_centre(points, vertical)
 
 
-def sweep(problem: Problem, scene: np.ndarray, loglik: float, score: settle.Score, rest: settle.Rest,
-          turns: list[settle.Turn], turns_scene: np.ndarray, geometry: SearchGeometry, projected: np.ndarray,
-          weights: np.ndarray,
-          max_shift_m: float, max_turn_deg: float, temperature: float = TEMPERATURE, run: Run | None = None
-          ) -> tuple[Posterior, int, np.ndarray, float]:
-    """The posterior of the settled estimate ``scene`` (K, 4, 4), whose log-likelihood as given is ``loglik``.
-    ``score``: scenes as given -> log-likelihoods; ``rest``: scenes -> at rest under physics. ``turns``:
-    ``settle.turn_over``'s settled turns, as (object, name, scene, log-likelihood), of ``turns_scene`` (K, 4,
-    4): where that is not ``scene`` (settling kept a turn), each turned pose is scored again as given, the others
-    as they are now, rather than settled again (the turns of a turned object are its pose before and its other
-    turns before). ``geometry``: each model's surface samples, resting faces and hull. ``projected`` (N, K, 4, 4),
-    ``weights`` (N,): the final particles. Settling searches stay within ``max_shift_m`` and ``max_turn_deg`` of
-    where they start. A candidate that beats the estimate by more than the turn margin, physics holding it (and,
-    at another place (``datadriven.elsewhere``), beating it at rest too), replaces it (``settle.adopt``) -> (the
-    posterior, scenes scored, the scene, its log-likelihood). ``run`` (``Evaluator.map``; default: here) computes
-    the objects' turn axes (``turn_centre``), on the evaluation workers, which would otherwise wait meanwhile."""
+@dataclass(frozen=True)
+class SweepStart:
+    """What the posterior sweep starts from: the settled estimate ``scene`` (K, 4, 4) with its log-likelihood as
+    given, ``loglik``; ``turns``, ``settle.turn_over``'s settled turns (object, name, scene, log-likelihood) of
+    ``turns_scene`` (K, 4, 4); the final particles ``projected`` (N, K, 4, 4) with their ``weights`` (N,)."""
+
+    scene: np.ndarray
+    loglik: float
+    turns: list[settle.Turn]
+    turns_scene: np.ndarray
+    projected: np.ndarray
+    weights: np.ndarray
+
+
+def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: SearchGeometry,
+          temperature: float = TEMPERATURE) -> tuple[Posterior, int, np.ndarray, float]:
+    """The posterior of the settled estimate ``start.scene``. Where ``start.turns_scene`` is not that scene
+    (settling kept a turn), each turned pose is scored again as given, the others as they are now, rather than
+    settled again (the turns of a turned object are its pose before and its other turns before). ``scorer``
+    scores, rests and bounds the settling searches (``settle.Scorer``); its ``run`` computes the objects' turn
+    axes (``turn_centre``) on the evaluation workers. ``geometry``: each model's surface samples, resting faces and
+    hull. A candidate that beats the estimate by more than the turn margin, physics holding it (and, at another
+    place (``datadriven.elsewhere``), beating it at rest too), replaces it (``settle.adopt``) -> (the posterior,
+    scenes scored, the scene, its log-likelihood)."""
     t0 = time.perf_counter()
-    run = run_here(problem) if run is None else run
+    scene, loglik, turns, turns_scene = start.scene, start.loglik, start.turns, start.turns_scene
+    projected, weights = start.projected, start.weights
+    score, rest, max_shift_m, max_turn_deg = scorer.score, scorer.rest, scorer.max_shift_m, scorer.max_turn_deg
+    run = run_here(problem) if scorer.run is None else scorer.run
     loglik_before = loglik
     samples, rest_poses, hulls = geometry.samples, geometry.rest, geometry.hulls
     # A heading is open when its odds against the estimate's are better than 1 : exp(RANGE_GAP) (``probabilities``).

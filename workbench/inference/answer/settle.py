@@ -28,12 +28,26 @@ from typing import Callable, Generator
 
 import numpy as np
 
+from workbench.evaluation.base import Run
 from workbench.geometry import euler_to_matrix, rotation_angle, rotvec_to_matrix
 from workbench.problem.problem import Problem
 from workbench.score.metrics import is_right
 
 Score = Callable[[np.ndarray], np.ndarray]  # scenes (B, K, 4, 4) as given -> log-likelihoods (B,)
 Rest = Callable[[np.ndarray], np.ndarray]  # scenes (B, K, 4, 4) -> the same scenes at rest under physics
+
+
+@dataclass(frozen=True)
+class Scorer:
+    """How the answer's searches judge scenes: ``score`` them as given, put them at ``rest`` under physics, and
+    stay within ``max_shift_m`` and ``max_turn_deg`` of where each search starts; ``run`` (``Evaluator.map``; None:
+    in this process) does work the evaluation workers can do while they would otherwise wait."""
+
+    score: Score
+    rest: Rest
+    max_shift_m: float
+    max_turn_deg: float
+    run: Run | None = None
 
 # Settling's first steps, halved down to 0.5 mm: from a projected estimate the optimum is a few millimetres away.
 SETTLE_STEP, SETTLE_DEGREES = 0.004, 4.0  # m, degrees

@@ -212,10 +212,10 @@ class DefaultSearch:
             projected, weights = np.zeros((0, *scene.shape)), np.zeros(0)
         else:
             projected, weights = filt.particles.projected, filt.weights()
-        found, swept, final, loglik = posterior.sweep(self.problem, scene, loglik, score, rest, turns, before,
-                                                      self.geometry(filt), projected, weights,
-                                                      cfg.settle_shift, cfg.settle_turn,
-                                                      run=lambda fn, calls: self._run(filt, fn, calls))
+        scorer = settle.Scorer(score, rest, cfg.settle_shift, cfg.settle_turn, partial(self._run, filt))
+        found, swept, final, loglik = posterior.sweep(
+            self.problem, posterior.SweepStart(scene, loglik, turns, before, projected, weights), scorer,
+            self.geometry(filt))
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
         return Settled(final, loglik, ties, scored + turned + hopped + swept, found)
 
