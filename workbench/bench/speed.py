@@ -1,7 +1,7 @@
 """`workbench bench --speed [DATASET]`: particle evaluations per second and peak memory, on the first frame of
 each scene of a BOP dataset, or without one on generated 2- and 4-object frames. Also each object's collision
-shape with its measured fit, and the faces its render mesh keeps. Numbers, not assertions: docs/benchmarks.md quotes them
-with the machine and the command."""
+shape with its measured fit, and the faces its render mesh keeps. Numbers, not assertions: docs/benchmarks.md quotes
+them with the machine and the command."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """The estimator a user runs: PI-PF or PI-MCPF (``inference.smc.filter``) with the paper's search or the default one
-(``inference.search.paper_search``, ``inference.search.default_search``), its settings, its answer, and its state for sessions.
+(``inference.search.paper_search``, ``inference.search.default_search``), its settings, its answer, and its state
+for sessions.
 
 ``Estimator.run`` steps the filter until the iteration budget or the paper's convergence rule, then returns the
 search's answer (``settle``): for the default search the estimate fitted to the depth, with its near ties.

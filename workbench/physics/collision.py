@@ -208,7 +208,8 @@ def _surface_samples(mesh: trimesh.Trimesh) -> np.ndarray:
     return np.asarray(trimesh.sample.sample_surface(mesh, _FIT_SAMPLES, seed=0)[0], dtype=np.float64)
 
 
-def _measured(shape: CollisionShape, solid: trimesh.Trimesh, volume: float, surface: _SurfaceDistance) -> CollisionShape:
+def _measured(shape: CollisionShape, solid: trimesh.Trimesh, volume: float,
+              surface: _SurfaceDistance) -> CollisionShape:
     """``shape`` with its fit to ``solid`` (volume ``volume``) filled in.
 
     The deviation counts what changes contacts: the shape's surface where it stands off the mesh (rounded edges

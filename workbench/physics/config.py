@@ -64,8 +64,8 @@ class PhysicsConfig:
     sleep_calm: bool = True
 
     def __post_init__(self):
-        positive = ("timestep", "solver_iterations", "solver_residual", "max_steps", "rest_linear", "rest_angular", "check_every",
-                    "rest_checks", "table_thickness", "max_speed", "max_angular", "max_distance",
+        positive = ("timestep", "solver_iterations", "solver_residual", "max_steps", "rest_linear", "rest_angular",
+                    "check_every", "rest_checks", "table_thickness", "max_speed", "max_angular", "max_distance",
                     "penetration_tolerance", "separation_iterations")
         for name in positive:
             value = getattr(self, name)

@@ -58,8 +58,8 @@ def _body_frame(mesh: trimesh.Trimesh, shape: CollisionShape, mass: float) -> Bo
         inertia = mass * np.array([(3 * r2 + h2) / 12.0, (3 * r2 + h2) / 12.0, r2 / 2.0])
     else:
         src = mesh if mesh.is_watertight else mesh.convex_hull
-        I = np.asarray(src.moment_inertia, dtype=np.float64) * (mass / abs(float(src.mass)))
-        inertia, axes = np.linalg.eigh(I)
+        tensor = np.asarray(src.moment_inertia, dtype=np.float64) * (mass / abs(float(src.mass)))
+        inertia, axes = np.linalg.eigh(tensor)
         if np.linalg.det(axes) < 0:
             axes[:, 2] *= -1.0
         T_obj_body = make_pose(axes, np.asarray(src.center_mass, dtype=np.float64))

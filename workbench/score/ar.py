@@ -2,8 +2,8 @@
 what papers and the BOP leaderboard report, so that our numbers compare with theirs.
 
 - MSSD (m, ``metrics.mssd``): the maximum symmetry-aware surface distance, min over the model's symmetries S of
-  max over its vertices x of |T_est x - T_gt S x|. AR_MSSD is the share of the thresholds ``MSSD_FRACTIONS`` x the object's diameter
-  that the error is under.
+  max over its vertices x of |T_est x - T_gt S x|. AR_MSSD is the share of the thresholds ``MSSD_FRACTIONS`` x the
+  object's diameter that the error is under.
 - MSPD (px): the same with both points projected into the image, in pixels. AR_MSPD is the share of the
   thresholds ``MSPD_PIXELS`` x (image width / 640) that the error is under.
 - AR = mean(AR_VSD, AR_MSSD, AR_MSPD) over a dataset's objects (``vsd`` gives AR_VSD); an object without an

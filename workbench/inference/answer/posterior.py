@@ -391,7 +391,8 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
         scored += len(again)
         found = [(k, f"turned {name}", again[i], float(again_ll[i])) for i, (k, name, _, _) in enumerate(turns)]
     # Down to settling's 0.5 mm steps: stopping at 2 mm scored 30 % fewer scenes, but a hidden mug handle's headings
-    # then lost enough that its top mode rose from about 0.5 to 0.8 (docs/journal/2026-11.md, "The posterior, third step").
+    # then lost enough that its top mode rose from about 0.5 to 0.8 (docs/journal/2026-11.md, "The posterior, third
+    # step").
     # Two kinds of candidate stop early, since neither would be a mode of its own: one still too far below the
     # estimate to be reported once it has converged at settling's first two steps, and one that has moved into the
     # estimate's own mode after them. On YCB-Video models lying free, such candidates took most of the sweep's

@@ -97,8 +97,9 @@ def _axis_turns(step_rad: float) -> np.ndarray:
 
 def single_moves(T: np.ndarray, step_m: float, step_rad: float, objects: np.ndarray | None = None) -> np.ndarray:
     """Every single-coordinate move of one object: +-step along the table's x, y, z, and +-step rotations about
-    table axes through the object's origin (as ``inference.search.moves.gaussian``). (K, 4, 4) -> (K, 12, K, 4, 4); only the
-    ``objects`` (K,) bool that are True are moved (the others' moves are left as ``T``, not to be scored)."""
+    table axes through the object's origin (as ``inference.search.moves.gaussian``). (K, 4, 4) -> (K, 12, K, 4, 4);
+    only the ``objects`` (K,) bool that are True are moved (the others' moves are left as ``T``, not to be
+    scored)."""
     K = len(T)
     out = np.broadcast_to(T, (K, 12, K, 4, 4)).copy()
     turns = _axis_turns(float(step_rad))  # the same for every object

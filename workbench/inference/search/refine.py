@@ -25,7 +25,8 @@ STILL_M, STILL_RAD = 1e-4, 1e-3  # a step this small (0.1 mm, 0.06 degrees) ends
 JITTER_ANG = np.radians(1.5)
 # A scene point and a model sample whose normals differ by more than 60 degrees are no correspondence: a box's
 # vertical side beside a pair of scissors lying flat is not their top. Without it, ICP from the true pose of the
-# generated frames' scissors went 14 cm away, pulled by a neighbour's side (docs/journal/2026-11.md, "Observed normals").
+# generated frames' scissors went 14 cm away, pulled by a neighbour's side (docs/journal/2026-11.md, "Observed
+# normals").
 NORMAL_AGREEMENT = np.cos(np.radians(60.0))
 
 

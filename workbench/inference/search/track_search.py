@@ -176,8 +176,8 @@ class TrackSearch(DefaultSearch):
         if self.lost or filt.estimate is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return super().finish(filt)
         score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
-        scene, loglik, scored = settle_each(filt.estimate, self.carried.settled, score, cfg.settle_shift, cfg.settle_turn,
-                                            STILL_MARGIN)
+        scene, loglik, scored = settle_each(filt.estimate, self.carried.settled, score, cfg.settle_shift,
+                                            cfg.settle_turn, STILL_MARGIN)
         if self.carried.posterior is None:
             return Settled(scene, loglik, [], scored)
 

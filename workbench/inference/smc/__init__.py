@@ -1,1 +1,2 @@
-"""The sequential Monte Carlo core: ``filter.ParticleFilter`` (PI-PF / PI-MCPF) over one ``particleset.ParticleSet``, log-weights (``resampling``), random starts and Sigma (``particles``)."""
+"""The sequential Monte Carlo core: ``filter.ParticleFilter`` (PI-PF / PI-MCPF) over one ``particleset.ParticleSet``,
+log-weights (``resampling``), random starts and Sigma (``particles``)."""
