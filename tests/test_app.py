@@ -8,11 +8,11 @@ import signal
 
 import numpy as np
 import pytest
+from headless import free_port, image_stats
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import MISSING, VIRIDIS, apply_map
-from headless import free_port, image_stats
 from workbench.app.ui.run.views import wxyz_from_matrices
+from workbench.app.ui.widgets.colors import MISSING, VIRIDIS, apply_map
 from workbench.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, random_rotations, rot_x, rot_z
 
 pytestmark = pytest.mark.slow  # needs the engine process: pybullet and OpenGL
@@ -158,6 +158,7 @@ def test_panel_shows_a_restored_config_without_changing_it():
     import viser
 
     from workbench.app.ui.panel import build_panel
+    from workbench.app.ui.ui_thread import UiThread
     from workbench.inference.config import EstimatorConfig
     from workbench.inference.smc.particles import Sigma
 
@@ -165,7 +166,7 @@ def test_panel_shows_a_restored_config_without_changing_it():
                             sigma=Sigma(x=0.0474, y=0.0156, z=0.0205, roll=0.0099, pitch=0.1524, yaw=0.0792))
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
-        panel = build_panel(server.gui, EstimatorConfig(), "robust")
+        panel = build_panel(server.gui, UiThread(), EstimatorConfig(), "robust")
         panel.show_config(saved, "ssd")
         assert panel.estimator_config(saved) == saved
         assert panel.likelihood.value == "ssd"
@@ -237,7 +238,7 @@ def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message
         assert "**damaged** — ⚠ cannot be loaded" in app.panel.sessions.listing.content
 
         app.panel.sessions.choice.value = "damaged"
-        app.sessions.load()
+        app.ui.call(app.sessions.load)
         assert app.wait_for(lambda s: any(f.topic == "session" for f in s.failures), 60)
         assert "damaged.json" in app.panel.sessions.message.content and app.panel.error.visible
         app.send(p.Step())
@@ -389,8 +390,8 @@ def test_expected_distinct_particles_matches_systematic_resampling():
 def test_turns_and_laying_on_a_face_keep_the_object_on_the_table():
     import trimesh
 
-    from workbench.app.ui.labelling.editor import laid_on, turned
     from workbench.app.ui.labelling.controls import FACES
+    from workbench.app.ui.labelling.editor import laid_on, turned
     from workbench.geometry import make_pose
 
     box = np.asarray(trimesh.creation.box(extents=(0.1, 0.06, 0.02)).vertices)
@@ -472,13 +473,14 @@ def test_panel_reads_every_field_and_reverts_the_refused_ones():
     import viser
 
     from workbench.app.ui.panel import build_panel
+    from workbench.app.ui.ui_thread import UiThread
 
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
         from workbench.inference.config import EstimatorConfig
 
         base = EstimatorConfig(particles=128)
-        panel = build_panel(server.gui, base, "robust")
+        panel = build_panel(server.gui, UiThread(), base, "robust")
         panel.particles.value = "-5"
         panel.sigma_xy.value = "abc"
         panel.iterations.value = "30"

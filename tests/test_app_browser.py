@@ -8,8 +8,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from headless import (
+    FRAME_PROBE_JS,
+    SentMessages,
+    canvas_png,
+    chromium_path,
+    color_extent,
+    frame_counts,
+    free_port,
+    gui_input,
+    image_stats,
+    open_workbench,
+)
 
-from headless import FRAME_PROBE_JS, SentMessages, canvas_png, chromium_path, color_extent, frame_counts, free_port, gui_input, image_stats, open_workbench
 from workbench.app.engine.snapshot import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure, Run
 from workbench.app.ui.run.display import SCENE_INTERVAL_S
@@ -245,7 +256,7 @@ def test_refused_values_are_put_back_outlined_and_all_listed(page, workbench):
     z.press("Enter")
     expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
     # An error from the engine clears once an iteration goes through.
-    app.reporter.report(Failure("Input error", "a test problem"))
+    app.ui.call(app.reporter.report, Failure("Input error", "a test problem"))
     banner = page.get_by_text("a test problem")
     banner.first.wait_for(timeout=TIMEOUT_MS)
     step(page, app)
@@ -340,8 +351,8 @@ def test_the_visibility_bar_shows_and_hides_each_layer(page, workbench):
 
 def test_the_truth_table_agrees_with_workbench_score(page, workbench, tmp_path):
     """The per-object errors against scene_gt.json, as shown, are what `workbench score` says of the same estimate."""
-    from workbench.score.scoring import score_results
     from workbench.io import bop
+    from workbench.score.scoring import score_results
 
     app = workbench.app
     step(page, app)

@@ -11,7 +11,6 @@ import shutil
 
 import numpy as np
 import pytest
-
 from headless import chromium_path, free_port, open_workbench
 
 pytest.importorskip("playwright.sync_api")

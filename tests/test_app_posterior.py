@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from headless import free_port
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import view_legend_html
-from headless import free_port
 from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
-from workbench.inference.config import EstimatorConfig
+from workbench.app.ui.widgets.colors import view_legend_html
 from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
+from workbench.inference.config import EstimatorConfig
 
 pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
 
@@ -136,8 +136,7 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
         d, post = app.display, app.display.posterior
         several = [o for o in post.objects if len(o.modes) > 1]
         assert several
-        with app.lock:
-            d.throttle.flush()
+        app.ui.call(d.throttle.flush)
         assert sorted(d.modes.ghosts) == [o.obj for o in several]
         for o in several:
             ghost = d.modes.ghosts[o.obj]
@@ -170,11 +169,14 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
 
         app.reset()
         assert app.wait_for(lambda s: s.iteration == -1 and s.last_state.reason == "reset", 60)
-        with app.lock:
+
+        def after_reset():  # on the UI thread: nothing changes the display while this looks
             assert d.posterior is None and not d.modes.ghosts and not d.modes.labels
             assert "No posterior yet" in app.panel.posterior.content and "data-confidence" not in \
                 app.panel.view_legend.content
             assert not app.panel.label.modes.visible and choice.chosen() == ((0,) * len(post.objects), -1)
+
+        app.ui.call(after_reset)
         assert not app.state.display_errors
     finally:
         handle.stop()

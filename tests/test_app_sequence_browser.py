@@ -9,7 +9,6 @@ import re
 
 import numpy as np
 import pytest
-
 from headless import chromium_path, color_extent, free_port, gui_input, open_workbench
 
 pytest.importorskip("playwright.sync_api")

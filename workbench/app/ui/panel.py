@@ -8,15 +8,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import viser
 
-from workbench.app.ui.run.camera import FRAME_OBJECTS, FROM_SENSOR
-from workbench.app.ui.labelling.controls import LabelTab, build_label_tab
-from workbench.app.ui.widgets.layout import button_row_css
-from workbench.app.ui.run.modes import NO_POSTERIOR
 from workbench.app.engine.snapshot import DEFAULT_DISPLAY
+from workbench.app.ui.labelling.controls import LabelTab, build_label_tab
+from workbench.app.ui.run.camera import FRAME_OBJECTS, FROM_SENSOR
+from workbench.app.ui.run.modes import NO_POSTERIOR
 from workbench.app.ui.run.plots import Plots
+from workbench.app.ui.run.views import HEATMAP_MODES, SCENE_MODES
 from workbench.app.ui.sequence.panel import SequenceTab, build_sequence_tab
 from workbench.app.ui.sessions.panel import SessionsTab, build_sessions_tab
-from workbench.app.ui.run.views import HEATMAP_MODES, SCENE_MODES
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.layout import button_row_css
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.smc.particles import Sigma
@@ -231,7 +232,7 @@ def visibility_item(option: str) -> str:
     return option.split(" ", 1)[-1]
 
 
-def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> Panel:
+def build_panel(gui: viser.GuiApi, ui: UiThread, config: EstimatorConfig, likelihood: str) -> Panel:
     gui.configure_theme(control_width="large", dark_mode=False, show_logo=False, show_share_button=False)
     # The fixed top is kept short: title, status, the actions, then the View box; the rest lives in tabs.
     title = gui.add_markdown("**workbench** · nothing loaded")
@@ -293,7 +294,7 @@ def build_panel(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> 
         max_particles = gui.add_number("Particles drawn", DEFAULT_DRAWN, min=1, max=20_000, step=1,
                                        hint="the most likely first; fewer are clearer and cheaper to draw")
 
-    plots = Plots(gui, tabs.add_tab("Plots", viser.Icon.CHART_LINE))
+    plots = Plots(gui, tabs.add_tab("Plots", viser.Icon.CHART_LINE), ui)
 
     with tabs.add_tab("Data", viser.Icon.DATABASE):
         dataset = gui.add_text("Dataset", "", hint="a BOP dataset folder (root or split)")

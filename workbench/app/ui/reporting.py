@@ -5,17 +5,16 @@ kept for the tests)."""
 from __future__ import annotations
 
 import logging
-import threading
 from typing import Callable
 
 import viser
 
 from workbench.app import protocol as p
 from workbench.app.ui.labelling.labelling import Labelling
-from workbench.app.ui.widgets.markdown import escape
 from workbench.app.ui.panel import Panel
-from workbench.app.ui.sessions.panel import Sessions
 from workbench.app.ui.run.status import RunView
+from workbench.app.ui.sessions.panel import Sessions
+from workbench.app.ui.widgets.markdown import escape
 from workbench.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -25,9 +24,9 @@ class Reporter:
     """``state()``: the server's current ``RunView`` (a new one with every frame), which keeps the failures, the
     drawing errors, the worker pids and the restarts."""
 
-    def __init__(self, server: viser.ViserServer, panel: Panel, lock: threading.RLock, state: Callable[[], RunView],
+    def __init__(self, server: viser.ViserServer, panel: Panel, state: Callable[[], RunView],
                  labelling: Labelling, sessions: Sessions):
-        self.server, self.panel, self.lock, self.state = server, panel, lock, state
+        self.server, self.panel, self.state = server, panel, state
         self.labelling, self.sessions = labelling, sessions
         # Where a failure about a topic (``Failure.topic``) is also told, beside the button that failed.
         self.topics = {"session": sessions.on_failure, "labels": labelling.show_failure}
@@ -49,30 +48,28 @@ class Reporter:
     def clear_error(self) -> None:
         """Hide the error banner and the fields' outlines, unless the estimator is gone for good (only a restart
         helps then)."""
-        with self.lock:
-            failures = self.state().failures
-            last = failures[-1] if failures else None
-            if last is not None and last.fatal:
-                return
-            self.current = {}
-            self.panel.outline(())
-            if self.panel.error.visible:
-                self.panel.error.visible = False
+        failures = self.state().failures
+        last = failures[-1] if failures else None
+        if last is not None and last.fatal:
+            return
+        self.current = {}
+        self.panel.outline(())
+        if self.panel.error.visible:
+            self.panel.error.visible = False
 
     def field_errors(self, errors: dict[str, str]) -> None:
         """The typed fields refused now ({label: problem}; they were put back to the values in use): each
         outlined and listed in the banner, with whatever else is wrong. An empty dict clears the fields'
         lines (the banner goes if nothing else is on it)."""
-        with self.lock:
-            before = dict(self.current)
-            self.current = {k: v for k, v in self.current.items() if not k.startswith("field:")}
-            for label, problem in errors.items():
-                log.warning("Input error: %s: %s", label, problem)
-                self.current[f"field:{label}"] = (f"`{label}`: {escape(problem)} — **kept the value in use**")
-            self.panel.outline(tuple(errors))
-            self.show_banner()
-            new = {label: problem for label, problem in errors.items()
-                   if before.get(f"field:{label}") != self.current[f"field:{label}"]}
+        before = dict(self.current)
+        self.current = {k: v for k, v in self.current.items() if not k.startswith("field:")}
+        for label, problem in errors.items():
+            log.warning("Input error: %s: %s", label, problem)
+            self.current[f"field:{label}"] = (f"`{label}`: {escape(problem)} — **kept the value in use**")
+        self.panel.outline(tuple(errors))
+        self.show_banner()
+        new = {label: problem for label, problem in errors.items()
+               if before.get(f"field:{label}") != self.current[f"field:{label}"]}
         for label, problem in new.items():  # each once, not on every keystroke
             self.notify("Input error", f"{label}: {problem}; the value in use was put back", color="red")
 
@@ -89,16 +86,15 @@ class Reporter:
     def report(self, failure: p.Failure) -> None:
         # The terminal hears of every failure too: a server started on a bad path must not look healthy there.
         log.warning("%s: %s%s", failure.title, f"{failure.path}: " if failure.path else "", failure.problem)
-        with self.lock:
-            if failure.topic in self.topics:
-                self.topics[failure.topic](failure)
-            state = self.state()
-            state.failures.append(failure)
-            where = f"`{failure.path}`: " if failure.path else ""
-            self.current[f"{failure.title}|{failure.path}"] = f"**{escape(failure.title)}** — {where}{escape(failure.problem)}"
-            self.show_banner()
-            view = state.view  # a failed load leaves the loaded frame in place
-            self.panel.title.content = f"**workbench** · {view.title if view else 'nothing loaded'}"
+        if failure.topic in self.topics:
+            self.topics[failure.topic](failure)
+        state = self.state()
+        state.failures.append(failure)
+        where = f"`{failure.path}`: " if failure.path else ""
+        self.current[f"{failure.title}|{failure.path}"] = f"**{escape(failure.title)}** — {where}{escape(failure.problem)}"
+        self.show_banner()
+        view = state.view  # a failed load leaves the loaded frame in place
+        self.panel.title.content = f"**workbench** · {view.title if view else 'nothing loaded'}"
         self.notify(failure.title, f"{failure.path + ': ' if failure.path else ''}{failure.problem}", color="red")
 
     def engine_died(self, exitcode: int | None, gave_up: bool, reloading: bool) -> None:
@@ -122,8 +118,7 @@ class Reporter:
     def drawing_failed(self, what: str, err: Exception) -> None:
         """Log a bug in drawing ``what`` (a message type or a throttled drawing) and keep it for the tests."""
         log.error("drawing %s", what, exc_info=err)
-        with self.lock:
-            self.state().display_errors.append(f"{what}: {err!r}")
+        self.state().display_errors.append(f"{what}: {err!r}")
 
     def on_workers(self, msg: p.Workers) -> None:
         state = self.state()

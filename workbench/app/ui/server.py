@@ -5,14 +5,14 @@
 
 The estimator lives in a separate process (``engine.py``); this process only draws. GUI and scene are viser's
 server-wide ones, so every open tab sees and drives the same run. Messages from the engine arrive on a reader
-thread and GUI callbacks on viser's threads: ``App`` serialises both with one lock.
+thread and GUI callbacks on viser's threads: both are handed to one UI thread (``ui_thread``), which runs them
+one at a time.
 """
 
 from __future__ import annotations
 
 import errno
 import socket
-import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -21,21 +21,22 @@ import numpy as np
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.ui.run.camera import FRAME_OBJECTS, TabCameras
 from workbench.app.engine.engine import DEMO_DIR
 from workbench.app.engine.process import EngineClient
+from workbench.app.engine.snapshot import default_drawn
 from workbench.app.ui.labelling.labelling import Labelling
 from workbench.app.ui.panel import Panel, build_panel, visibility_item
-from workbench.app.engine.snapshot import default_drawn
-from workbench.app.ui.widgets.quiet import Quiet
 from workbench.app.ui.reporting import Reporter
+from workbench.app.ui.run.camera import FRAME_OBJECTS, TabCameras
 from workbench.app.ui.run.display import RunDisplay
-from workbench.app.ui.sequence.panel import SequencePanel
-from workbench.app.ui.sessions.panel import Sessions
 from workbench.app.ui.run.settings import SettingsForm
 from workbench.app.ui.run.status import RunView, status_markdown, timings_markdown
 from workbench.app.ui.run.step_button import StepButton
 from workbench.app.ui.run.truth import truth_markdown
+from workbench.app.ui.sequence.panel import SequencePanel
+from workbench.app.ui.sessions.panel import Sessions
+from workbench.app.ui.ui_thread import UiThread, on_ui_thread
+from workbench.app.ui.widgets.quiet import Quiet
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 
@@ -52,27 +53,30 @@ class App:
                  config: EstimatorConfig = DEFAULT_CONFIG, likelihood: str = "robust",
                  sessions_dir: Path = SESSIONS_DIR, session: Path | None = None, ray=None):
         self.server = server
-        self.lock = threading.RLock()
+        self.ui = UiThread()  # runs every GUI callback and engine message, one at a time: no module takes a lock
         self.quiet = Quiet()  # set while the server itself writes controls: their callbacks must not echo
         self.source: p.Source | None = None  # the last frame the engine loaded
         self.state = RunView()
         self.drawn_by_user = False  # whether the user has set Particles drawn (else each frame gets its share)
-        self.changed = threading.Condition(self.lock)  # notified on every engine message (tests wait on it)
-        self.cameras = TabCameras(server, self.lock)
-        self.panel: Panel = build_panel(server.gui, config, likelihood)
-        self.labelling = Labelling(server, self.panel.label, self.send, self.lock, self.quiet,
+        self.cameras = TabCameras(server, self.ui)
+        self.panel: Panel = build_panel(server.gui, self.ui, config, likelihood)
+        self.labelling = Labelling(server, self.panel.label, self.send, self.ui, self.quiet,
                                    on_heatmap_mode=lambda: self.display.label_heatmap_mode_changed())
-        self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.lock, self.quiet,
+        self.sessions = Sessions(self.panel.sessions, sessions_dir, self.send, self.ui, self.quiet,
                                  iteration=lambda: self.state.iteration)
-        self.reporter = Reporter(server, self.panel, self.lock, lambda: self.state, self.labelling, self.sessions)
-        self.settings = SettingsForm(self.panel, self.lock, self.quiet, self.reporter, self.send, config, likelihood)
-        self.stepper = StepButton(self.panel, self.lock, self.send, lambda: self.state.running, self.settings.revert)
-        self.display = RunDisplay(server, self.panel, self.lock, self.labelling, on_pick=self.pick,
+        self.reporter = Reporter(server, self.panel, lambda: self.state, self.labelling, self.sessions)
+        self.settings = SettingsForm(self.panel, self.ui, self.quiet, self.reporter, self.send, config, likelihood)
+        self.stepper = StepButton(self.panel, self.ui, self.send, lambda: self.state.running, self.settings.revert)
+        self.display = RunDisplay(server, self.panel, self.ui, self.labelling, on_pick=self.pick,
                                   on_error=self.reporter.drawing_failed)
-        self.sequence = SequencePanel(self.panel.sequence, self.lock, self.send, self.reporter.topics,
+        self.sequence = SequencePanel(self.panel.sequence, self.ui, self.send, self.reporter.topics,
                                       self.show_history, names=lambda: self.display.names)
         self._wire()
-        self.engine = EngineClient(workers, self.on_message, self.on_engine_died, ray=ray)
+        self.engine = EngineClient(workers, lambda msg: self.ui.call(self.on_message, msg),
+                                   lambda code, gave_up: self.ui.call(self.on_engine_died, code, gave_up), ray=ray)
+        self.ui.call(self._start, source, session)
+
+    def _start(self, source: p.Source | None, session: Path | None) -> None:
         if session is not None:
             # As the Sessions tab's Load: the engine asks first if the dataset changed; a bad file is a message.
             self.panel.title.content = f"**workbench** · loading session {session} …"
@@ -83,24 +87,24 @@ class App:
     # -- commands from the panel
 
     def _wire(self) -> None:
-        P, display = self.panel, self.display
-        P.step.on_click(lambda _: self.stepper.press())
-        P.run.on_click(lambda _: self.run())
-        P.pause.on_click(lambda _: self.pause())
-        P.reset.on_click(lambda _: self.reset())
+        P, display, on_ui = self.panel, self.display, self.ui.callback
+        P.step.on_click(on_ui(lambda _: self.stepper.press()))
+        P.run.on_click(on_ui(lambda _: self.run()))
+        P.pause.on_click(on_ui(lambda _: self.pause()))
+        P.reset.on_click(on_ui(lambda _: self.reset()))
         for h in (P.method, P.particles, P.iterations, P.sigma_xy, P.sigma_z, P.sigma_angles, P.seed):
-            h.on_update(lambda _: self.settings.changed())
-        P.likelihood.on_update(lambda _: self.settings.show_pending())
-        P.rank.on_update(lambda _: self.send(p.Select(int(P.rank.value))))
-        P.best.on_click(lambda _: self.pick(0))
-        P.scene_mode.on_update(lambda _: display.redraw_chosen())
-        P.heatmap_mode.on_update(lambda _: display.heatmap_mode_changed())
-        P.visibility.on_click(lambda event: self.toggle(event.target.value))
-        P.max_particles.on_update(self.drawn_changed)
-        P.load.on_click(lambda _: self.load_typed())
-        P.camera.on_click(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client))
-        self.server.on_client_connect(self.cameras.client_connected)
-        P.demo.on_click(lambda _: self.load(p.Source(demo=True)))
+            h.on_update(on_ui(lambda _: self.settings.changed()))
+        P.likelihood.on_update(on_ui(lambda _: self.settings.show_pending()))
+        P.rank.on_update(on_ui(lambda _: self.send(p.Select(int(P.rank.value)))))
+        P.best.on_click(on_ui(lambda _: self.pick(0)))
+        P.scene_mode.on_update(on_ui(lambda _: display.redraw_chosen()))
+        P.heatmap_mode.on_update(on_ui(lambda _: display.heatmap_mode_changed()))
+        P.visibility.on_click(on_ui(lambda event: self.toggle(event.target.value)))
+        P.max_particles.on_update(on_ui(self.drawn_changed))
+        P.load.on_click(on_ui(lambda _: self.load_typed()))
+        P.camera.on_click(on_ui(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client)))
+        self.server.on_client_connect(on_ui(self.cameras.client_connected))
+        P.demo.on_click(on_ui(lambda _: self.load(p.Source(demo=True))))
 
     def drawn_changed(self, event) -> None:
         """Particles drawn: the engine sends that many; once the user sets it (a client's event), frames keep it."""
@@ -115,14 +119,14 @@ class App:
         """The settings the run uses."""
         return self.settings.config
 
+    @on_ui_thread
     def toggle(self, option: str) -> None:
         """A click on the visibility bar."""
-        with self.lock:
-            self.display.toggle(visibility_item(option))
+        self.display.toggle(visibility_item(option))
 
+    @on_ui_thread
     def run(self) -> None:
-        with self.lock:
-            self.settings.revert()
+        self.settings.revert()
         self.send(p.Run(self.panel.stop_on_convergence.value))
 
     def on_truth(self, msg: p.TruthErrors) -> None:
@@ -134,22 +138,25 @@ class App:
             self.stepper.done()
         self.reporter.report(failure)
 
+    @on_ui_thread
     def pause(self) -> None:
-        # Sent under the lock, so it reaches the engine before the Shown of any later iteration (on_snapshot sends
-        # that under the lock too): the run stops at most one iteration after the one on display.
-        with self.lock:
-            self.state.pause_requested_at = self.state.iteration
-            self.send(p.Pause())
+        # Sent from the UI thread, so it reaches the engine before the Shown of any later iteration (on_snapshot
+        # sends that from the UI thread too): the run stops at most one iteration after the one on display.
+        self.state.pause_requested_at = self.state.iteration
+        self.send(p.Pause())
 
+    @on_ui_thread
     def reset(self) -> None:
         self.reporter.guarded(lambda: self.send(self.settings.for_reset()))
 
+    @on_ui_thread
     def load(self, source: p.Source) -> None:
         self.panel.title.content = f"**workbench** · loading {source.describe()} …"
         self.settings.likelihood = self.panel.likelihood.value
         self.send(p.Load(source, self.config, self.settings.likelihood))
         self.settings.show_pending()
 
+    @on_ui_thread
     def load_typed(self) -> None:
         def apply():
             text = self.panel.dataset.value.strip()
@@ -160,6 +167,7 @@ class App:
 
         self.reporter.guarded(apply)
 
+    @on_ui_thread
     def pick(self, rank: int) -> None:
         """Choose the particle at ``rank``: moving the shared slider sends the Select (and shows every tab)."""
         rank = int(np.clip(rank, 0, self.panel.rank.max))
@@ -171,30 +179,27 @@ class App:
     # -- messages from the engine
 
     def on_message(self, msg) -> None:
-        with self.lock:
-            handler = {
-                p.Ready: self.on_ready,
-                p.Loaded: self.on_loaded,
-                p.Snapshot: self.on_snapshot,
-                p.Chosen: self.on_chosen,
-                p.RunState: self.on_run_state,
-                p.Failure: self.on_failure,
-                p.Workers: self.reporter.on_workers,
-                p.Labels: self.labelling.show_labels,
-                p.LabelHeatmap: self.labelling.show_heatmap,
-                p.LabelErrors: self.labelling.show_errors,
-                p.TruthErrors: self.on_truth,
-                p.Saved: self.reporter.on_saved,
-                p.SessionQuestion: self.sessions.on_question,
-                p.SessionRestored: self.on_session_restored,
-                p.SequenceState: self.sequence.show,
-            }[type(msg)]
-            try:
-                handler(msg)
-            except Exception as err:  # a drawing bug must not stop the messages that follow
-                self.reporter.drawing_failed(type(msg).__name__, err)
-            finally:
-                self.changed.notify_all()
+        handler = {
+            p.Ready: self.on_ready,
+            p.Loaded: self.on_loaded,
+            p.Snapshot: self.on_snapshot,
+            p.Chosen: self.on_chosen,
+            p.RunState: self.on_run_state,
+            p.Failure: self.on_failure,
+            p.Workers: self.reporter.on_workers,
+            p.Labels: self.labelling.show_labels,
+            p.LabelHeatmap: self.labelling.show_heatmap,
+            p.LabelErrors: self.labelling.show_errors,
+            p.TruthErrors: self.on_truth,
+            p.Saved: self.reporter.on_saved,
+            p.SessionQuestion: self.sessions.on_question,
+            p.SessionRestored: self.on_session_restored,
+            p.SequenceState: self.sequence.show,
+        }[type(msg)]
+        try:
+            handler(msg)
+        except Exception as err:  # a drawing bug must not stop the messages that follow
+            self.reporter.drawing_failed(type(msg).__name__, err)
 
     def on_ready(self, msg: p.Ready) -> None:
         self.state.engine_pid = msg.pid
@@ -269,9 +274,8 @@ class App:
 
     def on_engine_died(self, exitcode: int | None, gave_up: bool) -> None:
         self.stepper.done()
-        with self.lock:
-            self.state.restarts += 1
-            source = self.source
+        self.state.restarts += 1
+        source = self.source
         self.reporter.engine_died(exitcode, gave_up, reloading=source is not None)
         if source is not None and not gave_up:
             self.send(p.Load(source, self.config, self.panel.likelihood.value))
@@ -279,20 +283,15 @@ class App:
     # -- lifetime
 
     def stop(self) -> None:
-        self.settings.cancel()
-        self.display.throttle.cancel()
+        self.ui.call(self.settings.cancel)
+        self.ui.call(self.display.throttle.cancel)
         self.engine.stop()
+        self.ui.stop()
 
     def wait_for(self, predicate, timeout: float) -> bool:
-        """Block until ``predicate(self.state)`` holds (checked on every engine message), or the timeout."""
-        deadline = time.monotonic() + timeout
-        with self.changed:
-            while not predicate(self.state):
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.changed.wait(min(left, 0.5))
-        return True
+        """Block until ``predicate(self.state)`` holds (checked on every engine message and GUI callback), or the
+        timeout."""
+        return self.ui.wait_until(lambda: predicate(self.state), timeout)
 
 
 def port_in_use_message(host: str, port: int) -> str:

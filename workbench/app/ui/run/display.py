@@ -7,21 +7,21 @@ panel's text and plots follow every iteration (``server.App``).
 
 from __future__ import annotations
 
-import threading
 from typing import Callable
 
 import numpy as np
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import VIRIDIS, legend_html, view_legend_html
 from workbench.app.ui.labelling.labelling import Labelling
-from workbench.app.ui.run.modes import confidences, posterior_markdown
-from workbench.app.ui.run.ghosts import ModesLayer
 from workbench.app.ui.panel import Panel
-from workbench.app.ui.widgets.scene_throttle import SceneThrottle
+from workbench.app.ui.run.ghosts import ModesLayer
+from workbench.app.ui.run.modes import confidences, posterior_markdown
 from workbench.app.ui.run.status import physics_markdown
 from workbench.app.ui.run.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.colors import VIRIDIS, legend_html, view_legend_html
+from workbench.app.ui.widgets.scene_throttle import SceneThrottle
 from workbench.inference.answer.posterior import Posterior
 
 # While the estimator runs, the 3D view is redrawn at most once per this many seconds. Every batch of scene messages
@@ -36,10 +36,10 @@ class RunDisplay:
     """Draws what the engine sends; ``on_pick(rank)``: a particle was clicked; ``on_error(what, err)``: a throttled
     drawing failed."""
 
-    def __init__(self, server: viser.ViserServer, panel: Panel, lock: threading.RLock, labelling: Labelling,
+    def __init__(self, server: viser.ViserServer, panel: Panel, ui: UiThread, labelling: Labelling,
                  on_pick: Callable[[int], None], on_error: Callable[[str, Exception], None]):
-        self.server, self.panel, self.lock, self.labelling = server, panel, lock, labelling
-        self.throttle = SceneThrottle(server, lock, SCENE_INTERVAL_S, SCENE_GATHER_S, on_error)
+        self.server, self.panel, self.labelling = server, panel, labelling
+        self.throttle = SceneThrottle(server, ui, SCENE_INTERVAL_S, SCENE_GATHER_S, on_error)
         light_cheaply(server)
         self.observation = ObservationLayer(server)
         self.particles = ParticleLayer(server, on_pick=on_pick)
@@ -126,20 +126,19 @@ class RunDisplay:
         self.throttle.submit("chosen", self.redraw_chosen, defer=defer)
 
     def redraw_chosen(self) -> None:
-        with self.lock:
-            c, P = self.choice, self.panel
-            if c is None:  # nothing chosen in this run (yet): nothing of an earlier one stays drawn
-                self.chosen.clear()
-                self.heatmap.nodes.clear()
-                P.legend.content, P.heat_image.visible, P.physics_change.content = "", False, ""
-                return
-            self.chosen.update(c, P.scene_mode.value)
-            legend, image = self.heatmap.update(c, P.heatmap_mode.value)
-            P.legend.content = legend
-            if image is not None:
-                P.heat_image.image = image
-            P.heat_image.visible = image is not None
-            P.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
+        c, P = self.choice, self.panel
+        if c is None:  # nothing chosen in this run (yet): nothing of an earlier one stays drawn
+            self.chosen.clear()
+            self.heatmap.nodes.clear()
+            P.legend.content, P.heat_image.visible, P.physics_change.content = "", False, ""
+            return
+        self.chosen.update(c, P.scene_mode.value)
+        legend, image = self.heatmap.update(c, P.heatmap_mode.value)
+        P.legend.content = legend
+        if image is not None:
+            P.heat_image.image = image
+        P.heat_image.visible = image is not None
+        P.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
 
     def heat_on(self) -> bool:
         return self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"

@@ -3,51 +3,48 @@ counts the seconds, so that nobody wonders whether the click arrived or sends a 
 
 from __future__ import annotations
 
-import threading
 import time
 from typing import Callable
 
 from workbench.app import protocol as p
 from workbench.app.ui.panel import Panel
+from workbench.app.ui.ui_thread import UiThread
 
 
 class StepButton:
     """``running()``: whether a Run is going on (Step stays disabled then); ``before()``: what a Step does first
     (refused settings put back)."""
 
-    def __init__(self, panel: Panel, lock: threading.RLock, send: Callable[[object], None],
+    def __init__(self, panel: Panel, ui: UiThread, send: Callable[[object], None],
                  running: Callable[[], bool], before: Callable[[], object]):
-        self.panel, self.lock, self.send, self.running, self.before = panel, lock, send, running, before
+        self.panel, self.ui, self.send, self.running, self.before = panel, ui, send, running, before
         self.since: float | None = None  # monotonic time the pending Step was sent
 
     def press(self) -> None:
         """One iteration: Step is disabled and a spinner counts the seconds until the engine answers."""
-        with self.lock:
-            self.before()
-            if self.since is not None or self.running():
-                return
-            self.since = started = time.monotonic()
-            P = self.panel
-            P.step.disabled = True
-            P.busy.content = "⏳ **Step running** · 0 s"
-            P.busy.visible = P.busy_bar.visible = True
-            self.send(p.Step())
-        threading.Thread(target=self._count, args=(started,), daemon=True, name="step-timer").start()
+        self.before()
+        if self.since is not None or self.running():
+            return
+        self.since = started = time.monotonic()
+        P = self.panel
+        P.step.disabled = True
+        P.busy.content = "⏳ **Step running** · 0 s"
+        P.busy.visible = P.busy_bar.visible = True
+        self.send(p.Step())
+        self.ui.later(1.0, lambda: self._count(started))
 
     def _count(self, started: float) -> None:
-        while True:
-            time.sleep(1.0)
-            with self.lock:
-                if self.since != started:
-                    return
-                self.panel.busy.content = f"⏳ **Step running** · {time.monotonic() - started:.0f} s"
+        """Another second of the Step sent at ``started``, while it is still out."""
+        if self.since != started:
+            return
+        self.panel.busy.content = f"⏳ **Step running** · {time.monotonic() - started:.0f} s"
+        self.ui.later(1.0, lambda: self._count(started))
 
     def done(self) -> None:
         """The engine answered the Step (or the run started, stopped or failed): Step is back."""
-        with self.lock:
-            if self.since is None:
-                return
-            self.since = None
-            P = self.panel
-            P.busy.visible = P.busy_bar.visible = False
-            P.step.disabled = self.running()
+        if self.since is None:
+            return
+        self.since = None
+        P = self.panel
+        P.busy.visible = P.busy_bar.visible = False
+        P.step.disabled = self.running()
