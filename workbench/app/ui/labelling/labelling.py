@@ -13,7 +13,7 @@ from typing import Callable
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.ui.labelling.controls import LabelTab
+from workbench.app.ui.labelling.controls import LabelTab, build_label_tab
 from workbench.app.ui.labelling.editor import LabelEditor
 from workbench.app.ui.labelling.mode_choice import ModeChoice
 from workbench.app.ui.run.views import HeatmapLayer
@@ -39,21 +39,24 @@ def errors_markdown(msg: p.LabelErrors, names: list[str]) -> str:
 
 @dataclass
 class Labelling:
-    """The Label tab: its editor (``editor``, the labels and their gizmos), its actions, and the label heatmap.
-    ``send`` reaches the engine; ``on_heatmap_mode`` tells the app that the label heatmap was switched (it hides the
-    observed points under it)."""
+    """The Label tab (``container``): its controls (``tab``), its editor (``editor``, the labels and their gizmos),
+    its actions, and the label heatmap. ``send`` reaches the engine; ``on_heatmap_mode`` tells the app that the
+    label heatmap was switched (it hides the observed points under it)."""
 
     server: viser.ViserServer
-    tab: LabelTab
+    container: viser.GuiTabHandle
     send: Callable[[object], None]
     ui: UiThread
     quiet: Quiet
     on_heatmap_mode: Callable[[], None] = lambda: None
+    tab: LabelTab = field(init=False)
     editor: LabelEditor = field(init=False)
     heatmap: HeatmapLayer = field(init=False)
     modes: ModeChoice = field(init=False)
 
     def __post_init__(self) -> None:
+        with self.container:
+            self.tab = build_label_tab(self.server.gui)
         self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
         self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet,
                                   on_unlabelled=self.clear_heatmap)
@@ -73,10 +76,18 @@ class Labelling:
         self.heatmap.set_frame(view)
         self.editor.set_frame(view)
         self.modes.set_frame(self.editor.names)
+        if view.rgb_image is not None:
+            self.tab.rgb_image.image = view.rgb_image
+        self.tab.rgb_image.visible = view.rgb_image is not None
         with self.quiet:
             self.tab.result.content = ""
             self.tab.errors.content = ""
             self.tab.legend.content = ""
+
+    def reset_run(self) -> None:
+        """A new run on the same frame: no errors of the old estimate, and no estimate to follow."""
+        self.tab.errors.content = ""
+        self.editor.show_estimate(None)
 
     def show_labels(self, msg: p.Labels) -> None:
         if len(msg.labels) != len(self.editor.labels):

@@ -28,9 +28,9 @@ class SequenceTab:
     plots: FramePlots
 
 
-def build_sequence_tab(gui: viser.GuiApi) -> SequenceTab:
-    """The folder, hidden until a sequence is loaded (call inside the Data tab)."""
-    folder = gui.add_folder("Sequence", visible=False)
+def build_sequence_tab(gui: viser.GuiApi, order: float | None = None) -> SequenceTab:
+    """The folder, hidden until a sequence is loaded (call inside the Data tab; ``order``: its place there)."""
+    folder = gui.add_folder("Sequence", order=order, visible=False)
     with folder:
         summary = gui.add_markdown("")
         nxt = gui.add_button("Next frame", icon=viser.Icon.PLAYER_SKIP_FORWARD,
@@ -63,17 +63,16 @@ def timeline_markdown(msg: p.SequenceState) -> str:
 
 
 class SequencePanel:
-    """Drives the Sequence folder ``tab``: ``send`` commands to the engine; ``show_history(reports, config)``: the
-    run of a frame put on show, for the plots over iterations and the status line; ``names()``: the objects'
-    display names. Failures about the sequence come through ``topics`` (the ``Reporter``'s)."""
+    """The Sequence folder (``tab``), built where this is made (at ``order`` there): ``send`` commands to the
+    engine; ``show_history(reports, config)``: the run of a frame put on show, for the plots over iterations and
+    the status line; ``names()``: the objects' display names. Failures about the sequence: ``on_failure``."""
 
-    def __init__(self, tab: SequenceTab, ui: UiThread, send: Callable[[object], None],
-                 topics: dict[str, Callable[[p.Failure], None]], show_history: Callable[[list[dict], object], None],
-                 names: Callable[[], list[str]]):
-        self.tab, self.send, self.show_history, self.names = tab, send, show_history, names
+    def __init__(self, gui: viser.GuiApi, order: float | None, ui: UiThread, send: Callable[[object], None],
+                 show_history: Callable[[list[dict], object], None], names: Callable[[], list[str]]):
+        self.tab = tab = build_sequence_tab(gui, order)
+        self.send, self.show_history, self.names = send, show_history, names
         self.state: p.SequenceState | None = None
         self.waiting = False  # a Next or a jump is with the engine
-        topics["sequence"] = self.on_failure
         tab.next.on_click(ui.callback(lambda _: self.next()))
         tab.timeline.on_click(ui.callback(lambda event: self.jump(event.target.value)))
 

@@ -77,11 +77,15 @@ def listing_markdown(rows: list[sessions.SessionInfo]) -> str:
 
 @dataclass
 class Sessions:
-    tab: SessionsTab
+    """The Sessions tab (``container``): its controls (``tab``), listing ``directory``; ``send`` reaches the engine."""
+
+    gui: viser.GuiApi
+    container: viser.GuiTabHandle
     directory: Path
     send: Callable[[object], None]
     ui: UiThread
     quiet: Quiet
+    tab: SessionsTab = field(init=False)
     rows: dict[str, sessions.SessionInfo] = field(default_factory=dict)
     pending: Path | None = None  # the session waiting for the user's confirmation
     iteration: Callable[[], int] = lambda: -1  # the current run's iteration (-1: nothing run)
@@ -90,7 +94,8 @@ class Sessions:
 
     def __post_init__(self) -> None:
         self.directory = Path(self.directory).expanduser().resolve()
-        t = self.tab
+        with self.container:
+            self.tab = t = build_sessions_tab(self.gui)
         t.folder.content = f"Folder: `{self.directory}`"
         for button, action in ((t.save, self.save), (t.refresh, self.refresh), (t.load, self.load),
                                (t.confirm, self.confirm), (t.cancel, self.cancel)):
