@@ -8,11 +8,11 @@ import signal
 
 import numpy as np
 import pytest
+from headless import free_port, image_stats
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import MISSING, VIRIDIS, apply_map
-from headless import free_port, image_stats
 from workbench.app.ui.run.views import wxyz_from_matrices
+from workbench.app.ui.widgets.colors import MISSING, VIRIDIS, apply_map
 from workbench.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, random_rotations, rot_x, rot_z
 
 pytestmark = pytest.mark.slow  # needs the engine process: pybullet and OpenGL
@@ -157,7 +157,7 @@ def test_panel_shows_a_restored_config_without_changing_it():
     do not): a restored session's settings, shown and read back, must stay exactly what was saved."""
     import viser
 
-    from workbench.app.ui.panel import build_panel
+    from workbench.app.ui.run.estimator_tab import build_estimator_tab
     from workbench.inference.config import EstimatorConfig
     from workbench.inference.smc.particles import Sigma
 
@@ -165,7 +165,7 @@ def test_panel_shows_a_restored_config_without_changing_it():
                             sigma=Sigma(x=0.0474, y=0.0156, z=0.0205, roll=0.0099, pitch=0.1524, yaw=0.0792))
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
-        panel = build_panel(server.gui, EstimatorConfig(), "robust")
+        panel = build_estimator_tab(server.gui, EstimatorConfig(), "robust")
         panel.show_config(saved, "ssd")
         assert panel.estimator_config(saved) == saved
         assert panel.likelihood.value == "ssd"
@@ -234,12 +234,12 @@ def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message
         assert "session start" in app.state.view.title and app.config == config
         assert np.array_equal(app.labelling.editor.labels[0], label) and app.labelling.editor.labels[1] is None
         assert app.sessions.directory == tmp_path.resolve()  # the session's folder is the list's
-        assert "**damaged** — ⚠ cannot be loaded" in app.panel.sessions.listing.content
+        assert "**damaged** — ⚠ cannot be loaded" in app.sessions.tab.listing.content
 
-        app.panel.sessions.choice.value = "damaged"
-        app.sessions.load()
+        app.sessions.tab.choice.value = "damaged"
+        app.ui.call(app.sessions.load)
         assert app.wait_for(lambda s: any(f.topic == "session" for f in s.failures), 60)
-        assert "damaged.json" in app.panel.sessions.message.content and app.panel.error.visible
+        assert "damaged.json" in app.sessions.tab.message.content and app.reporter.error.visible
         app.send(p.Step())
         assert app.wait_for(lambda s: s.iteration == 2, 60), app.state.failures
         assert "session start" in app.state.view.title and not app.state.display_errors
@@ -389,8 +389,8 @@ def test_expected_distinct_particles_matches_systematic_resampling():
 def test_turns_and_laying_on_a_face_keep_the_object_on_the_table():
     import trimesh
 
-    from workbench.app.ui.labelling.editor import laid_on, turned
     from workbench.app.ui.labelling.controls import FACES
+    from workbench.app.ui.labelling.editor import laid_on, turned
     from workbench.geometry import make_pose
 
     box = np.asarray(trimesh.creation.box(extents=(0.1, 0.06, 0.02)).vertices)
@@ -471,14 +471,16 @@ def test_markdown_escape_keeps_underscores():
 def test_panel_reads_every_field_and_reverts_the_refused_ones():
     import viser
 
-    from workbench.app.ui.panel import build_panel
+    from workbench.app.ui.reporting import Reporter
+    from workbench.app.ui.run.estimator_tab import build_estimator_tab
+    from workbench.app.ui.run.status import RunView
 
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
         from workbench.inference.config import EstimatorConfig
 
         base = EstimatorConfig(particles=128)
-        panel = build_panel(server.gui, base, "robust")
+        panel = build_estimator_tab(server.gui, base, "robust")
         panel.particles.value = "-5"
         panel.sigma_xy.value = "abc"
         panel.iterations.value = "30"
@@ -488,7 +490,8 @@ def test_panel_reads_every_field_and_reverts_the_refused_ones():
         panel.revert(tuple(errors), config)
         assert panel.particles.value == "128" and panel.sigma_xy.value == "1, 1"
         assert panel.iterations.value == "30"  # a valid field keeps what was typed
-        panel.outline(tuple(errors))
-        assert panel.particles._impl.uuid in panel.field_style.content
+        reporter = Reporter(server, RunView)
+        reporter.field_errors(errors, panel.field_ids)
+        assert panel.particles._impl.uuid in reporter.field_style.content
     finally:
         server.stop()

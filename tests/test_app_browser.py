@@ -8,8 +8,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from headless import (
+    FRAME_PROBE_JS,
+    SentMessages,
+    canvas_png,
+    chromium_path,
+    color_extent,
+    frame_counts,
+    free_port,
+    gui_input,
+    image_stats,
+    open_workbench,
+)
 
-from headless import FRAME_PROBE_JS, SentMessages, canvas_png, chromium_path, color_extent, frame_counts, free_port, gui_input, image_stats, open_workbench
 from workbench.app.engine.snapshot import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure, Run
 from workbench.app.ui.run.display import SCENE_INTERVAL_S
@@ -125,19 +136,19 @@ def test_inspecting_a_particle_shows_its_heatmap_and_what_physics_changed(page, 
         step(page, app)
     page.get_by_role("tab", name="Inspect").click()
     # Shared GUI state: set on the server (as another tab would), followed by this page.
-    app.panel.heatmap_mode.value = "log-likelihood"
+    app.display.inspect.heatmap_mode.value = "log-likelihood"
     page.get_by_text(re.compile(r"log-likelihood \(per pixel\), particle rank 0")).wait_for(timeout=TIMEOUT_MS)
     assert not app.display.points_visible()  # the heatmap replaces the observed points
-    app.panel.rank.value = 3
+    app.display.inspect.rank.value = 3
     page.get_by_text(re.compile(r"Rank 3 \(particle \d+\)")).wait_for(timeout=TIMEOUT_MS)
-    app.panel.heatmap_mode.value = "residual"
-    app.panel.scene_mode.value = "side by side"
+    app.display.inspect.heatmap_mode.value = "residual"
+    app.display.inspect.scene_mode.value = "side by side"
     page.get_by_text(re.compile(r"residual \(cm\), particle rank 3")).wait_for(timeout=TIMEOUT_MS)
     assert app.display.chosen.before[0].visible and app.display.chosen.after[0].visible
     app.pick(2)  # what clicking the third most likely particle in the 3D view does
     page.get_by_text(re.compile(r"Rank 2 \(particle \d+\)")).wait_for(timeout=TIMEOUT_MS)
-    app.panel.heatmap_mode.value = "off"
-    app.panel.scene_mode.value = "before + after"
+    app.display.inspect.heatmap_mode.value = "off"
+    app.display.inspect.scene_mode.value = "before + after"
     app.pick(0)
     assert app.display.points_visible()
     page.get_by_role("tab", name="Estimator").click()
@@ -237,7 +248,7 @@ def test_refused_values_are_put_back_outlined_and_all_listed(page, workbench):
     expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
     expect(particles).to_have_value(in_use)
     # A corrected value clears its line; the diffusion's error speaks the field's units (cm).
-    app.panel.sigma_z.value = "-1"  # as another tab would type it
+    app.settings.tab.sigma_z.value = "-1"  # as another tab would type it
     banner = page.get_by_text(re.compile(r"σ elevation \(cm\).*>= 0 cm, got '-1'"))
     banner.first.wait_for(timeout=TIMEOUT_MS)
     z = gui_input(page, "σ elevation (cm)")
@@ -245,7 +256,7 @@ def test_refused_values_are_put_back_outlined_and_all_listed(page, workbench):
     z.press("Enter")
     expect(banner.first).to_be_hidden(timeout=TIMEOUT_MS)
     # An error from the engine clears once an iteration goes through.
-    app.reporter.report(Failure("Input error", "a test problem"))
+    app.ui.call(app.reporter.report, Failure("Input error", "a test problem"))
     banner = page.get_by_text("a test problem")
     banner.first.wait_for(timeout=TIMEOUT_MS)
     step(page, app)
@@ -294,13 +305,13 @@ def test_turning_the_heatmap_off_leaves_the_points_as_they_were(page, workbench)
     bar = page.get_by_role("button", name=re.compile(r"^[●○] points$"))
     bar.click()
     expect(page.get_by_role("button", name="○ points")).to_be_visible(timeout=TIMEOUT_MS)
-    assert app.wait_for(lambda s: not app.panel.show("points"), 10)
+    assert app.wait_for(lambda s: not app.view_box.show("points"), 10)
     page.get_by_role("tab", name="Inspect").click()
-    app.panel.heatmap_mode.value = "residual"  # shared GUI state, as another tab would choose it
+    app.display.inspect.heatmap_mode.value = "residual"  # shared GUI state, as another tab would choose it
     page.get_by_text(re.compile(r"residual \(cm\), particle rank")).wait_for(timeout=TIMEOUT_MS)
-    app.panel.heatmap_mode.value = "off"
+    app.display.inspect.heatmap_mode.value = "off"
     expect(page.get_by_role("button", name="○ heatmap")).to_be_visible(timeout=TIMEOUT_MS)
-    assert not app.panel.show("points") and not any(h.visible for h in app.display.observation.clouds)
+    assert not app.view_box.show("points") and not any(h.visible for h in app.display.observation.clouds)
     page.get_by_role("button", name="○ points").click()
     assert app.wait_for(lambda s: all(h.visible for h in app.display.observation.clouds), 10)
     page.get_by_role("tab", name="Estimator").click()
@@ -327,10 +338,10 @@ def test_the_visibility_bar_shows_and_hides_each_layer(page, workbench):
         assert app.wait_for(lambda s: all(h.visible for h in handles()), 10), item
     page.get_by_role("button", name="○ heatmap").click()
     expect(page.get_by_role("button", name="● heatmap")).to_be_visible(timeout=TIMEOUT_MS)
-    assert app.panel.heatmap_mode.value != "off" and not app.display.points_visible()  # the mode last used
+    assert app.display.inspect.heatmap_mode.value != "off" and not app.display.points_visible()  # the mode last used
     page.get_by_role("button", name="● heatmap").click()
     expect(page.get_by_role("button", name="○ heatmap")).to_be_visible(timeout=TIMEOUT_MS)
-    assert app.panel.heatmap_mode.value == "off" and app.display.points_visible()
+    assert app.display.inspect.heatmap_mode.value == "off" and app.display.points_visible()
     page.get_by_role("button", name="● labels").click()
     expect(page.get_by_role("button", name="○ labels")).to_be_visible(timeout=TIMEOUT_MS)
     assert not app.labelling.editor.shown
@@ -340,8 +351,8 @@ def test_the_visibility_bar_shows_and_hides_each_layer(page, workbench):
 
 def test_the_truth_table_agrees_with_workbench_score(page, workbench, tmp_path):
     """The per-object errors against scene_gt.json, as shown, are what `workbench score` says of the same estimate."""
-    from workbench.score.scoring import score_results
     from workbench.io import bop
+    from workbench.score.scoring import score_results
 
     app = workbench.app
     step(page, app)

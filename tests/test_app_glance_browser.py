@@ -11,7 +11,6 @@ import shutil
 
 import numpy as np
 import pytest
-
 from headless import chromium_path, free_port, open_workbench
 
 pytest.importorskip("playwright.sync_api")
@@ -155,9 +154,9 @@ def test_the_plot_height_control_resizes_the_charts(page, workbench):
         step(page, app)
     page.get_by_role("tab", name="Plots").click()
     page.locator(".uplot").first.wait_for(timeout=TIMEOUT_MS)
-    app.panel.plots.size.value = 300  # as another tab would set it
+    app.plots.size.value = 300  # as another tab would set it
     expect(page.locator(".uplot").first).to_have_js_property("offsetHeight", 300, timeout=TIMEOUT_MS)
-    app.panel.plots.size.value = 140
+    app.plots.size.value = 140
     expect(page.locator(".uplot").first).to_have_js_property("offsetHeight", 140, timeout=TIMEOUT_MS)
 
 
@@ -181,7 +180,7 @@ def test_the_plots_pop_out_into_a_window_and_come_back(page, workbench):
     window = page.locator("[data-floating-window]", has=page.locator(".uplot")).bounding_box()
     assert window["x"] + window["width"] <= page.get_by_role("button", name="Step").bounding_box()["x"], window
     step(page, app)
-    assert len(chart_boxes(page)) == len(docked) and app.panel.plots.drawn
+    assert len(chart_boxes(page)) == len(docked) and app.plots.drawn
     visible(page.get_by_role("button", name="Put back")).click()
     expect(page.get_by_role("button", name="Pop out")).to_be_visible(timeout=TIMEOUT_MS)
     expect(page.locator(".uplot").first).to_have_js_property("offsetHeight", 140, timeout=TIMEOUT_MS)

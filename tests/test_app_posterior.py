@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from headless import free_port
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import view_legend_html
-from headless import free_port
 from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
-from workbench.inference.config import EstimatorConfig
+from workbench.app.ui.widgets.colors import view_legend_html
 from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
+from workbench.inference.config import EstimatorConfig
 
 pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
 
@@ -122,7 +122,7 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
     """Ghosts (an instance per other mode) with their probabilities as labels, hidden by the visibility bar's
     "modes"; the confidences in the legend and the Inspect tab; a dropdown of modes in the Label tab for the
     objects that have several; all gone after Reset."""
-    from workbench.app.ui.panel import visibility_item
+    from workbench.app.ui.run.view_box import visibility_item
     from workbench.app.ui.server import serve
 
     handle = serve(hidden_handle_dataset, block=False, port=free_port(), workers=1, config=CONFIG)
@@ -136,8 +136,7 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
         d, post = app.display, app.display.posterior
         several = [o for o in post.objects if len(o.modes) > 1]
         assert several
-        with app.lock:
-            d.throttle.flush()
+        app.ui.call(d.throttle.flush)
         assert sorted(d.modes.ghosts) == [o.obj for o in several]
         for o in several:
             ghost = d.modes.ghosts[o.obj]
@@ -150,8 +149,8 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
         assert len(d.modes.labels) == len(d.modes.texts) and all(h.visible for h in d.modes.labels)
         names = d.names
         for o in post.objects:
-            assert f'<span data-confidence="{o.obj}">({confidence_text(o)})</span>' in app.panel.view_legend.content
-        assert app.panel.posterior.content == posterior_markdown(post, names, 2)
+            assert f'<span data-confidence="{o.obj}">({confidence_text(o)})</span>' in app.view_box.legend.content
+        assert app.display.inspect.posterior.content == posterior_markdown(post, names, 2)
         choice = app.labelling.modes
         for k, dropdown in enumerate(choice.dropdowns):
             modes = post.objects[k].modes
@@ -159,22 +158,25 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
             if len(modes) > 1:
                 assert tuple(dropdown.options) == tuple(mode_option(j, m) for j, m in enumerate(modes))
                 dropdown.value = dropdown.options[1]
-        assert app.panel.label.modes.visible
+        assert app.labelling.tab.modes.visible
         assert choice.chosen() == (tuple(int(len(o.modes) > 1) for o in post.objects), 2)
 
-        app.toggle(next(o for o in app.panel.visibility.options if visibility_item(o) == "modes"))
-        assert not app.panel.show("modes")
+        app.toggle(next(o for o in app.view_box.visibility.options if visibility_item(o) == "modes"))
+        assert not app.view_box.show("modes")
         assert not any(h.visible for h in (*d.modes.ghosts.values(), *d.modes.labels))
         app.toggle("○ modes")
         assert all(h.visible for h in (*d.modes.ghosts.values(), *d.modes.labels))
 
         app.reset()
         assert app.wait_for(lambda s: s.iteration == -1 and s.last_state.reason == "reset", 60)
-        with app.lock:
+
+        def after_reset():  # on the UI thread: nothing changes the display while this looks
             assert d.posterior is None and not d.modes.ghosts and not d.modes.labels
-            assert "No posterior yet" in app.panel.posterior.content and "data-confidence" not in \
-                app.panel.view_legend.content
-            assert not app.panel.label.modes.visible and choice.chosen() == ((0,) * len(post.objects), -1)
+            assert "No posterior yet" in app.display.inspect.posterior.content and "data-confidence" not in \
+                app.view_box.legend.content
+            assert not app.labelling.tab.modes.visible and choice.chosen() == ((0,) * len(post.objects), -1)
+
+        app.ui.call(after_reset)
         assert not app.state.display_errors
     finally:
         handle.stop()

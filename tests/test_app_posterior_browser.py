@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 import pytest
-
 from headless import FRAME_PROBE_JS, canvas_png, chromium_path, free_port, open_workbench
+
 from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option
 
 pytest.importorskip("playwright.sync_api")
@@ -62,8 +62,7 @@ def canvas(page) -> np.ndarray:
 def settled_canvas(page, app, timeout_s: float = 30.0) -> np.ndarray:
     """The 3D view once it has gone quiet: two captures half a second apart that agree. Software WebGL on a loaded
     machine can take seconds to draw a change, so a fixed wait reads the frame before it (CI did)."""
-    with app.lock:
-        app.display.throttle.flush()
+    app.ui.call(app.display.throttle.flush)
     last = canvas(page)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

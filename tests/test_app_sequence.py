@@ -152,9 +152,9 @@ def test_a_next_frame_without_depth_is_a_message_and_the_frame_on_show_stays(seq
 def test_a_sequence_record_round_trips_and_a_damaged_one_names_the_file(tmp_path):
     import json
 
-    from workbench.sessions.sequence_record import SequenceRecord, parse_record, record_json
     from workbench.errors import InputError
     from workbench.inference.config import EstimatorConfig
+    from workbench.sessions.sequence_record import SequenceRecord, parse_record, record_json
 
     frames = [p.SequenceFrame(3, "estimated", 2.5, "", np.zeros((2, 3)), np.array([0.9, np.nan])),
               p.SequenceFrame(4, "1 object re-found", 0.8, "depth", np.ones((2, 3)), np.array([1.0, 0.5]))]

@@ -9,7 +9,6 @@ import re
 
 import numpy as np
 import pytest
-
 from headless import chromium_path, color_extent, free_port, gui_input, open_workbench
 
 pytest.importorskip("playwright.sync_api")
@@ -98,7 +97,7 @@ def test_next_frame_twice_jump_back_and_plots_across_frames(page, workbench):
     for title in ("position x (cm, table frame)", "height z (cm above the table)",
                   "confidence (top mode's probability)"):
         expect(page.get_by_text(title)).to_be_visible(timeout=TIMEOUT_MS)
-    drawn = app.panel.sequence.plots.drawn
+    drawn = app.sequence.tab.plots.drawn
     assert set(drawn) == {"x", "y", "z", "p"} and all(len(plot.data[0]) == 3 for _, plot in drawn.values())
     chart = page.locator(".uplot:visible").first  # position x: the first object's line across the chart
     assert app.wait_for(lambda s: color_extent(chart.screenshot(), FIRST_OBJECT)[1] > 0.5, 60), \

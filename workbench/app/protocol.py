@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.inference.config import EstimatorConfig
 from workbench.inference.answer.posterior import Posterior
+from workbench.inference.config import EstimatorConfig
 
 
 @dataclass(frozen=True)

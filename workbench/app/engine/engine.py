@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import Callable
 
 from workbench.app import protocol as p
+from workbench.app.engine.evaluators import CRASH_ERRORS, Evaluators
 from workbench.app.engine.labels import FrameLabels
 from workbench.app.engine.sequence import EngineSequence
 from workbench.app.engine.sessions import open_session, save_session
-from workbench.app.engine.evaluators import CRASH_ERRORS, Evaluators
 from workbench.app.engine.snapshot import ParticleDisplay
 from workbench.errors import InputError
 
@@ -328,8 +328,8 @@ class Engine:
         """Continue a saved session. Everything that can fail on bad input happens before the current run is
         touched; stepping the restored estimator then continues the saved run bit for bit, given the same worker
         count (the tile a hypothesis is rendered in changes the last bits of its depth)."""
-        from workbench.sessions import store as sessions
         from workbench.app.engine.observation import build_view
+        from workbench.sessions import store as sessions
 
         opened = open_session(Path(cmd.path), cmd.confirmed)
         if isinstance(opened, p.SessionQuestion):

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.app.ui.widgets.colors import apply_map, robust_range
 from workbench.app.protocol import MeshData, ObservationView, PointSet
+from workbench.app.ui.widgets.colors import apply_map, robust_range
 from workbench.geometry import invert_pose, transform_points
 from workbench.meshes.heavy import HEAVY_FACES
 from workbench.problem.problem import Problem

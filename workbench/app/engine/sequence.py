@@ -26,9 +26,9 @@ from typing import Callable
 import numpy as np
 
 from workbench.app import protocol as p
-from workbench.sessions.sequence_record import SequenceRecord
 from workbench.app.ui.run.truth import top_probabilities
 from workbench.errors import InputError
+from workbench.sessions.sequence_record import SequenceRecord
 
 log = logging.getLogger(__name__)
 

@@ -9,10 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from workbench.sessions import store as sessions
 from workbench.app import protocol as p
-from workbench.sessions.sequence_record import SequenceRecord, parse_record, record_json
 from workbench.errors import InputError
+from workbench.sessions import store as sessions
+from workbench.sessions.sequence_record import SequenceRecord, parse_record, record_json
 
 
 @dataclass

@@ -5,36 +5,39 @@ kept for the tests)."""
 from __future__ import annotations
 
 import logging
-import threading
 from typing import Callable
 
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.ui.labelling.labelling import Labelling
-from workbench.app.ui.widgets.markdown import escape
-from workbench.app.ui.panel import Panel
-from workbench.app.ui.sessions.panel import Sessions
 from workbench.app.ui.run.status import RunView
+from workbench.app.ui.widgets.markdown import escape
 from workbench.errors import InputError
 
 log = logging.getLogger(__name__)
 
 
 class Reporter:
-    """``state()``: the server's current ``RunView`` (a new one with every frame), which keeps the failures, the
+    """The panel's fixed top: the title (what is loaded), the error banner, and the outlines of refused fields.
+    ``state()``: the server's current ``RunView`` (a new one with every frame), which keeps the failures, the
     drawing errors, the worker pids and the restarts."""
 
-    def __init__(self, server: viser.ViserServer, panel: Panel, lock: threading.RLock, state: Callable[[], RunView],
-                 labelling: Labelling, sessions: Sessions):
-        self.server, self.panel, self.lock, self.state = server, panel, lock, state
-        self.labelling, self.sessions = labelling, sessions
-        # Where a failure about a topic (``Failure.topic``) is also told, beside the button that failed.
-        self.topics = {"session": sessions.on_failure, "labels": labelling.show_failure}
+    def __init__(self, server: viser.ViserServer, state: Callable[[], RunView]):
+        self.server, self.state = server, state
+        gui = server.gui
+        self.title = gui.add_markdown("**workbench** · nothing loaded")
+        self.error = gui.add_markdown("", visible=False)
+        self.field_style = gui.add_html("")  # a <style> outlining the fields whose typed value was refused
+        # Where a failure about a topic (``Failure.topic``) is also told, beside the button that failed; the tabs
+        # that have one add themselves.
+        self.topics: dict[str, Callable[[p.Failure], None]] = {}
         # Every current error, banner line by banner line: key (a field's label, or the failure's title and path)
         # -> markdown. All are listed, not only the newest; they go when the input is corrected or an iteration
         # goes through.
         self.current: dict[str, str] = {}
+
+    def set_title(self, what: str) -> None:
+        self.title.content = f"**workbench** · {what}"
 
     def guarded(self, action: Callable[[], None]) -> None:
         """Run a panel action; bad input becomes a message in the panel, never a dead callback. An action that
@@ -49,56 +52,62 @@ class Reporter:
     def clear_error(self) -> None:
         """Hide the error banner and the fields' outlines, unless the estimator is gone for good (only a restart
         helps then)."""
-        with self.lock:
-            failures = self.state().failures
-            last = failures[-1] if failures else None
-            if last is not None and last.fatal:
-                return
-            self.current = {}
-            self.panel.outline(())
-            if self.panel.error.visible:
-                self.panel.error.visible = False
+        failures = self.state().failures
+        last = failures[-1] if failures else None
+        if last is not None and last.fatal:
+            return
+        self.current = {}
+        self.outline({})
+        if self.error.visible:
+            self.error.visible = False
 
-    def field_errors(self, errors: dict[str, str]) -> None:
+    def field_errors(self, errors: dict[str, str], ids: dict[str, str]) -> None:
         """The typed fields refused now ({label: problem}; they were put back to the values in use): each
-        outlined and listed in the banner, with whatever else is wrong. An empty dict clears the fields'
-        lines (the banner goes if nothing else is on it)."""
-        with self.lock:
-            before = dict(self.current)
-            self.current = {k: v for k, v in self.current.items() if not k.startswith("field:")}
-            for label, problem in errors.items():
-                log.warning("Input error: %s: %s", label, problem)
-                self.current[f"field:{label}"] = (f"`{label}`: {escape(problem)} — **kept the value in use**")
-            self.panel.outline(tuple(errors))
-            self.show_banner()
-            new = {label: problem for label, problem in errors.items()
-                   if before.get(f"field:{label}") != self.current[f"field:{label}"]}
+        outlined (``ids``: the fields' element ids by label) and listed in the banner, with whatever else is
+        wrong. An empty dict clears the fields' lines (the banner goes if nothing else is on it)."""
+        before = dict(self.current)
+        self.current = {k: v for k, v in self.current.items() if not k.startswith("field:")}
+        for label, problem in errors.items():
+            log.warning("Input error: %s: %s", label, problem)
+            self.current[f"field:{label}"] = (f"`{label}`: {escape(problem)} — **kept the value in use**")
+        self.outline({label: ids[label] for label in errors if label in ids})
+        self.show_banner()
+        new = {label: problem for label, problem in errors.items()
+               if before.get(f"field:{label}") != self.current[f"field:{label}"]}
         for label, problem in new.items():  # each once, not on every keystroke
             self.notify("Input error", f"{label}: {problem}; the value in use was put back", color="red")
+
+    def outline(self, ids: dict[str, str]) -> None:
+        """Outline in red the fields whose element ids are ``ids``' values (none: clear), by their labels' ``for``."""
+        css = "".join(
+            f'.mantine-Flex-root:has(label[for="{i}"]) input{{outline:2px solid #e03131;outline-offset:-1px}}'
+            f'label[for="{i}"]{{color:#e03131;font-weight:600}}' for i in ids.values())
+        content = f"<style>{css}</style>" if css else ""
+        if self.field_style.content != content:
+            self.field_style.content = content
 
     def show_banner(self) -> None:
         lines = list(self.current.values())
         if not lines:
-            self.panel.error.visible = False
+            self.error.visible = False
             return
         head = f"**⚠ {len(lines)} problems**\n\n" if len(lines) > 1 else ""
-        self.panel.error.content = head + "\n".join(f"- {line}" if len(lines) > 1 else f"**⚠** {line}"
+        self.error.content = head + "\n".join(f"- {line}" if len(lines) > 1 else f"**⚠** {line}"
                                                      for line in lines)
-        self.panel.error.visible = True
+        self.error.visible = True
 
     def report(self, failure: p.Failure) -> None:
         # The terminal hears of every failure too: a server started on a bad path must not look healthy there.
         log.warning("%s: %s%s", failure.title, f"{failure.path}: " if failure.path else "", failure.problem)
-        with self.lock:
-            if failure.topic in self.topics:
-                self.topics[failure.topic](failure)
-            state = self.state()
-            state.failures.append(failure)
-            where = f"`{failure.path}`: " if failure.path else ""
-            self.current[f"{failure.title}|{failure.path}"] = f"**{escape(failure.title)}** — {where}{escape(failure.problem)}"
-            self.show_banner()
-            view = state.view  # a failed load leaves the loaded frame in place
-            self.panel.title.content = f"**workbench** · {view.title if view else 'nothing loaded'}"
+        if failure.topic in self.topics:
+            self.topics[failure.topic](failure)
+        state = self.state()
+        state.failures.append(failure)
+        where = f"`{failure.path}`: " if failure.path else ""
+        self.current[f"{failure.title}|{failure.path}"] = f"**{escape(failure.title)}** — {where}{escape(failure.problem)}"
+        self.show_banner()
+        view = state.view  # a failed load leaves the loaded frame in place
+        self.set_title(view.title if view else "nothing loaded")
         self.notify(failure.title, f"{failure.path + ': ' if failure.path else ''}{failure.problem}", color="red")
 
     def engine_died(self, exitcode: int | None, gave_up: bool, reloading: bool) -> None:
@@ -122,24 +131,17 @@ class Reporter:
     def drawing_failed(self, what: str, err: Exception) -> None:
         """Log a bug in drawing ``what`` (a message type or a throttled drawing) and keep it for the tests."""
         log.error("drawing %s", what, exc_info=err)
-        with self.lock:
-            self.state().display_errors.append(f"{what}: {err!r}")
+        self.state().display_errors.append(f"{what}: {err!r}")
 
     def on_workers(self, msg: p.Workers) -> None:
+        """The evaluation workers now (``msg.pids``); a restarted pool is told and counted."""
         state = self.state()
         state.worker_pids = msg.pids
         if msg.restarted:
             state.restarts += 1
             self.notify("Evaluation worker restarted", f"A worker process died ({msg.reason}); a fresh pool took "
                         "over and the iteration was retried. The run goes on.", color="yellow")
-        where = f"{len(msg.pids)} worker processes" if msg.pids else "in the estimator process"
-        restarts = f" · restarted {state.restarts}×" if state.restarts else ""
-        self.panel.workers.content = f"Evaluation: {where}{restarts}"
 
     def on_saved(self, msg: p.Saved) -> None:
-        if msg.kind == "session":
-            self.sessions.on_saved(msg)
-        else:
-            self.labelling.show_saved(msg)
         # Also where it is seen: the tab's own message can be below the fold of a long panel.
         self.notify(f"Saved {msg.kind}", f"{msg.path}{' · ' + msg.note if msg.note else ''}", color="green")

@@ -11,7 +11,6 @@ is sent to the engine as ``SetLabels``.
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -20,10 +19,11 @@ import numpy as np
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import LABEL_COLOR
 from workbench.app.ui.labelling.controls import AXES, FACES, NO_OBJECT, TURNS, LabelTab
-from workbench.app.ui.widgets.quiet import Quiet
 from workbench.app.ui.run.views import OUTLINE_WIDTH, Nodes, outline_segments, split_pose
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.colors import LABEL_COLOR
+from workbench.app.ui.widgets.quiet import Quiet
 from workbench.geometry import (
     euler_to_matrix,
     make_pose,
@@ -72,7 +72,7 @@ class LabelEditor:
     server: viser.ViserServer
     tab: LabelTab
     send: Callable[[object], None]
-    lock: threading.RLock
+    ui: UiThread
     quiet: Quiet
     on_unlabelled: Callable[[], None] = lambda: None
     labels: list = field(default_factory=list)
@@ -87,27 +87,25 @@ class LabelEditor:
     _last_send: float = 0.0
 
     def __post_init__(self) -> None:
-        t = self.tab
-        t.object.on_update(lambda _: self.guarded(self.selection_changed))
+        t, on_ui = self.tab, self.ui.callback
+        t.object.on_update(on_ui(lambda _: self.guarded(self.selection_changed)))
         for i, h in enumerate(t.position):
-            h.on_update(lambda _, i=i: self.guarded(lambda: self.field_edited(position_axis=i)))
+            h.on_update(on_ui(lambda _, i=i: self.guarded(lambda: self.field_edited(position_axis=i))))
         for h in t.angles:
-            h.on_update(lambda _: self.guarded(lambda: self.field_edited(position_axis=None)))
-        t.show_gizmo.on_update(lambda _: self.guarded(self.redraw))
+            h.on_update(on_ui(lambda _: self.guarded(lambda: self.field_edited(position_axis=None))))
+        t.show_gizmo.on_update(on_ui(lambda _: self.guarded(self.redraw)))
         for axis, h in zip(AXES, t.turns):
-            h.on_click(lambda event, axis=axis: self.guarded(lambda: self.turn(axis, event.target.value)))
-        t.lay.on_click(lambda event: self.guarded(lambda: self.lay_on(event.target.value)))
-        t.clear.on_click(lambda _: self.guarded(self.clear_selected))
+            h.on_click(on_ui(lambda event, axis=axis: self.guarded(lambda: self.turn(axis, event.target.value))))
+        t.lay.on_click(on_ui(lambda event: self.guarded(lambda: self.lay_on(event.target.value))))
+        t.clear.on_click(on_ui(lambda _: self.guarded(self.clear_selected)))
 
     def guarded(self, action: Callable[[], None]) -> None:
         """Run a GUI callback unless the server itself is writing the controls (see ``Quiet``)."""
-        if self.quiet.active:
-            return
-        with self.lock:
+        if not self.quiet.active:
             action()
 
     def set_frame(self, view: p.ObservationView) -> None:
-        """New frame: one gizmo and one mesh per object, nothing labelled until the engine says (under the lock)."""
+        """New frame: one gizmo and one mesh per object, nothing labelled until the engine says."""
         self.nodes.clear()
         scene = self.server.scene
         K = len(view.meshes)
@@ -125,7 +123,7 @@ class LabelEditor:
             gizmo = self.nodes.add(scene.add_transform_controls(
                 f"/label/{k}", scale=max(0.06, 1.2 * size), line_width=2.0, depth_test=False, visible=False,
             ))
-            gizmo.on_update(lambda event, k=k: self.gizmo_moved(k, event))
+            gizmo.on_update(self.ui.callback(lambda event, k=k: self.gizmo_moved(k, event)))
             self.gizmos.append(gizmo)
             # An outline, as the ground truth's: the depth's points and the estimate stay visible inside it.
             self.meshes.append(self.nodes.add(scene.add_line_segments(
@@ -137,22 +135,21 @@ class LabelEditor:
         self.redraw()
 
     def set_labels(self, labels) -> None:
-        """The labels the engine holds (under the lock)."""
+        """The labels the engine holds."""
         self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in labels]
         self.redraw()
 
     def show_estimate(self, best: np.ndarray | None) -> None:
         """The latest most likely scene: an unlabelled selected object (gizmo and fields) follows it. Only that one:
         this runs every iteration, and hidden gizmos are placed when they are selected."""
-        with self.lock:
-            self.estimate = None if best is None else np.asarray(best, dtype=np.float64)
-            sel = self.selected()
-            if sel is None or self.labels[sel] is not None:
-                return
-            with self.server.atomic(), self.quiet:
-                gizmo = self.gizmos[sel]
-                gizmo.wxyz, gizmo.position = split_pose(self.pose(sel))
-                self.show_fields(sel)
+        self.estimate = None if best is None else np.asarray(best, dtype=np.float64)
+        sel = self.selected()
+        if sel is None or self.labels[sel] is not None:
+            return
+        with self.server.atomic(), self.quiet:
+            gizmo = self.gizmos[sel]
+            gizmo.wxyz, gizmo.position = split_pose(self.pose(sel))
+            self.show_fields(sel)
 
     def selected(self) -> int | None:
         try:
@@ -259,20 +256,19 @@ class LabelEditor:
         self.set_label(k, T)
 
     def gizmo_moved(self, k: int, event: viser.TransformControlsEvent) -> None:
-        with self.lock:
-            if k >= len(self.labels) or self.gizmos[k] is not event.target:
-                return  # a late event for the previous frame's gizmo
-            R = quat_wxyz_to_matrix(np.asarray(event.target.wxyz, dtype=np.float64))
-            self.labels[k] = make_pose(R, np.asarray(event.target.position, dtype=np.float64))
-            with self.server.atomic(), self.quiet:
-                mesh = self.meshes[k]
-                mesh.wxyz, mesh.position, mesh.visible = event.target.wxyz, event.target.position, True
-                if self.selected() != k:
-                    self.tab.object.value = self.names[k]
-                self.show_fields(k)
-            now = time.monotonic()
-            if event.phase != "update" or now - self._last_send >= SEND_INTERVAL_S:
-                self.send_labels()
+        if k >= len(self.labels) or self.gizmos[k] is not event.target:
+            return  # a late event for the previous frame's gizmo
+        R = quat_wxyz_to_matrix(np.asarray(event.target.wxyz, dtype=np.float64))
+        self.labels[k] = make_pose(R, np.asarray(event.target.position, dtype=np.float64))
+        with self.server.atomic(), self.quiet:
+            mesh = self.meshes[k]
+            mesh.wxyz, mesh.position, mesh.visible = event.target.wxyz, event.target.position, True
+            if self.selected() != k:
+                self.tab.object.value = self.names[k]
+            self.show_fields(k)
+        now = time.monotonic()
+        if event.phase != "update" or now - self._last_send >= SEND_INTERVAL_S:
+            self.send_labels()
 
     def clear_selected(self) -> None:
         k = self.selected()

@@ -7,18 +7,18 @@ in the engine process: the editor sends ``SetLabels`` on every change and this m
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from typing import Callable
 
 import viser
 
 from workbench.app import protocol as p
+from workbench.app.ui.labelling.controls import LabelTab, build_label_tab
 from workbench.app.ui.labelling.editor import LabelEditor
-from workbench.app.ui.labelling.controls import LabelTab
 from workbench.app.ui.labelling.mode_choice import ModeChoice
-from workbench.app.ui.widgets.quiet import Quiet
 from workbench.app.ui.run.views import HeatmapLayer
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.quiet import Quiet
 
 
 def errors_markdown(msg: p.LabelErrors, names: list[str]) -> str:
@@ -39,85 +39,90 @@ def errors_markdown(msg: p.LabelErrors, names: list[str]) -> str:
 
 @dataclass
 class Labelling:
-    """The Label tab: its editor (``editor``, the labels and their gizmos), its actions, and the label heatmap.
-    ``send`` reaches the engine; ``on_heatmap_mode`` tells the app that the label heatmap was switched (it hides the
-    observed points under it)."""
+    """The Label tab (``container``): its controls (``tab``), its editor (``editor``, the labels and their gizmos),
+    its actions, and the label heatmap. ``send`` reaches the engine; ``on_heatmap_mode`` tells the app that the
+    label heatmap was switched (it hides the observed points under it)."""
 
     server: viser.ViserServer
-    tab: LabelTab
+    container: viser.GuiTabHandle
     send: Callable[[object], None]
-    lock: threading.RLock
+    ui: UiThread
     quiet: Quiet
     on_heatmap_mode: Callable[[], None] = lambda: None
+    tab: LabelTab = field(init=False)
     editor: LabelEditor = field(init=False)
     heatmap: HeatmapLayer = field(init=False)
     modes: ModeChoice = field(init=False)
 
     def __post_init__(self) -> None:
+        with self.container:
+            self.tab = build_label_tab(self.server.gui)
         self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
-        self.editor = LabelEditor(self.server, self.tab, self.send, self.lock, self.quiet,
+        self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet,
                                   on_unlabelled=self.clear_heatmap)
         self.modes = ModeChoice(self.server.gui, self.tab.modes)
-        t = self.tab
-        t.use_best.on_click(lambda _: self.act(p.UseBestAsLabel(*self.modes.chosen()), "Taking the best estimate …"))
-        t.snap.on_click(lambda _: self.act(p.SnapLabels(), "Snapping …"))
-        t.fit.on_click(lambda _: self.act(p.FitLabels(), "Fitting …"))
-        t.heatmap.on_update(lambda _: self.editor.guarded(self.heatmap_mode_changed))
-        t.save.on_click(lambda _: self.save())
+        t, on_ui = self.tab, self.ui.callback
+        t.use_best.on_click(on_ui(lambda _: self.act(p.UseBestAsLabel(*self.modes.chosen()),
+                                                     "Taking the best estimate …")))
+        t.snap.on_click(on_ui(lambda _: self.act(p.SnapLabels(), "Snapping …")))
+        t.fit.on_click(on_ui(lambda _: self.act(p.FitLabels(), "Fitting …")))
+        t.heatmap.on_update(on_ui(lambda _: self.editor.guarded(self.heatmap_mode_changed)))
+        t.save.on_click(on_ui(lambda _: self.save()))
 
     # -- frame, engine messages
 
     def set_frame(self, view: p.ObservationView) -> None:
         """New frame: nothing labelled until the engine says."""
-        with self.lock:
-            self.heatmap.set_frame(view)
-            self.editor.set_frame(view)
-            self.modes.set_frame(self.editor.names)
-            with self.quiet:
-                self.tab.result.content = ""
-                self.tab.errors.content = ""
-                self.tab.legend.content = ""
+        self.heatmap.set_frame(view)
+        self.editor.set_frame(view)
+        self.modes.set_frame(self.editor.names)
+        if view.rgb_image is not None:
+            self.tab.rgb_image.image = view.rgb_image
+        self.tab.rgb_image.visible = view.rgb_image is not None
+        with self.quiet:
+            self.tab.result.content = ""
+            self.tab.errors.content = ""
+            self.tab.legend.content = ""
+
+    def reset_run(self) -> None:
+        """A new run on the same frame: no errors of the old estimate, and no estimate to follow."""
+        self.tab.errors.content = ""
+        self.editor.show_estimate(None)
 
     def show_labels(self, msg: p.Labels) -> None:
-        with self.lock:
-            if len(msg.labels) != len(self.editor.labels):
-                return
-            if msg.note or msg.reason in ("frame", "session"):
-                self.tab.result.content = msg.note
-            if not any(T is not None for T in msg.labels):
-                self.clear_heatmap()
-            self.editor.set_labels(msg.labels)
+        if len(msg.labels) != len(self.editor.labels):
+            return
+        if msg.note or msg.reason in ("frame", "session"):
+            self.tab.result.content = msg.note
+        if not any(T is not None for T in msg.labels):
+            self.clear_heatmap()
+        self.editor.set_labels(msg.labels)
 
     def show_heatmap(self, msg: p.LabelHeatmap) -> None:
-        with self.lock:
-            mode = self.tab.heatmap.value
-            if mode == "off" or not any(T is not None for T in self.editor.labels):
-                return
-            subject = "labelled scene" + (f" (unlabelled: {msg.filled})" if msg.filled else "")
-            legend, _ = self.heatmap.draw(msg.pixel_loglik, msg.residual, msg.loglik, mode, subject)
-            self.tab.legend.content = legend
+        mode = self.tab.heatmap.value
+        if mode == "off" or not any(T is not None for T in self.editor.labels):
+            return
+        subject = "labelled scene" + (f" (unlabelled: {msg.filled})" if msg.filled else "")
+        legend, _ = self.heatmap.draw(msg.pixel_loglik, msg.residual, msg.loglik, mode, subject)
+        self.tab.legend.content = legend
 
     def show_errors(self, msg: p.LabelErrors) -> None:
-        with self.lock:
-            if len(msg.errors) == len(self.editor.labels):
-                self.tab.errors.content = errors_markdown(msg, self.editor.names)
+        if len(msg.errors) == len(self.editor.labels):
+            self.tab.errors.content = errors_markdown(msg, self.editor.names)
 
     def show_saved(self, msg: p.Saved) -> None:
-        with self.lock:
-            note = f" · {msg.note}" if msg.note else ""
-            self.tab.saved.content = f"Saved labels to `{msg.path}`{note}"
+        note = f" · {msg.note}" if msg.note else ""
+        self.tab.saved.content = f"Saved labels to `{msg.path}`{note}"
 
     def show_failure(self, failure: p.Failure) -> None:
-        with self.lock:
-            self.tab.result.content = f"**⚠ {failure.problem}**"
+        self.tab.result.content = f"**⚠ {failure.problem}**"
 
     # -- actions
 
     def act(self, cmd, doing: str) -> None:
         if self.quiet.active:
             return
-        with self.lock:
-            self.tab.result.content = doing
+        self.tab.result.content = doing
         self.send(cmd)
 
     def heatmap_mode_changed(self) -> None:
@@ -133,10 +138,9 @@ class Labelling:
     def save(self) -> None:
         if self.quiet.active:
             return
-        with self.lock:
-            overwrite = bool(self.tab.overwrite_original.value)
-            self.tab.saved.content = "Saving …"
-            # Overwriting the dataset's ground truth is a choice made for one save, not a mode that stays on.
-            with self.quiet:
-                self.tab.overwrite_original.value = False
+        overwrite = bool(self.tab.overwrite_original.value)
+        self.tab.saved.content = "Saving …"
+        # Overwriting the dataset's ground truth is a choice made for one save, not a mode that stays on.
+        with self.quiet:
+            self.tab.overwrite_original.value = False
         self.send(p.SaveLabels(overwrite_original=overwrite))

@@ -8,13 +8,13 @@ target: setting the up vector or the field of view as well made a newly opened t
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
 import viser
 
 from workbench.app.protocol import ObservationView
+from workbench.app.ui.ui_thread import Later, UiThread
 
 FRAME_OBJECTS = "Frame objects"
 FROM_SENSOR = "From the sensor"
@@ -65,11 +65,11 @@ class TabCameras:
     remembered as the server's initial camera, so that a new tab or a reload starts there and not back at the
     default view."""
 
-    def __init__(self, server: viser.ViserServer, lock: threading.RLock):
-        self.server, self.lock = server, lock
+    def __init__(self, server: viser.ViserServer, ui: UiThread):
+        self.server, self.ui = server, ui
         self.pose: CameraPose | None = None  # where new and reloaded tabs start
         self._moved: CameraPose | None = None
-        self._timer: threading.Timer | None = None
+        self._timer: Later | None = None
 
     def preset(self, view: ObservationView | None, which: str, client: viser.ClientHandle | None) -> None:
         """Point the camera at the objects (``FRAME_OBJECTS``) or put it where the depth sensor was; for one
@@ -84,25 +84,20 @@ class TabCameras:
 
     def set_initial(self, pose: CameraPose) -> None:
         """Where a new or reloaded tab starts."""
-        with self.lock:
-            self.pose = pose
+        self.pose = pose
         apply_camera(self.server.initial_camera, pose)
 
     def client_connected(self, client: viser.ClientHandle) -> None:
         """A new tab (or a reload) starts where the last camera was left, not back at the default view."""
         def moved(camera: viser.CameraHandle) -> None:
-            with self.lock:
-                self._moved = CameraPose(tuple(camera.position), tuple(camera.look_at))
-                due = self._timer is None
-                if due:  # remembered once the camera has rested a moment: a drag reports ~30 poses a second
-                    self._timer = threading.Timer(CAMERA_REST_S, self._remember)
-                    self._timer.daemon = True
-                    self._timer.start()
+            self._moved = CameraPose(tuple(camera.position), tuple(camera.look_at))
+            due = self._timer is None
+            if due:  # remembered once the camera has rested a moment: a drag reports ~30 poses a second
+                self._timer = self.ui.later(CAMERA_REST_S, self._remember)
 
-        client.camera.on_update(moved)
+        client.camera.on_update(self.ui.callback(moved))
 
     def _remember(self) -> None:
-        with self.lock:
-            pose, self._timer = self._moved, None
+        pose, self._timer = self._moved, None
         if pose is not None:
             self.set_initial(pose)

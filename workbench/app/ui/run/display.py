@@ -1,5 +1,5 @@
 """The run as drawn: the observation, the particle cloud, the chosen particle and its heatmap, the estimate's other
-modes (the posterior) in the 3D view, and the panel's images, legends and tables beside them.
+modes (the posterior) in the 3D view, and the Inspect tab's text, legends and images beside them.
 
 While the estimator runs, the 3D view is redrawn at most once per ``SCENE_INTERVAL_S`` (``SceneThrottle``); the
 panel's text and plots follow every iteration (``server.App``).
@@ -7,21 +7,23 @@ panel's text and plots follow every iteration (``server.App``).
 
 from __future__ import annotations
 
-import threading
 from typing import Callable
 
 import numpy as np
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import VIRIDIS, legend_html, view_legend_html
+from workbench.app.engine.snapshot import default_drawn
 from workbench.app.ui.labelling.labelling import Labelling
-from workbench.app.ui.run.modes import confidences, posterior_markdown
 from workbench.app.ui.run.ghosts import ModesLayer
-from workbench.app.ui.panel import Panel
-from workbench.app.ui.widgets.scene_throttle import SceneThrottle
+from workbench.app.ui.run.inspect import build_inspect_tab
+from workbench.app.ui.run.modes import confidences, posterior_markdown
 from workbench.app.ui.run.status import physics_markdown
+from workbench.app.ui.run.view_box import ViewBox
 from workbench.app.ui.run.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.colors import view_legend_html
+from workbench.app.ui.widgets.scene_throttle import SceneThrottle
 from workbench.inference.answer.posterior import Posterior
 
 # While the estimator runs, the 3D view is redrawn at most once per this many seconds. Every batch of scene messages
@@ -33,16 +35,26 @@ SCENE_GATHER_S = 0.1  # a deferred redraw waits this long at least, for the rest
 
 
 class RunDisplay:
-    """Draws what the engine sends; ``on_pick(rank)``: a particle was clicked; ``on_error(what, err)``: a throttled
-    drawing failed."""
+    """Draws what the engine sends into the 3D view, the Inspect tab ``container`` (built here, ``inspect``) and the
+    View box's legend, with the layers ``view_box`` shows. ``send`` reaches the engine (which particle is chosen,
+    how many are drawn); ``on_error(what, err)``: a throttled drawing failed."""
 
-    def __init__(self, server: viser.ViserServer, panel: Panel, lock: threading.RLock, labelling: Labelling,
-                 on_pick: Callable[[int], None], on_error: Callable[[str, Exception], None]):
-        self.server, self.panel, self.lock, self.labelling = server, panel, lock, labelling
-        self.throttle = SceneThrottle(server, lock, SCENE_INTERVAL_S, SCENE_GATHER_S, on_error)
+    def __init__(self, server: viser.ViserServer, container: viser.GuiTabHandle, ui: UiThread, view_box: ViewBox,
+                 labelling: Labelling, particles: int, send: Callable[[object], None],
+                 on_error: Callable[[str, Exception], None]):
+        self.server, self.view_box, self.labelling, self.send = server, view_box, labelling, send
+        self.drawn_by_user = False  # whether the user has set Particles drawn (else each frame gets its share)
+        with container:
+            self.inspect = ins = build_inspect_tab(server.gui, particles)
+        ins.rank.on_update(ui.callback(lambda _: send(p.Select(int(ins.rank.value)))))
+        ins.best.on_click(ui.callback(lambda _: self.pick(0)))
+        ins.max_particles.on_update(ui.callback(self.drawn_changed))
+        ins.scene_mode.on_update(ui.callback(lambda _: self.redraw_chosen()))
+        ins.heatmap_mode.on_update(ui.callback(lambda _: self.heatmap_mode_changed()))
+        self.throttle = SceneThrottle(server, ui, SCENE_INTERVAL_S, SCENE_GATHER_S, on_error)
         light_cheaply(server)
         self.observation = ObservationLayer(server)
-        self.particles = ParticleLayer(server, on_pick=on_pick)
+        self.particles = ParticleLayer(server, on_pick=lambda rank: ui.call(self.pick, rank))
         self.chosen = ChosenLayer(server)
         self.heatmap = HeatmapLayer(server)
         self.modes = ModesLayer(server)
@@ -52,35 +64,37 @@ class RunDisplay:
         self.choice: p.Chosen | None = None  # the chosen particle drawn
         self.last_heat_mode = "log-likelihood"  # what the visibility bar's heatmap toggle turns on
 
+    def pick(self, rank: int) -> None:
+        """Choose the particle at ``rank``: moving the shared slider sends the Select (and shows every tab)."""
+        slider = self.inspect.rank
+        rank = int(np.clip(rank, 0, slider.max))
+        if slider.value == rank:
+            self.send(p.Select(rank))
+        else:
+            slider.value = rank
+
+    def drawn_changed(self, event) -> None:
+        """Particles drawn: the engine sends that many; once the user sets it (a client's event), frames keep it."""
+        self.drawn_by_user |= event.client is not None
+        self.send(p.SetDisplay(int(self.inspect.max_particles.value)))
+
     def set_frame(self, view: p.ObservationView) -> None:
         """A new frame: its observation, and nothing of a run yet (the caller batches this with ``server.atomic``)."""
-        P = self.panel
+        ins = self.inspect
         self.throttle.cancel()
         self.view, self.choice = view, None
-        self.observation.draw(view, self.points_visible(), P.show("truth"))
+        self.observation.draw(view, self.points_visible(), self.view_box.show("truth"))
         self.particles.set_frame(view.meshes)
         self.chosen.set_frame(view)
         self.heatmap.set_frame(view)
         self.modes.set_frame(view.meshes)
         self.posterior = None
-        P.posterior.content = posterior_markdown(None, [], -1)
-        P.depth_image.image = view.depth_image
-        P.depth_image.visible = True
-        lo, hi = view.depth_range
-        P.depth_legend.content = legend_html("depth (m)", f"{lo:.2f}", f"{hi:.2f}", VIRIDIS,
-                                             f"3D points: {view.color_legend}")
-        for image in (P.rgb_image, P.label_rgb):
-            if view.rgb_image is not None:
-                image.image = view.rgb_image
-            image.visible = view.rgb_image is not None
-        if view.where is not None:  # the Data tab names the frame on show
-            P.dataset.value, P.scene_id.value, P.im_id.value = view.where[0], str(view.where[1]), str(view.where[2])
-        P.heat_image.visible = False
-        P.legend.content = ""
-        P.physics_change.content = ""
-        P.truth.content = ""
-        P.timings.content = ""
-        P.plots.clear()
+        if not self.drawn_by_user:  # the frame's share of the outlines drawn (sends SetDisplay)
+            ins.max_particles.value = default_drawn(len(view.meshes))
+        ins.posterior.content = posterior_markdown(None, [], -1)
+        ins.heat_image.visible = False
+        ins.legend.content = ""
+        ins.physics_change.content = ""
         self.names = [m.name for m in view.meshes]
         self.show_view_legend()
 
@@ -88,11 +102,11 @@ class RunDisplay:
         view = self.view
         if view is None:
             return
-        heat = self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
+        heat = self.heat_on()
         note = "observed points replaced by a heatmap: its colours are explained beside it" if heat else ""
         content = view_legend_html(self.names, view.color_legend, note, confidences(self.posterior, len(self.names)))
-        if self.panel.view_legend.content != content:
-            self.panel.view_legend.content = content
+        if self.view_box.legend.content != content:
+            self.view_box.legend.content = content
 
     def show_cloud(self, cloud: p.ParticleCloud, posterior: Posterior | None, defer: bool) -> None:
         """Draw ``cloud`` and the estimate (the settled one where the snapshot has a ``posterior``): now, or
@@ -115,7 +129,7 @@ class RunDisplay:
         if posterior is None and self.posterior is None:
             return  # most snapshots: nothing to show, nothing shown
         self.posterior = posterior
-        self.panel.posterior.content = posterior_markdown(posterior, self.names, iteration)
+        self.inspect.posterior.content = posterior_markdown(posterior, self.names, iteration)
         self.show_view_legend()
         self.labelling.modes.show(posterior, iteration)
         self.throttle.submit("modes", lambda: self.modes.update(posterior), defer=defer)
@@ -126,83 +140,78 @@ class RunDisplay:
         self.throttle.submit("chosen", self.redraw_chosen, defer=defer)
 
     def redraw_chosen(self) -> None:
-        with self.lock:
-            c, P = self.choice, self.panel
-            if c is None:  # nothing chosen in this run (yet): nothing of an earlier one stays drawn
-                self.chosen.clear()
-                self.heatmap.nodes.clear()
-                P.legend.content, P.heat_image.visible, P.physics_change.content = "", False, ""
-                return
-            self.chosen.update(c, P.scene_mode.value)
-            legend, image = self.heatmap.update(c, P.heatmap_mode.value)
-            P.legend.content = legend
-            if image is not None:
-                P.heat_image.image = image
-            P.heat_image.visible = image is not None
-            P.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
+        c, ins = self.choice, self.inspect
+        if c is None:  # nothing chosen in this run (yet): nothing of an earlier one stays drawn
+            self.chosen.clear()
+            self.heatmap.nodes.clear()
+            ins.legend.content, ins.heat_image.visible, ins.physics_change.content = "", False, ""
+            return
+        self.chosen.update(c, ins.scene_mode.value)
+        legend, image = self.heatmap.update(c, ins.heatmap_mode.value)
+        ins.legend.content = legend
+        if image is not None:
+            ins.heat_image.image = image
+        ins.heat_image.visible = image is not None
+        ins.physics_change.content = physics_markdown(c, self.names) if c is not None else ""
 
     def heat_on(self) -> bool:
-        return self.panel.heatmap_mode.value != "off" or self.panel.label.heatmap.value != "off"
+        return self.inspect.heatmap_mode.value != "off" or self.labelling.tab.heatmap.value != "off"
 
     def points_visible(self) -> bool:
         """The observed points show when the user wants them and no heatmap is drawn on them."""
-        return self.panel.show("points") and not self.heat_on()
+        return self.view_box.show("points") and not self.heat_on()
 
     def apply_visibility(self) -> None:
         """Draw the visibility bar's choices (and the heatmap's) into the 3D view."""
-        P = self.panel
-        P.set_shown("heatmap", self.heat_on())
+        V = self.view_box
+        V.set_shown("heatmap", self.heat_on())
         with self.server.atomic():
-            self.observation.set_visible(self.points_visible(), P.show("truth"))
-            self.particles.set_visible(P.show("particles"), P.show("estimate"))
-            self.modes.set_visible(P.show("modes"))
-            self.labelling.editor.set_shown(P.show("labels"))
+            self.observation.set_visible(self.points_visible(), V.show("truth"))
+            self.particles.set_visible(V.show("particles"), V.show("estimate"))
+            self.modes.set_visible(V.show("modes"))
+            self.labelling.editor.set_shown(V.show("labels"))
         self.show_view_legend()
 
     def toggle(self, item: str) -> None:
         """The visibility bar's ``item`` was clicked: show or hide that layer. The heatmap's toggle switches the
         chosen particle's heatmap between off and the mode last used."""
-        P = self.panel
         if item == "heatmap":
             if self.heat_on():
-                P.heatmap_mode.value = "off"
-                P.label.heatmap.value = "off"
+                self.inspect.heatmap_mode.value = "off"
+                self.labelling.tab.heatmap.value = "off"
             else:
-                P.heatmap_mode.value = self.last_heat_mode
+                self.inspect.heatmap_mode.value = self.last_heat_mode
             return  # the dropdowns' callbacks redraw
-        if item in P.shown:
-            P.set_shown(item, not P.show(item))
+        if item in self.view_box.shown:
+            self.view_box.set_shown(item, not self.view_box.show(item))
             self.apply_visibility()
 
     def heatmap_mode_changed(self) -> None:
         # The heatmap is drawn on the observed points: showing both would bury one under the other. So would the
         # label heatmap, on the same points: one heatmap at a time. The points come back as the user left them.
-        if self.panel.heatmap_mode.value != "off":
-            self.last_heat_mode = self.panel.heatmap_mode.value
-            if self.panel.label.heatmap.value != "off":
-                self.panel.label.heatmap.value = "off"
+        mode, label_mode = self.inspect.heatmap_mode, self.labelling.tab.heatmap
+        if mode.value != "off":
+            self.last_heat_mode = mode.value
+            if label_mode.value != "off":
+                label_mode.value = "off"
         self.apply_visibility()
         self.redraw_chosen()
 
     def label_heatmap_mode_changed(self) -> None:
-        if self.panel.label.heatmap.value != "off" and self.panel.heatmap_mode.value != "off":
-            self.panel.heatmap_mode.value = "off"
+        if self.labelling.tab.heatmap.value != "off" and self.inspect.heatmap_mode.value != "off":
+            self.inspect.heatmap_mode.value = "off"
         self.apply_visibility()
 
     def reset(self) -> None:
-        """A new run on the same frame: no particles, no chosen one, no tables of the old run."""
-        P = self.panel
+        """A new run on the same frame: no particles, no chosen one, no tables of the old run (the Inspect tab's;
+        the others' are their owners' to clear)."""
         self.throttle.cancel()
-        P.plots.clear()
         self.particles.set_frame(self.particles.meshes)
         self.choice = None
         self.chosen.clear()
         self.heatmap.nodes.clear()
         self.show_posterior(None, -1, defer=False)
-        P.legend.content = ""
-        P.heat_image.visible = False
-        P.physics_change.content = ""
-        P.timings.content = ""
-        P.truth.content = ""
-        self.labelling.tab.errors.content = ""
-        self.labelling.editor.show_estimate(None)
+        self.inspect.legend.content = ""
+        self.inspect.heat_image.visible = False
+        self.inspect.physics_change.content = ""
+        self.labelling.reset_run()

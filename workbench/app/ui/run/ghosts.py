@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import viser
 
-from workbench.app.ui.widgets import colors
-from workbench.app.ui.run.modes import mode_label
 from workbench.app.protocol import MeshData
+from workbench.app.ui.run.modes import mode_label
 from workbench.app.ui.run.views import NO_SHADOW, Nodes, outline_mesh, split_pose
+from workbench.app.ui.widgets import colors
 from workbench.inference.answer.posterior import Posterior
 
 GHOST_OPACITY = 0.55

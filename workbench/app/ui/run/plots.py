@@ -19,13 +19,14 @@ and stack while the panel is still laying out); a line of HTML above each chart 
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 import viser
 import viser.uplot as uplot
+
+from workbench.app.ui.ui_thread import UiThread
 
 HEIGHT = 140  # px per chart; the tab's "Plot height" slider changes it (100 to 400)
 # The popped-out window at first (x, y, width, height in CSS px: left of the panel, clear of it from a window 1000 px
@@ -213,6 +214,7 @@ class Plots:
 
     gui: viser.GuiApi
     tab: viser.GuiTabHandle
+    ui: UiThread
     reports: list[dict] = field(default_factory=list)
     particles: list[int] = field(default_factory=list)
     drawn: dict[str, Drawn] = field(default_factory=dict)
@@ -221,8 +223,6 @@ class Plots:
     height: int = HEIGHT
 
     def __post_init__(self) -> None:
-        # The engine's messages and the tab's controls (viser's threads) both change the charts.
-        self.lock = threading.RLock()
         self.window: viser.PanelHandle | None = None  # the popped-out window, while there is one
         self.docked_height = HEIGHT  # the charts' height in the tab, given back when they come back
         self.container: viser.GuiTabHandle = self.tab  # where the charts are drawn
@@ -235,46 +235,43 @@ class Plots:
             self.back = self.gui.add_button("Put back", icon=viser.Icon.ARROWS_MINIMIZE, order=-0.4, visible=False)
             self.empty = self.gui.add_markdown("No iterations yet: **Step** or **Run** draws the plots here.",
                                                order=0.0)
-        self.size.on_update(lambda _: self.resize(int(self.size.value)))
-        self.pop.on_click(lambda _: self.pop_out())
-        self.back.on_click(lambda _: self.put_back())
+        self.size.on_update(self.ui.callback(lambda _: self.resize(int(self.size.value))))
+        self.pop.on_click(self.ui.callback(lambda _: self.pop_out()))
+        self.back.on_click(self.ui.callback(lambda _: self.put_back()))
 
     def pop_out(self) -> None:
         """Draw the charts in a floating window (``POP_OUT`` px at first), taller (``POP_OUT_HEIGHT`` at least)."""
-        with self.lock:
-            if self.window is not None:
-                return
-            self.window = self.gui.add_panel()
-            self.container = self.window.add_tab("Plots", viser.Icon.CHART_LINE)
-            with self.container:
-                put_back = self.gui.add_button("Put back", icon=viser.Icon.ARROWS_MINIMIZE, order=-1.0,
-                                               hint="the charts back into the panel's Plots tab")
-            put_back.on_click(lambda _: self.put_back())
-            x, y, width, height = POP_OUT
-            self.window.float(x=x, y=y, width=width, height=height)
-            self.pop.visible, self.away.visible, self.back.visible = False, True, True
-            self.docked_height = int(self.size.value)
-            self.size.value = max(self.docked_height, POP_OUT_HEIGHT)
-            self.resize(int(self.size.value))
+        if self.window is not None:
+            return
+        self.window = self.gui.add_panel()
+        self.container = self.window.add_tab("Plots", viser.Icon.CHART_LINE)
+        with self.container:
+            put_back = self.gui.add_button("Put back", icon=viser.Icon.ARROWS_MINIMIZE, order=-1.0,
+                                           hint="the charts back into the panel's Plots tab")
+        put_back.on_click(self.ui.callback(lambda _: self.put_back()))
+        x, y, width, height = POP_OUT
+        self.window.float(x=x, y=y, width=width, height=height)
+        self.pop.visible, self.away.visible, self.back.visible = False, True, True
+        self.docked_height = int(self.size.value)
+        self.size.value = max(self.docked_height, POP_OUT_HEIGHT)
+        self.resize(int(self.size.value))
 
     def put_back(self) -> None:
         """The charts back in the Plots tab, at the height they had before the window."""
-        with self.lock:
-            if self.window is None:
-                return
-            self.window.remove()  # and the charts in it
-            self.window, self.container, self.drawn = None, self.tab, {}
-            self.pop.visible, self.away.visible, self.back.visible = True, False, False
-            self.size.value = self.docked_height
-            self.resize(self.docked_height)
+        if self.window is None:
+            return
+        self.window.remove()  # and the charts in it
+        self.window, self.container, self.drawn = None, self.tab, {}
+        self.pop.visible, self.away.visible, self.back.visible = True, False, False
+        self.size.value = self.docked_height
+        self.resize(self.docked_height)
 
     def resize(self, height: int) -> None:
         """Every chart ``height`` px tall (re-created: uPlot takes its size when made)."""
-        with self.lock:
-            self.height = height
-            self._remove_charts()
-            if self.reports:
-                self.redraw(self.context.get("converge_m", 0.01), self.context.get("converge_deg", 3.0))
+        self.height = height
+        self._remove_charts()
+        if self.reports:
+            self.redraw(self.context.get("converge_m", 0.01), self.context.get("converge_deg", 3.0))
 
     def _remove_charts(self) -> None:
         for d in self.drawn.values():
@@ -283,49 +280,45 @@ class Plots:
         self.drawn = {}
 
     def clear(self) -> None:
-        with self.lock:
-            self.reports, self.particles = [], []
-            self._remove_charts()
-            self.empty.visible = True
+        self.reports, self.particles = [], []
+        self._remove_charts()
+        self.empty.visible = True
 
     def add(self, report: dict, n_particles: int, converge_m: float, converge_deg: float) -> None:
         """Append an iteration (or replace the last one, when the engine republishes it)."""
-        with self.lock:
-            if self.reports and self.reports[-1]["iteration"] == report["iteration"]:
-                self.reports.pop()
-                self.particles.pop()
-            self.reports.append(report)
-            self.particles.append(n_particles)
-            self.redraw(converge_m, converge_deg)
+        if self.reports and self.reports[-1]["iteration"] == report["iteration"]:
+            self.reports.pop()
+            self.particles.pop()
+        self.reports.append(report)
+        self.particles.append(n_particles)
+        self.redraw(converge_m, converge_deg)
 
     def set_history(self, reports: list[dict], n_particles: int, converge_m: float, converge_deg: float) -> None:
         """A whole run at once (a restored session); the history keeps no per-iteration particle count, so the
         current one stands for all."""
-        with self.lock:
-            self.clear()
-            self.reports = list(reports)
-            self.particles = [n_particles] * len(reports)
-            self.redraw(converge_m, converge_deg)
+        self.clear()
+        self.reports = list(reports)
+        self.particles = [n_particles] * len(reports)
+        self.redraw(converge_m, converge_deg)
 
     def redraw(self, converge_m: float, converge_deg: float) -> None:
-        with self.lock:
-            self.context = {"converge_m": converge_m, "converge_deg": converge_deg, "particles": self.particles}
-            for i, chart in enumerate(CHARTS):
-                data = chart.columns(self.reports, self.context) if self.reports else None
-                if data is None or len(data[0]) == 0:
-                    continue
-                lines = chart.lines(self.reports)
-                d = self.drawn.get(chart.key)
-                if d is not None and d.lines != lines:  # a series came or went (a move kind, a reference)
-                    d.header.remove()
-                    d.plot.remove()
-                    d = None
-                if d is None:
-                    self.drawn[chart.key] = self._create(i, chart, lines, data)
-                else:
-                    d.plot.data = data
-                    d.plot.scales = self.scales(chart)
-            self.empty.visible = not self.drawn
+        self.context = {"converge_m": converge_m, "converge_deg": converge_deg, "particles": self.particles}
+        for i, chart in enumerate(CHARTS):
+            data = chart.columns(self.reports, self.context) if self.reports else None
+            if data is None or len(data[0]) == 0:
+                continue
+            lines = chart.lines(self.reports)
+            d = self.drawn.get(chart.key)
+            if d is not None and d.lines != lines:  # a series came or went (a move kind, a reference)
+                d.header.remove()
+                d.plot.remove()
+                d = None
+            if d is None:
+                self.drawn[chart.key] = self._create(i, chart, lines, data)
+            else:
+                d.plot.data = data
+                d.plot.scales = self.scales(chart)
+        self.empty.visible = not self.drawn
 
     def scales(self, chart: Chart) -> dict:
         """One x range for every chart: the run's iterations so far, from 0."""

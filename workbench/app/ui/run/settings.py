@@ -4,14 +4,16 @@ and listed, and put back to the value in use once the typing pauses or at Step, 
 
 from __future__ import annotations
 
-import threading
 from dataclasses import replace
 from typing import Callable
 
+import viser
+
 from workbench.app import protocol as p
-from workbench.app.ui.panel import Panel, pending_markdown
-from workbench.app.ui.widgets.quiet import Quiet
 from workbench.app.ui.reporting import Reporter
+from workbench.app.ui.run.estimator_tab import build_estimator_tab, pending_markdown
+from workbench.app.ui.ui_thread import Later, UiThread
+from workbench.app.ui.widgets.quiet import Quiet
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 
@@ -19,12 +21,19 @@ REVERT_S = 1.5  # a refused typed value is put back this long after the last key
 
 
 class SettingsForm:
-    def __init__(self, panel: Panel, lock: threading.RLock, quiet: Quiet, reporter: Reporter,
-                 send: Callable[[object], None], config: EstimatorConfig, likelihood: str):
-        self.panel, self.lock, self.quiet, self.reporter, self.send = panel, lock, quiet, reporter, send
+    """The Estimator tab (``container``): builds its controls (``tab``) and sends what is typed with ``send``."""
+
+    def __init__(self, gui: viser.GuiApi, container: viser.GuiTabHandle, ui: UiThread, quiet: Quiet,
+                 reporter: Reporter, send: Callable[[object], None], config: EstimatorConfig, likelihood: str):
+        self.ui, self.quiet, self.reporter, self.send = ui, quiet, reporter, send
         self.config = config
-        self.likelihood = likelihood  # the likelihood model of the run (the panel's applies at Reset)
-        self.revert_timer: threading.Timer | None = None
+        self.likelihood = likelihood  # the likelihood model of the run (the tab's applies at Reset)
+        self.revert_timer: Later | None = None
+        with container:
+            self.tab = build_estimator_tab(gui, config, likelihood)
+        for h in (self.tab.method, *self.tab.fields.values()):
+            h.on_update(ui.callback(lambda _: self.changed()))
+        self.tab.likelihood.on_update(ui.callback(lambda _: self.show_pending()))
 
     def changed(self) -> None:
         """A setting was typed: the valid ones go to the engine at once (the seed waits for Reset); refused ones
@@ -32,53 +41,48 @@ class SettingsForm:
         mid-word would fight the user) or at Step, Run or Reset."""
         if self.quiet.active:
             return  # a restored session's settings being shown, not a user's edit
-        with self.lock:
-            try:
-                config, errors = self.panel.read_config(self.config)
-            except InputError as err:
-                self.reporter.report(p.Failure("Input error", err.problem, err.path))
-                return
-            self.reporter.field_errors(errors)
-            self.cancel()
-            if errors:
-                self.revert_timer = threading.Timer(REVERT_S, self.revert)
-                self.revert_timer.daemon = True
-                self.revert_timer.start()
-            config = replace(config, seed=self.config.seed)  # the seed applies at Reset
-            if config != self.config:
-                self.config = config
-                self.send(p.SetConfig(self.config))
-            self.show_pending()
+        try:
+            config, errors = self.tab.read_config(self.config)
+        except InputError as err:
+            self.reporter.report(p.Failure("Input error", err.problem, err.path))
+            return
+        self.reporter.field_errors(errors, self.tab.field_ids)
+        self.cancel()
+        if errors:
+            self.revert_timer = self.ui.later(REVERT_S, self.revert)
+        config = replace(config, seed=self.config.seed)  # the seed applies at Reset
+        if config != self.config:
+            self.config = config
+            self.send(p.SetConfig(self.config))
+        self.show_pending()
 
     def revert(self) -> bool:
         """Put the values in use back into the fields that hold refused ones (they stay outlined and listed)
         -> whether any was refused."""
-        with self.lock:
-            self.cancel()
-            _, errors = self.panel.read_config(self.config)
-            if errors:
-                with self.quiet:
-                    self.panel.revert(tuple(errors), self.config)
-            return bool(errors)
+        self.cancel()
+        _, errors = self.tab.read_config(self.config)
+        if errors:
+            with self.quiet:
+                self.tab.revert(tuple(errors), self.config)
+        return bool(errors)
 
     def show_pending(self) -> None:
         """Say which settings wait for Reset (likelihood, seed), and which apply at once."""
         if self.quiet.active:
             return
-        with self.lock:
-            try:
-                seed = int(str(self.panel.seed.value).strip())
-            except ValueError:
-                seed = self.config.seed
-            content = pending_markdown((self.likelihood, self.config.seed), (self.panel.likelihood.value, seed))
-            if self.panel.pending.content != content:
-                self.panel.pending.content = content
+        try:
+            seed = int(str(self.tab.seed.value).strip())
+        except ValueError:
+            seed = self.config.seed
+        content = pending_markdown((self.likelihood, self.config.seed), (self.tab.likelihood.value, seed))
+        if self.tab.pending.content != content:
+            self.tab.pending.content = content
 
     def for_reset(self) -> p.Reset:
         """Every typed setting, the seed and the likelihood included, taken for the run -> the Reset to send."""
         self.revert()
-        self.config = self.panel.estimator_config(self.config)
-        self.likelihood = self.panel.likelihood.value
+        self.config = self.tab.estimator_config(self.config)
+        self.likelihood = self.tab.likelihood.value
         self.show_pending()
         return p.Reset(self.config, self.likelihood)
 

@@ -13,8 +13,8 @@ from typing import Callable
 import numpy as np
 import viser
 
-from workbench.app.ui.widgets import colors
 from workbench.app.protocol import Chosen, MeshData, ObservationView, ParticleCloud
+from workbench.app.ui.widgets import colors
 
 SCENE_MODES = ("after physics", "before physics", "before + after", "side by side", "hidden")
 HEATMAP_MODES = ("log-likelihood", "residual", "off")

@@ -6,15 +6,15 @@ and shows its ``protocol.SequenceState``.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from typing import Callable
 
 import viser
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.markdown import escape
 from workbench.app.ui.sequence.plots import FramePlots
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.markdown import escape
 
 
 @dataclass
@@ -28,9 +28,9 @@ class SequenceTab:
     plots: FramePlots
 
 
-def build_sequence_tab(gui: viser.GuiApi) -> SequenceTab:
-    """The folder, hidden until a sequence is loaded (call inside the Data tab)."""
-    folder = gui.add_folder("Sequence", visible=False)
+def build_sequence_tab(gui: viser.GuiApi, order: float | None = None) -> SequenceTab:
+    """The folder, hidden until a sequence is loaded (call inside the Data tab; ``order``: its place there)."""
+    folder = gui.add_folder("Sequence", order=order, visible=False)
     with folder:
         summary = gui.add_markdown("")
         nxt = gui.add_button("Next frame", icon=viser.Icon.PLAYER_SKIP_FORWARD,
@@ -63,32 +63,29 @@ def timeline_markdown(msg: p.SequenceState) -> str:
 
 
 class SequencePanel:
-    """Drives the Sequence folder ``tab``: ``send`` commands to the engine; ``show_history(reports, config)``: the
-    run of a frame put on show, for the plots over iterations and the status line; ``names()``: the objects'
-    display names. Failures about the sequence come through ``topics`` (the ``Reporter``'s)."""
+    """The Sequence folder (``tab``), built where this is made (at ``order`` there): ``send`` commands to the
+    engine; ``show_history(reports, config)``: the run of a frame put on show, for the plots over iterations and
+    the status line; ``names()``: the objects' display names. Failures about the sequence: ``on_failure``."""
 
-    def __init__(self, tab: SequenceTab, lock: threading.RLock, send: Callable[[object], None],
-                 topics: dict[str, Callable[[p.Failure], None]], show_history: Callable[[list[dict], object], None],
-                 names: Callable[[], list[str]]):
-        self.tab, self.lock, self.send, self.show_history, self.names = tab, lock, send, show_history, names
+    def __init__(self, gui: viser.GuiApi, order: float | None, ui: UiThread, send: Callable[[object], None],
+                 show_history: Callable[[list[dict], object], None], names: Callable[[], list[str]]):
+        self.tab = tab = build_sequence_tab(gui, order)
+        self.send, self.show_history, self.names = send, show_history, names
         self.state: p.SequenceState | None = None
         self.waiting = False  # a Next or a jump is with the engine
-        topics["sequence"] = self.on_failure
-        tab.next.on_click(lambda _: self.next())
-        tab.timeline.on_click(lambda event: self.jump(event.target.value))
+        tab.next.on_click(ui.callback(lambda _: self.next()))
+        tab.timeline.on_click(ui.callback(lambda event: self.jump(event.target.value)))
 
     def next(self) -> None:
-        with self.lock:
-            if self.waiting or self.state is None or self.state.next_id is None:
-                return
-            self.wait(f"⏳ **Going to frame {self.state.next_id}** …")
+        if self.waiting or self.state is None or self.state.next_id is None:
+            return
+        self.wait(f"⏳ **Going to frame {self.state.next_id}** …")
         self.send(p.NextFrame())
 
     def jump(self, option: str) -> None:
-        with self.lock:
-            if self.waiting or self.state is None or not option.isdigit() or int(option) == self.state.current:
-                return
-            self.wait(f"⏳ **Showing frame {option}** …")
+        if self.waiting or self.state is None or not option.isdigit() or int(option) == self.state.current:
+            return
+        self.wait(f"⏳ **Showing frame {option}** …")
         self.send(p.ShowFrame(int(option)))
 
     def wait(self, text: str) -> None:
@@ -96,7 +93,7 @@ class SequencePanel:
         self.tab.next.disabled = True
         self.tab.message.content = text
 
-    # -- engine messages (called with the app's lock held)
+    # -- engine messages (on the UI thread)
 
     def show(self, msg: p.SequenceState) -> None:
         t = self.tab

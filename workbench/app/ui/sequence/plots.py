@@ -9,7 +9,6 @@ in Chromium), updated in place afterwards, and made again when the objects chang
 from __future__ import annotations
 
 import html
-import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -18,8 +17,8 @@ import viser
 import viser.uplot as uplot
 
 from workbench.app import protocol as p
-from workbench.app.ui.widgets.colors import object_color
 from workbench.app.ui.run.plots import NO_LEGEND, Line, finite_rows, header_html
+from workbench.app.ui.widgets.colors import object_color
 
 HEIGHT = 110  # px per chart: four of them under the timeline
 FRAME_AXIS: uplot.Axis = {"label": "frame", "labelSize": 16, "size": 34, "incrs": (1, 2, 5, 10, 20, 50, 100, 200)}
@@ -61,39 +60,36 @@ class FramePlots:
 
     def __init__(self, gui: viser.GuiApi, container: viser.GuiFolderHandle):
         self.gui, self.container = gui, container
-        self.lock = threading.RLock()
         self.lines: tuple[Line, ...] = ()
         self.drawn: dict[str, tuple[viser.GuiHtmlHandle, viser.GuiUplotHandle]] = {}
 
     def show(self, frames: list[p.SequenceFrame], names: list[str]) -> None:
         """Draw ``frames`` (the processed ones, in order); ``names``: the objects' display names."""
-        with self.lock:
-            lines = tuple(Line(html.escape(n), "#%02x%02x%02x" % object_color(k)) for k, n in enumerate(names))
-            if lines != self.lines:
-                self.clear()
-                self.lines = lines
-            if not frames or len(frames[0].positions) != len(lines):
-                return
-            x_range = (float(frames[0].im_id), float(max(frames[-1].im_id, frames[0].im_id + 1)))
-            for i, chart in enumerate(CHARTS):
-                data = chart_columns(chart, frames)
-                if len(data[0]) == 0:
-                    continue
-                scales = {"x": {"time": False, "auto": False, "range": x_range}, "y": chart.y_scale}
-                if chart.key in self.drawn:
-                    plot = self.drawn[chart.key][1]
-                    plot.data, plot.scales = data, scales
-                    continue
-                with self.container:
-                    header = self.gui.add_html(header_html(chart.title, lines), order=100.0 + 2 * i)
-                    plot = self.gui.add_uplot(data, ({"label": "frame"}, *(ln.series() for ln in lines)),
-                                              height=HEIGHT, scales=scales, axes=AXES, legend=NO_LEGEND,
-                                              order=101.0 + 2 * i)
-                self.drawn[chart.key] = (header, plot)
+        lines = tuple(Line(html.escape(n), "#%02x%02x%02x" % object_color(k)) for k, n in enumerate(names))
+        if lines != self.lines:
+            self.clear()
+            self.lines = lines
+        if not frames or len(frames[0].positions) != len(lines):
+            return
+        x_range = (float(frames[0].im_id), float(max(frames[-1].im_id, frames[0].im_id + 1)))
+        for i, chart in enumerate(CHARTS):
+            data = chart_columns(chart, frames)
+            if len(data[0]) == 0:
+                continue
+            scales = {"x": {"time": False, "auto": False, "range": x_range}, "y": chart.y_scale}
+            if chart.key in self.drawn:
+                plot = self.drawn[chart.key][1]
+                plot.data, plot.scales = data, scales
+                continue
+            with self.container:
+                header = self.gui.add_html(header_html(chart.title, lines), order=100.0 + 2 * i)
+                plot = self.gui.add_uplot(data, ({"label": "frame"}, *(ln.series() for ln in lines)),
+                                          height=HEIGHT, scales=scales, axes=AXES, legend=NO_LEGEND,
+                                          order=101.0 + 2 * i)
+            self.drawn[chart.key] = (header, plot)
 
     def clear(self) -> None:
-        with self.lock:
-            for header, plot in self.drawn.values():
-                header.remove()
-                plot.remove()
-            self.drawn, self.lines = {}, ()
+        for header, plot in self.drawn.values():
+            header.remove()
+            plot.remove()
+        self.drawn, self.lines = {}, ()

@@ -9,18 +9,18 @@ current run is left as it was.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import viser
 
-from workbench.sessions import store as sessions
 from workbench.app import protocol as p
+from workbench.app.ui.ui_thread import UiThread
 from workbench.app.ui.widgets.markdown import escape
 from workbench.app.ui.widgets.quiet import Quiet
 from workbench.errors import InputError
+from workbench.sessions import store as sessions
 
 NO_SESSIONS = "(no sessions)"
 MAX_LISTED = 30
@@ -77,11 +77,15 @@ def listing_markdown(rows: list[sessions.SessionInfo]) -> str:
 
 @dataclass
 class Sessions:
-    tab: SessionsTab
+    """The Sessions tab (``container``): its controls (``tab``), listing ``directory``; ``send`` reaches the engine."""
+
+    gui: viser.GuiApi
+    container: viser.GuiTabHandle
     directory: Path
     send: Callable[[object], None]
-    lock: threading.RLock
+    ui: UiThread
     quiet: Quiet
+    tab: SessionsTab = field(init=False)
     rows: dict[str, sessions.SessionInfo] = field(default_factory=dict)
     pending: Path | None = None  # the session waiting for the user's confirmation
     iteration: Callable[[], int] = lambda: -1  # the current run's iteration (-1: nothing run)
@@ -90,19 +94,16 @@ class Sessions:
 
     def __post_init__(self) -> None:
         self.directory = Path(self.directory).expanduser().resolve()
-        t = self.tab
+        with self.container:
+            self.tab = t = build_sessions_tab(self.gui)
         t.folder.content = f"Folder: `{self.directory}`"
-        t.save.on_click(lambda _: self._guard(self.save))
-        t.refresh.on_click(lambda _: self._guard(self.refresh))
-        t.load.on_click(lambda _: self._guard(self.load))
-        t.confirm.on_click(lambda _: self._guard(self.confirm))
-        t.cancel.on_click(lambda _: self._guard(self.cancel))
+        for button, action in ((t.save, self.save), (t.refresh, self.refresh), (t.load, self.load),
+                               (t.confirm, self.confirm), (t.cancel, self.cancel)):
+            button.on_click(self.ui.callback(lambda _, action=action: self._guard(action)))
         self.refresh()
 
     def _guard(self, action: Callable[[], None]) -> None:
-        if self.quiet.active:
-            return
-        with self.lock:
+        if not self.quiet.active:
             action()
 
     def refresh(self, select: str | None = None) -> None:
@@ -155,8 +156,7 @@ class Sessions:
 
     def load_path(self, path: Path) -> None:
         """Load a session file named on the command line (it may lie outside the listed folder)."""
-        with self.lock:
-            self.tab.message.content = f"Loading `{path}` …"
+        self.tab.message.content = f"Loading `{path}` …"
         self.send(p.LoadSession(Path(path), confirmed=False))
 
     def confirm(self) -> None:
@@ -191,7 +191,7 @@ class Sessions:
                                   "reproduce the saved one.")
         t.question.visible = t.confirm.visible = t.cancel.visible = question is not None
 
-    # -- engine messages (called with the app's lock held)
+    # -- engine messages (on the UI thread)
 
     def on_frame(self, title: str) -> None:
         """A frame was loaded (its run not saved yet): offer a name made from it, unless the user typed one."""

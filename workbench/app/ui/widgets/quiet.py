@@ -3,8 +3,8 @@
 Assigning ``handle.value`` on the server calls the handle's ``on_update`` callbacks at once, in the assigning
 thread. When the server *shows* a value (a label moved by its gizmo, a session's settings restored), those callbacks
 must not send the value back to the engine as if the user had typed it: inside ``with quiet:`` they see
-``quiet.active`` and return. The flag is per thread, so a user's edit handled meanwhile on viser's thread pool is
-not swallowed.
+``quiet.active`` and return. The flag is per thread: the server writes on the UI thread, where those callbacks run
+inline, and a user's edit queued meanwhile runs after the write, when the flag is down again.
 """
 
 from __future__ import annotations
