@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from workbench.app import protocol as p
+from workbench.geometry import invert_pose
+from workbench.score.metrics import position_error
 
 pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
 
@@ -52,6 +54,12 @@ def test_next_frame_tracks_jumps_back_and_a_session_keeps_the_position(sequence,
     restored = None
     try:
         run_first_frame(engine, sequence)
+        # The first frame's short run (16 particles, 2 iterations) need not find every box: at some seeds and on
+        # some machines' package versions it leaves one ~20 cm off. Tracking may move an object its carried pose
+        # does not explain, so stillness is asked only of the objects the first frame got right.
+        gt = invert_pose(engine.problem.camera.T_cam_world)[None] @ engine.frame.gt_T_cam_obj
+        found = np.array([position_error(gt[k], engine.estimator.best[k]) < 0.02 for k in range(len(gt))])
+        assert found.any(), "the first frame's run found no object: nothing to track"
         state = inbox.of(p.SequenceState)[-1]
         assert state.scene_id == 0 and state.frame_ids == (0, 1, 2) and state.current == 0 and state.next_id == 1
         assert [f.status for f in state.frames] == ["estimated"] and np.isfinite(state.frames[0].positions).all()
@@ -66,9 +74,10 @@ def test_next_frame_tracks_jumps_back_and_a_session_keeps_the_position(sequence,
         assert [f.status for f in state.frames[1:]] == ["tracked", "tracked"]
         assert [f.motion for f in state.frames] == ["", "given", "given"]
         assert state.reports and state.run_config.particles == 60  # the tracked frame's short search
-        # A static scene seen from a moving camera: the objects stay where they were in the sequence's table frame.
+        # A static scene seen from a moving camera: the objects found stay where they were in the sequence's table
+        # frame.
         moved = np.linalg.norm(state.frames[2].positions - state.frames[0].positions, axis=1)
-        assert moved.max() < 0.01, moved
+        assert moved[found].max() < 0.01, moved
         assert engine.evaluators.problem is engine.problem  # the pool evaluates the frame on show
         loaded = inbox.of(p.Loaded)
         assert loaded[-1].view.meshes is loaded[-2].view.meshes  # the same objects: not decimated again
