@@ -42,7 +42,7 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
         gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
         estimator = Estimator(problem, config, evaluator)
         best = estimator.run()
-        projected = estimator.best  # the search's estimate; ``best`` is it settled
+        projected = estimator.estimate  # the search's estimate; ``best`` is it settled
         seconds = time.perf_counter() - t0
     finally:
         evaluator.close()
@@ -84,13 +84,13 @@ def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig,
     return {
         "scene_id": scene_id, "im_id": im_id, "objects": objects,
         "all_right": all(o["right"] for o in objects),
-        "estimate_loglik": round(estimator.best_loglik, 1),
+        "estimate_loglik": round(estimator.estimate_loglik, 1),
         "settled_loglik_as_given": round(estimator.settled_loglik, 1),
         "estimate_loglik_as_given": round(float(unsettled), 1),
         "truth_loglik_projected": round(float(truth.loglik[0]), 1),
         "truth_loglik_as_annotated": round(float(raw), 1),
         "iterations": estimator.iteration, "evaluations": estimator.evaluations,
-        "seconds": round(seconds, 1), "best_kind": estimator.best_kind.label,
+        "seconds": round(seconds, 1), "best_kind": estimator.estimate_kind.label,
         "sink_mm": round(1e3 * estimator.sink, 1),
     }
 

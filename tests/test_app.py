@@ -120,7 +120,7 @@ def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):
         engine.step()
         engine.handle(p.SetConfig(replace(config, particles=16, data_start=0.5)))
         engine.step()
-        label = engine.estimator.best[1].copy()
+        label = engine.estimator.estimate[1].copy()
         engine.handle(p.SetLabels((None, label), heatmap=True))
         engine.labels.work()
         assert first.of(p.LabelHeatmap)[-1].filled == "best estimate"
@@ -215,7 +215,7 @@ def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message
     try:
         engine.handle(p.Load(p.Source(demo=True), config, "robust"))
         engine.step(), engine.step()
-        label = engine.estimator.best[0].copy()
+        label = engine.estimator.estimate[0].copy()
         engine.handle(p.SetLabels((label, None)))
         engine.handle(p.SaveSession(tmp_path, "start"))
     finally:

@@ -298,9 +298,9 @@ def test_a_scene_seen_sunk_into_the_table_is_fitted_with_that_sink(frame_and_pro
         estimator.filter.estimate, estimator.filter.estimate_loglik = resting.projected[0], float(resting.loglik[0])
         estimator.filter.apply(fit_sink(estimator.filter))
         assert 0.006 <= estimator.sink <= 0.010
-        assert estimator.best_loglik > float(resting.loglik[0])
+        assert estimator.estimate_loglik > float(resting.loglik[0])
         for k in range(problem.n_objects):  # the estimate rests at the sink, where the objects were drawn
-            assert abs(estimator.best[k, 2, 3] - sunk[k, 2, 3]) < 0.003
+            assert abs(estimator.estimate[k, 2, 3] - sunk[k, 2, 3]) < 0.003
     finally:
         evaluator.close()
 
@@ -317,7 +317,7 @@ def test_the_clutter_floor_is_weighed_in_after_its_share_of_the_iterations(touch
 
     def as_resting(estimator):  # the particles, and the estimate sunk 20 cm into the table: its readings unclaimed
         ok = np.isfinite(estimator.particles.loglik)
-        sunk = estimator.best.copy()
+        sunk = estimator.estimate.copy()
         sunk[:, 2, 3] -= 0.2
         scenes = np.concatenate([estimator.particles.projected[ok], sunk[None]])
         return ok, estimator.filter.evaluate(scenes, project=False).loglik, evaluator.evaluate(scenes, project=False)
@@ -336,8 +336,8 @@ def test_the_clutter_floor_is_weighed_in_after_its_share_of_the_iterations(touch
         ok, weighed, whole = as_resting(estimator)
         np.testing.assert_allclose(weighed, whole.loglik, rtol=1e-9)
         np.testing.assert_allclose(estimator.particles.loglik[ok], weighed[:-1], rtol=1e-5)
-        best = evaluator.evaluate(estimator.best[None], project=False).loglik[0]
-        assert estimator.best_loglik == pytest.approx(best, rel=1e-5) and best >= whole.loglik[:-1].max() - 1.0
+        best = evaluator.evaluate(estimator.estimate[None], project=False).loglik[0]
+        assert estimator.estimate_loglik == pytest.approx(best, rel=1e-5) and best >= whole.loglik[:-1].max() - 1.0
     finally:
         evaluator.close()
 
@@ -432,8 +432,8 @@ def test_polish_puts_back_two_objects_that_took_each_others_places(frame_and_pro
         estimator.filter.apply(estimator.search.polish(estimator.filter))
     finally:
         evaluator.close()
-    assert estimator.best_loglik > float(wrong.loglik[0])
+    assert estimator.estimate_loglik > float(wrong.loglik[0])
     for k in range(problem.n_objects):
-        assert position_error(gt[k], estimator.best[k]) < 0.02
-    assert estimator.best_kind.label == "polish"
+        assert position_error(gt[k], estimator.estimate[k]) < 0.02
+    assert estimator.estimate_kind.label == "polish"
     assert np.any(estimator.particles.kinds == 10) and np.all(np.isfinite(estimator.particles.loglik))

@@ -52,7 +52,7 @@ def test_the_paper_filter_finds_the_target_and_the_estimate_never_gets_worse(toy
     assert np.max(np.linalg.norm(best[:, :3, 3] - target[:, :3, 3], axis=-1)) < 0.02
     trace = [r.best_loglik for r in estimator.history]
     assert np.all(np.diff(trace) >= 0) and trace[-1] > trace[0]
-    assert estimator.best_loglik >= estimator.particles.loglik.max()
+    assert estimator.estimate_loglik >= estimator.particles.loglik.max()
     assert len(estimator.particles) == PAPER.particles and estimator.evaluations == 25 * PAPER.particles
 
 
@@ -86,7 +86,7 @@ class _FixedSearch:
         return ()
 
     def finish(self, filt):
-        return Settled(filt.best.copy(), filt.estimate_loglik)
+        return Settled(filt.estimated_scene.copy(), filt.estimate_loglik)
 
 
 @pytest.mark.parametrize("dx,accepted", [(0.01, 1.0), (-0.01, 0.0)])

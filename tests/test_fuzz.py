@@ -224,7 +224,7 @@ def saved_session(demo, tmp_path_factory) -> Path:
         est = Estimator(problem, EstimatorConfig(particles=6, iterations=10, seed=1), ev)
         est.step(), est.step()
         ref = sessions.frame_ref_for(demo, frame, problem)
-        state = sessions.session_state_from(est, ref, [est.best[0], None])
+        state = sessions.session_state_from(est, ref, [est.estimate[0], None])
         return sessions.save_session(folder, "fuzz", state)
     finally:
         ev.close()

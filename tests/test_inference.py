@@ -503,7 +503,7 @@ def test_estimate_never_gets_worse(frame_and_problem, method):
         evaluator.close()
     best = [r.best_loglik for r in est.history]
     assert all(b1 >= b0 for b0, b1 in zip(best, best[1:]))
-    assert est.best_loglik == best[-1] and est.best_loglik >= est.particles.loglik.max()
+    assert est.estimate_loglik == best[-1] and est.estimate_loglik >= est.particles.loglik.max()
     # Every iteration reports what each move kind proposed and how much of it was kept.
     assert sum(c["proposed"] for c in est.history[-1].moves.values()) == 24
     assert est.history[-1].best_kind in {k.label for k in MoveKind}

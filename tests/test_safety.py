@@ -340,7 +340,7 @@ def test_demo_labels_are_saved_into_a_copy_never_into_the_package(workbench_home
     try:
         engine.handle(p.Load(p.Source(demo=True), EstimatorConfig(particles=6), "robust"))
         engine.step()
-        engine.handle(p.SetLabels((engine.estimator.best[0].copy(), None)))
+        engine.handle(p.SetLabels((engine.estimator.estimate[0].copy(), None)))
         engine.handle(p.SaveLabels(overwrite_original=False))
     finally:
         engine.close()

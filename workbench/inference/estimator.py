@@ -35,8 +35,8 @@ def make_search(problem: Problem, proposals: str) -> Search:
 
 class Estimator:
     """A particle filter (``filter``) stepped with a search (``search``), and the run's answer. The particle set is
-    ``particles`` (``ParticleSet``, table frame); the estimate (``best``) is the best scene ever evaluated, with
-    ``best_loglik``: it never gets worse from one iteration to the next. ``run`` returns it settled (``settle``)."""
+    ``particles`` (``ParticleSet``, table frame); the estimate (``estimate``) is the best scene ever evaluated, with
+    ``estimate_loglik``: it never gets worse from one iteration to the next. ``run`` returns it settled (``settle``)."""
 
     def __init__(self, problem: Problem, config: EstimatorConfig, evaluator: Evaluator | None,
                  search: Search | None = None):
@@ -82,9 +82,10 @@ class Estimator:
     rng = property(lambda self: self.filter.rng)
     sink = property(lambda self: self.filter.sink)
     evaluations = property(lambda self: self.filter.evaluations)  # hypotheses projected and weighed so far
-    best = property(lambda self: self.filter.best, doc="The estimate: the best scene (K, 4, 4) so far, table frame.")
-    best_loglik = property(lambda self: self.filter.estimate_loglik)
-    best_kind = property(lambda self: self.filter.estimate_kind)
+    estimate = property(lambda self: self.filter.estimated_scene,
+                        doc="The estimate: the best scene (K, 4, 4) so far, table frame.")
+    estimate_loglik = property(lambda self: self.filter.estimate_loglik)
+    estimate_kind = property(lambda self: self.filter.estimate_kind)
     converged = property(lambda self: self.filter.converged)
 
     @property

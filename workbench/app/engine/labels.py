@@ -118,7 +118,7 @@ class FrameLabels:
             return np.stack(self.labels), ""
         est = self.engine.estimator
         if est is not None and est.particles is not None:
-            fill, how = est.best, "best estimate"
+            fill, how = est.estimate, "best estimate"
         elif leave_out:
             behind = invert_pose(self.engine.problem.camera.T_cam_world)
             behind[:3, 3] -= 100.0 * behind[:3, 2]  # 100 m behind the sensor: clipped, never drawn
@@ -177,7 +177,7 @@ class FrameLabels:
         shown = est.answer_current  # the server has this posterior already
         # Settled (Estimator.settle), as `workbench estimate` writes it: the search's scene fitted to the depth.
         settled = est.settle().copy()
-        moved = np.linalg.norm(settled[:, :3, 3] - est.best[:, :3, 3], axis=-1)
+        moved = np.linalg.norm(settled[:, :3, 3] - est.estimate[:, :3, 3], axis=-1)
         note = f"Labels set to the most likely scene of iteration {est.iteration}"
         if moved.any():
             note += f", settled to the depth (objects moved up to {moved.max() * 1e3:.1f} mm)"
@@ -221,7 +221,7 @@ class FrameLabels:
             return
         if len(self.labels) != problem.n_objects:
             return
-        errors = labelling.label_errors(problem, est.best, self.labels)
+        errors = labelling.label_errors(problem, est.estimate, self.labels)
         self.engine.results.put(p.LabelErrors(est.iteration, errors))
 
     def work(self) -> None:
@@ -286,6 +286,6 @@ class FrameLabels:
 
         if self.truth_points is None:
             self.truth_points = truth_points(problem)
-        estimate = np.array(est.settled if est.answer_current else est.best, dtype=np.float64)
+        estimate = np.array(est.settled if est.answer_current else est.estimate, dtype=np.float64)
         rows = truth_rows(frame, problem, estimate, self.truth_points, est.current_posterior)
         self.engine.results.put(p.TruthErrors(est.iteration, rows, estimate))

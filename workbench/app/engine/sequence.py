@@ -70,7 +70,7 @@ def run_summary(estimator) -> tuple[np.ndarray, np.ndarray]:
     K = estimator.problem.n_objects
     if estimator.iteration < 0:
         return np.full((K, 3), np.nan), np.full(K, np.nan)
-    scene = estimator.settled if estimator.answer_current else estimator.best
+    scene = estimator.settled if estimator.answer_current else estimator.estimate
     return np.array(scene[:, :3, 3], dtype=np.float64), np.array(top_probabilities(estimator.current_posterior, K))
 
 

@@ -163,7 +163,7 @@ class DefaultSearch:
         cfg, n, geometry = filt.config, len(parents), self.geometry(filt)
         self._map_wait = 0.0
         # Objects that explain their part of the observation worst are moved most often; every object sometimes.
-        choose = object_badness(self.problem, filt.best, geometry.samples) + 0.1
+        choose = object_badness(self.problem, filt.estimated_scene, geometry.samples) + 0.1
         scales = gaussian.object_scales(filt.particles.projected, filt.weights(), cfg.sigma, cfg.sigma_floor)
         kinds = cfg.moves.for_state(cfg.state).draw(filt.rng, n)
         out, log_q = parents.copy(), np.zeros(n)
@@ -193,7 +193,7 @@ class DefaultSearch:
         posterior, when settling is off."""
         cfg = filt.config
         if filt.estimate is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
-            return Settled(filt.best.copy(), filt.estimate_loglik)
+            return Settled(filt.estimated_scene.copy(), filt.estimate_loglik)
         score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
         scene, loglik, scored = settle.pattern_search(
             filt.estimate, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,

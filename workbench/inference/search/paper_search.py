@@ -42,7 +42,7 @@ class PaperSearch:
         return ()
 
     def finish(self, filt: ParticleFilter) -> Settled:
-        return Settled(filt.best.copy(), filt.estimate_loglik)
+        return Settled(filt.estimated_scene.copy(), filt.estimate_loglik)
 
     def state_dict(self) -> dict:
         """Nothing: the paper's search remembers nothing between steps."""

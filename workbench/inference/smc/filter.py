@@ -222,7 +222,7 @@ class ParticleFilter:
             self.beta = temper_to_ess(self.particles.loglik, self.config.target_ess)
 
     @property
-    def best(self) -> np.ndarray:
+    def estimated_scene(self) -> np.ndarray:
         """The estimate (K, 4, 4); before any scene was evaluated successfully, the current set's best."""
         if self.estimate is not None:
             return self.estimate
@@ -365,7 +365,7 @@ class ParticleFilter:
 
     def _report(self, ev: Evaluation, t_resample: float, t_total: float, accept_rate: float,
                 moves: dict) -> IterationReport:
-        best, loglik = self.best, self.particles.loglik
+        best, loglik = self.estimated_scene, self.particles.loglik
         if self.best_history:
             prev = self.best_history[-1]
             move_m = float(np.max(np.linalg.norm(best[:, :3, 3] - prev[:, :3, 3], axis=-1)))
