@@ -21,19 +21,19 @@ from tqdm import tqdm
 
 from workbench.checks import check_workers
 from workbench.errors import InputError
-from workbench.inference.estimator import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, WorkerCrashed, make_evaluator
 from workbench.evaluation.local import prepare_meshes
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
-from workbench.run.frames import Frame, FrameFailure, run_frames
-from workbench.meshes.heavy import announced_if, heavy_models
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator, object_confidence
 from workbench.io import bop
 from workbench.io.bop import ResultRow
 from workbench.io.outputs import OutputLock, check_output_file, write_file
+from workbench.meshes.heavy import announced_if, heavy_models
 from workbench.problem.build import load_bop_problem, posterior_rows, result_rows
 from workbench.problem.problem import Problem, ProblemConfig
-from workbench.problem.scene import Frame as LoadedFrame
+from workbench.problem.scene import Frame
+from workbench.run.frames import FrameFailure, FrameKey, run_frames
 
 # Where stderr is not a terminal (a log file), a frame's progress is one line at most this often (s): a six-object
 # frame takes about a minute, and a log that says nothing for that long looks stuck.
@@ -104,7 +104,7 @@ def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show
     return estimator, best
 
 
-def estimator_rows(frame: LoadedFrame, problem: Problem, estimator: Estimator, best: np.ndarray, seconds: float
+def estimator_rows(frame: Frame, problem: Problem, estimator: Estimator, best: np.ndarray, seconds: float
                    ) -> list[ResultRow]:
     """A finished estimator's BOP result rows, ``time`` = ``seconds``: each object's modes, best first, with their
     probabilities (``problem.build.posterior_rows``); one row per object, scored by ``object_confidence``, where the
@@ -153,7 +153,7 @@ def estimate_frames(
     rows: list[ResultRow] = []
     failures: list[FrameFailure] = []
 
-    def done(_frame: Frame, frame_rows: list[ResultRow]) -> None:
+    def done(_frame: FrameKey, frame_rows: list[ResultRow]) -> None:
         if on_frame is not None:
             on_frame(frame_rows)
         rows.extend(frame_rows)
