@@ -1,4 +1,4 @@
-"""Reading and writing datasets in the BOP format, and the BOP results CSV.
+"""Reading and writing datasets in the BOP format (the results CSV is ``io/results.py``'s).
 
 Format (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md)::
 
@@ -19,11 +19,9 @@ the files raises ``InputError`` naming the file. The readers and checks (``read_
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -33,8 +31,8 @@ from PIL import Image, UnidentifiedImageError
 
 from workbench.errors import InputError
 from workbench.geometry import make_pose
-from workbench.meshes.heavy import loading
 from workbench.io.outputs import replace_file
+from workbench.meshes.heavy import loading
 from workbench.problem.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
@@ -685,7 +683,8 @@ def load_frame(
     )
 
 
-def _R_t_mm(T: np.ndarray) -> tuple[list[float], list[float]]:
+def R_t_mm(T: np.ndarray) -> tuple[list[float], list[float]]:
+    """A pose (4, 4) metres -> (R 9 numbers row-major, t 3 numbers mm), as scene_gt.json and the results CSV keep it."""
     T = np.asarray(T, dtype=np.float64)
     return T[:3, :3].ravel().tolist(), (T[:3, 3] / MM).tolist()
 
@@ -721,80 +720,13 @@ def save_frame(
         replace_file(scene_dir / "rgb" / f"{im_id:06d}.png", _png_bytes(np.asarray(rgb, dtype=np.uint8)))
     cam = {"cam_K": np.asarray(K, dtype=np.float64).ravel().tolist(), "depth_scale": float(depth_scale)}
     if T_cam_world is not None:
-        cam["cam_R_w2c"], cam["cam_t_w2c"] = _R_t_mm(T_cam_world)
+        cam["cam_R_w2c"], cam["cam_t_w2c"] = R_t_mm(T_cam_world)
     _merge_json(scene_dir / "scene_camera.json", im_id, cam)
     if gt is not None:
         entries = []
         for obj_id, T in gt:
-            R, t = _R_t_mm(T)
+            R, t = R_t_mm(T)
             entries.append({"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": int(obj_id)})
         _merge_json(scene_dir / "scene_gt.json", im_id, entries)
     if gt_info is not None:
         _merge_json(scene_dir / "scene_gt_info.json", im_id, gt_info)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Results
-
-
-@dataclass
-class ResultRow:
-    """One estimate in the BOP results format. ``T_cam_obj``: (4, 4) metres; ``time``: seconds for the whole
-    image (-1 when unknown)."""
-
-    scene_id: int
-    im_id: int
-    obj_id: int
-    score: float
-    T_cam_obj: np.ndarray
-    time: float
-
-
-RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
-
-
-def results_csv_lines(rows: list[ResultRow]) -> list[str]:
-    """The data lines (no header, no newline) of a BOP results CSV: R 9 numbers row-major, t 3 numbers in mm,
-    space-separated."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    for r in rows:
-        R, t = _R_t_mm(r.T_cam_obj)
-        w.writerow(
-            [r.scene_id, r.im_id, r.obj_id, f"{r.score:.12g}", " ".join(f"{v:.12g}" for v in R),
-             " ".join(f"{v:.12g}" for v in t), f"{r.time:.12g}"]
-        )
-    return buf.getvalue().splitlines()
-
-
-def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
-    """BOP results CSV (``results_csv_lines`` under the header)."""
-    write_results_lines(path, results_csv_lines(rows))
-
-
-def write_results_lines(path: Path, lines: list[str]) -> None:
-    """The header and ``lines`` (from ``results_csv_lines``), atomically."""
-    replace_file(Path(path), "".join(f"{line}\n" for line in [",".join(RESULTS_HEADER), *lines]).encode())
-
-
-def read_results_csv(path: Path) -> list[ResultRow]:
-    """Inverse of ``write_results_csv``."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "results file not found")
-    lines = list(csv.reader(path.read_text().splitlines()))
-    if not lines or [c.strip() for c in lines[0]] != RESULTS_HEADER:
-        raise InputError(path, f"first line must be the header {','.join(RESULTS_HEADER)}")
-    rows = []
-    for n, cells in enumerate(lines[1:], start=2):
-        if not cells:
-            continue
-        try:
-            scene_id, im_id, obj_id, score, R, t, time = cells
-            ids = (int(scene_id), int(im_id), int(obj_id))
-            R, t = [float(v) for v in R.split()], [float(v) for v in t.split()]
-            score, time = float(score), float(time)
-        except ValueError as e:
-            raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: {cells}") from e
-        rows.append(ResultRow(*ids, score, parse_pose(R, t, path, f"line {n}"), time))
-    return rows

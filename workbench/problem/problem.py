@@ -15,9 +15,9 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.geometry import backproject, invert_pose, transform_points
 from workbench.physics import PhysicsConfig
+from workbench.problem.scene import Camera, Frame, ObjectModel, Table
 from workbench.render.depth import RenderConfig
 from workbench.render.likelihood import LikelihoodConfig, clutter_segments
-from workbench.problem.scene import Camera, Frame, ObjectModel, Table
 
 
 @dataclass(frozen=True)

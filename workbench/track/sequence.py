@@ -23,20 +23,20 @@ import numpy as np
 import trimesh
 
 from workbench.errors import InputError
-from workbench.inference.estimator import Estimator, object_confidence
 from workbench.evaluation import Evaluator, WorkerCrashed, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.inference.answer.carried_posterior import filled
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator, object_confidence
 from workbench.inference.search.moves.context import SearchGeometry
 from workbench.inference.search.scenepoints import object_badness
 from workbench.inference.search.track_search import Carried, TrackSearch
 from workbench.io import bop
-from workbench.io.bop import ResultRow
-from workbench.problem.build import posterior_rows, problem_for_frame, result_rows
+from workbench.io.results import ResultRow, posterior_rows, result_rows
+from workbench.problem.build import problem_for_frame
 from workbench.problem.problem import Problem, ProblemConfig
-from workbench.run.runner import estimator_rows, run_estimator
 from workbench.problem.scene import Frame
+from workbench.run.runner import estimator_rows, run_estimator
 from workbench.track.config import TrackConfig
 from workbench.track.frames import sequence_world
 from workbench.track.lost import NO_DEPTH, RECOVERED, lost_objects, status_words
