@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench import checks, labels
+from workbench import labels
 from workbench.app.engine.engine import DEMO_DIR
 from workbench.errors import InputError
+from workbench.evaluation import pool
 from workbench.io.results import read_results_csv
 from workbench.sessions import store as sessions
 
@@ -179,19 +180,19 @@ def test_make_scenes_refuses_a_folder_that_is_not_empty(demo, tmp_path):
 @pytest.mark.parametrize("workers", [0, -3, 1000])
 def test_workers_outside_the_machines_bound_are_refused(demo, tmp_path, workers):
     _refused(_workbench("estimate", demo, "--workers", workers, "--out", tmp_path / "r.csv"), "--workers",
-             f"to {checks.max_workers()}")
+             f"to {pool.max_workers()}")
     assert not (tmp_path / "r.csv").exists()
 
 
 def test_worker_bound_follows_cores_and_memory():
-    bound = checks.max_workers()
-    assert 1 <= bound <= checks.usable_cores()
-    memory = checks.available_memory()
+    bound = pool.max_workers()
+    assert 1 <= bound <= pool.usable_cores()
+    memory = pool.available_memory()
     if memory is not None:
-        assert bound <= max(1, memory // checks.WORKER_MEMORY_BYTES)
-    assert checks.check_workers(1) == 1
+        assert bound <= max(1, memory // pool.WORKER_MEMORY_BYTES)
+    assert pool.check_workers(1) == 1
     with pytest.raises(InputError):
-        checks.check_workers(True)  # a boolean is not a count
+        pool.check_workers(True)  # a boolean is not a count
 
 
 def test_bad_seed_and_other_parameters_are_refused_before_work(demo, tmp_path):

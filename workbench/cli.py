@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.checks import check_count, check_estimator_config, check_problem_config, check_seed, check_workers
-from workbench.errors import InputError
-from workbench.inference.config import METHODS, EstimatorConfig
+from workbench.errors import InputError, check_count
+from workbench.evaluation.pool import check_workers
+from workbench.inference.config import METHODS, EstimatorConfig, check_seed
 from workbench.inference.search.moves.registry import PROPOSALS
 from workbench.inference.smc.particles import STATES, Sigma
 from workbench.problem.problem import ProblemConfig
@@ -116,8 +116,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
     # Every setting and the output path are checked before anything is loaded or started.
     config, problem = estimator_config(args), problem_config(args)
-    check_estimator_config(config)
-    check_problem_config(problem)
+    config.validate("")
+    problem.validate()
     check_workers(args.workers)
     check_count(args.max_retries, "--max-retries", low=0)
     ray = ray_config(args)
@@ -189,8 +189,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
     # Every setting, the frames and the output paths are checked before anything is loaded or started.
     config, problem = estimator_config(args), problem_config(args)
-    check_estimator_config(config)
-    check_problem_config(problem)
+    config.validate("")
+    problem.validate()
     check_workers(args.workers)
     check_count(args.max_retries, "--max-retries", low=0)
     check_count(args.track_particles, "--track-particles", low=1)
@@ -315,8 +315,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
         check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
-    config.validate()  # before any server starts
-    check_estimator_config(config)
+    config.validate("")  # before any server starts
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
           session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
     return 0

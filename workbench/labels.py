@@ -18,15 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
-from workbench.geometry import invert_pose
+from workbench.geometry import check_rigid, invert_pose
 from workbench.inference.answer.settle import pattern_search
 from workbench.io import bop
-from workbench.score.metrics import add_s, model_points, position_error, rotation_error
 from workbench.problem.problem import Problem
 from workbench.render.likelihood import scene_loglik
+from workbench.score.metrics import add_s, model_points, position_error, rotation_error
 
 LABELS_FILE = "scene_gt_labels.json"
 ORIGINAL_FILE = "scene_gt.json"

@@ -16,10 +16,10 @@ from typing import Callable
 import numpy as np
 from tqdm import tqdm
 
-from workbench.checks import check_workers
 from workbench.errors import InputError
 from workbench.evaluation import ChunkedEvaluator, Evaluator, WorkerCrashed, make_evaluator
 from workbench.evaluation.local import prepare_meshes
+from workbench.evaluation.pool import check_workers
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator, object_confidence

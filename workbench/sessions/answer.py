@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workbench.checks import check_rigid
 from workbench.errors import InputError
+from workbench.geometry import check_rigid
 from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
 from workbench.inference.answer.settle import Tie
 

@@ -48,19 +48,19 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.sessions.answer import parse_answer
-from workbench.checks import check_estimator_config, check_problem_config, check_rigid
 from workbench.errors import InputError
-from workbench.inference.estimator import Estimator, parse_search
 from workbench.evaluation import Evaluator
+from workbench.geometry import check_rigid
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.smc.filter import IterationReport
+from workbench.inference.estimator import Estimator, parse_search
 from workbench.inference.search.moves.registry import MoveKind, MoveMix
+from workbench.inference.smc.filter import IterationReport
 from workbench.inference.smc.particleset import ParticleSet
 from workbench.io import bop
 from workbench.io.outputs import check_creatable, check_output_file, dataset_folder_of, folder_lock, write_file
 from workbench.problem.problem import Problem, ProblemConfig, build_problem
 from workbench.problem.scene import Frame, Table
+from workbench.sessions.answer import parse_answer
 
 FORMAT_VERSION = 7
 # Settings a format lacked, with the values its sessions ran with (not today's defaults), so that a restored session
@@ -546,9 +546,9 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
                   region_max=_pair(t["region_max"], "table.region_max"))
     _check_table(table)
     problem_config = config_from_dict(ProblemConfig, d["problem_config"], "problem_config")
-    check_problem_config(problem_config, "problem_config.")
+    problem_config.validate("problem_config.")
     estimator_config = config_from_dict(EstimatorConfig, d["estimator_config"], "estimator_config")
-    check_estimator_config(estimator_config, "estimator_config.")  # the command line's bounds, seed included
+    estimator_config.validate("estimator_config.")  # the command line's bounds, seed included
     e = d["estimator"]
     beta = _float(e["beta"], "estimator.beta")
     if not 0.0 < beta <= 1.0:  # the tempering exponent temper_to_ess chooses
