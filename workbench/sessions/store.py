@@ -57,6 +57,7 @@ from workbench.inference.search.moves.registry import MoveKind, MoveMix
 from workbench.inference.smc.filter import IterationReport
 from workbench.inference.smc.particleset import ParticleSet
 from workbench.io import bop
+from workbench.io import readers as read
 from workbench.io.outputs import check_creatable, check_output_file, dataset_folder_of, folder_lock, write_file
 from workbench.problem.problem import Problem, ProblemConfig, build_problem
 from workbench.problem.scene import Frame, Table
@@ -529,31 +530,32 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
     files = f["files"]
     if not (isinstance(files, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in files.items())):
         raise ValueError("frame.files must map file names to checksums")
-    object_ids = tuple(_int(i, "frame.object_ids") for i in f["object_ids"])
+    object_ids = tuple(read.integer(i, "frame.object_ids") for i in f["object_ids"])
     if not object_ids:
         raise ValueError("frame.object_ids is empty")
-    split = None if f["split"] is None else _str(f["split"], "frame.split")
-    frame = FrameRef(_str(f["dataset"], "frame.dataset"), split,
-                     _int(f["scene_id"], "frame.scene_id"), _int(f["im_id"], "frame.im_id"), object_ids,
-                     _float(f["density"], "frame.density"), _float(f["friction"], "frame.friction"), dict(files))
-    T_cam_world = _pose(d["support"]["T_cam_world"], "support.T_cam_world")
-    if np.abs(T_cam_world[:3, 3]).max() > bop.MAX_TABLE_DISTANCE:
-        raise ValueError(f"support.T_cam_world puts the table more than {bop.MAX_TABLE_DISTANCE:g} m from the "
+    split = None if f["split"] is None else read.string(f["split"], "frame.split")
+    frame = FrameRef(read.string(f["dataset"], "frame.dataset"), split,
+                     read.integer(f["scene_id"], "frame.scene_id"), read.integer(f["im_id"], "frame.im_id"),
+                     object_ids, read.number(f["density"], "frame.density"),
+                     read.number(f["friction"], "frame.friction"), dict(files))
+    T_cam_world = read.pose(d["support"]["T_cam_world"], "support.T_cam_world")
+    if np.abs(T_cam_world[:3, 3]).max() > read.MAX_TABLE_DISTANCE:
+        raise ValueError(f"support.T_cam_world puts the table more than {read.MAX_TABLE_DISTANCE:g} m from the "
                          "camera")
     t = d["support"]["table"]
-    table = Table(*(_float(t[k], f"table.{k}") for k in ("x_min", "x_max", "y_min", "y_max")),
-                  region_min=_pair(t["region_min"], "table.region_min"),
-                  region_max=_pair(t["region_max"], "table.region_max"))
+    table = Table(*(read.number(t[k], f"table.{k}") for k in ("x_min", "x_max", "y_min", "y_max")),
+                  region_min=read.pair(t["region_min"], "table.region_min"),
+                  region_max=read.pair(t["region_max"], "table.region_max"))
     _check_table(table)
     problem_config = config_from_dict(ProblemConfig, d["problem_config"], "problem_config")
     problem_config.validate("problem_config.")
     estimator_config = config_from_dict(EstimatorConfig, d["estimator_config"], "estimator_config")
     estimator_config.validate("estimator_config.")  # the command line's bounds, seed included
     e = d["estimator"]
-    beta = _float(e["beta"], "estimator.beta")
+    beta = read.number(e["beta"], "estimator.beta")
     if not 0.0 < beta <= 1.0:  # the tempering exponent temper_to_ess chooses
         raise ValueError(f"estimator.beta must lie in (0, 1], got {beta!r}")
-    if _int(e["calm"], "estimator.calm") < 0:
+    if read.integer(e["calm"], "estimator.calm") < 0:
         raise ValueError(f"estimator.calm must be >= 0, got {e['calm']!r}")
     labels = d["labels"]
     if not isinstance(labels, list) or len(labels) != len(object_ids):
@@ -565,17 +567,17 @@ def _parse_document(d: dict) -> tuple[SessionState, dict]:
         problem_config=problem_config,
         estimator_config=estimator_config,
         estimator={
-            "iteration": _int(e["iteration"], "estimator.iteration"),
+            "iteration": read.integer(e["iteration"], "estimator.iteration"),
             "rng": _rng_state(e["rng"]),
             "beta": beta,
-            "calm": _int(e["calm"], "estimator.calm"),
+            "calm": read.integer(e["calm"], "estimator.calm"),
             "history": [_report(r) for r in e["history"]],
             "search": _search(e.get("search")),
             "answer": e.get("answer"),  # checked with the search, once the arrays are read
         },
-        labels=[None if T is None else _pose(T, "labels") for T in labels],
-        problem_sha256=_str(d["problem_sha256"], "problem_sha256"),
-        saved_at=_str(d["saved_at"], "saved_at"),
+        labels=[None if T is None else read.pose(T, "labels") for T in labels],
+        problem_sha256=read.string(d["problem_sha256"], "problem_sha256"),
+        saved_at=read.string(d["saved_at"], "saved_at"),
     )
     state.sequence = d.get("sequence")
     if not isinstance(state.sequence, (dict, type(None))):
@@ -637,53 +639,12 @@ def _check_arrays(path: Path, state: SessionState, arrays: dict[str, np.ndarray]
         raise InputError(path, "array 'kinds' holds unknown move kinds")
 
 
-# Typed readers: a hand-edited value of the wrong type is reported, not passed on to fail somewhere later.
-
-
-def _int(v, where: str) -> int:
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise ValueError(f"{where} must be an integer, got {v!r}")
-    return v
-
-
-def _float(v, where: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ValueError(f"{where} must be a number, got {v!r}")
-    return float(v)
-
-
-def _str(v, where: str) -> str:
-    if not isinstance(v, str):
-        raise ValueError(f"{where} must be a string, got {v!r}")
-    return v
-
-
-def _pair(v, where: str) -> tuple[float, float]:
-    if not isinstance(v, list) or len(v) != 2:
-        raise ValueError(f"{where} must be two numbers")
-    return (_float(v[0], where), _float(v[1], where))
-
-
-def _pose(v, where: str) -> np.ndarray:
-    """A rigid 4x4 pose (a reflection or a bad bottom row is refused, not turned into another pose)."""
-    try:
-        T = np.array(v, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError) as e:
-        raise ValueError(f"{where} must be a finite 4x4 matrix") from e
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{where} must be a finite 4x4 matrix")
-    try:
-        return check_rigid(T, where)
-    except InputError as e:
-        raise ValueError(e.problem) from e
-
-
 def _check_table(table: Table) -> None:
     """A table within reach of the camera, its object region inside it (the estimator draws particles there)."""
     lo = (table.x_min, table.y_min, *table.region_min)
     hi = (table.x_max, table.y_max, *table.region_max)
-    if not all(np.isfinite(v) and abs(v) <= bop.MAX_TABLE_DISTANCE for v in lo + hi):
-        raise ValueError(f"support.table values must be finite and within {bop.MAX_TABLE_DISTANCE:g} m")
+    if not all(np.isfinite(v) and abs(v) <= read.MAX_TABLE_DISTANCE for v in lo + hi):
+        raise ValueError(f"support.table values must be finite and within {read.MAX_TABLE_DISTANCE:g} m")
     if not (table.x_min < table.x_max and table.y_min < table.y_max
             and all(a <= b for a, b in zip(table.region_min, table.region_max))):
         raise ValueError("support.table: each minimum must lie below its maximum")
@@ -712,19 +673,19 @@ def _report(v) -> IterationReport:
         raise ValueError(f"a history entry must have exactly the fields {names}")
     if not isinstance(v["timings"], dict):
         raise ValueError("history timings must be an object")
-    values = {k: _float(v[k], f"history.{k}") for k in names if k not in ("iteration", "converged", "n_failed",
+    values = {k: read.number(v[k], f"history.{k}") for k in names if k not in ("iteration", "converged", "n_failed",
                                                                             "timings", "moves", "best_kind")}
     moves = v["moves"]
     if not (isinstance(moves, dict) and all(isinstance(c, dict) for c in moves.values())):
         raise ValueError("history.moves must map move kinds to counts")
     if not isinstance(v["converged"], bool):
         raise ValueError("history.converged must be true or false")
-    return IterationReport(iteration=_int(v["iteration"], "history.iteration"), converged=v["converged"],
-                           n_failed=_int(v["n_failed"], "history.n_failed"),
-                           timings={str(k): _float(t, "history.timings") for k, t in v["timings"].items()},
-                           moves={str(k): {str(n): _float(x, "history.moves") for n, x in c.items()}
+    return IterationReport(iteration=read.integer(v["iteration"], "history.iteration"), converged=v["converged"],
+                           n_failed=read.integer(v["n_failed"], "history.n_failed"),
+                           timings={str(k): read.number(t, "history.timings") for k, t in v["timings"].items()},
+                           moves={str(k): {str(n): read.number(x, "history.moves") for n, x in c.items()}
                                   for k, c in moves.items()},
-                           best_kind=_str(v["best_kind"], "history.best_kind"), **values)
+                           best_kind=read.string(v["best_kind"], "history.best_kind"), **values)
 
 
 def config_from_dict(cls, data, where: str):
@@ -743,25 +704,23 @@ def config_from_dict(cls, data, where: str):
         if is_dataclass(tp):
             kwargs[name] = config_from_dict(tp, v, at)
         elif tp is float:
-            kwargs[name] = _float(v, at)
+            kwargs[name] = read.number(v, at)
         elif tp == float | None:
-            kwargs[name] = None if v is None else _float(v, at)
+            kwargs[name] = None if v is None else read.number(v, at)
         elif tp is int:
-            kwargs[name] = _int(v, at)
+            kwargs[name] = read.integer(v, at)
         elif tp is str:
-            kwargs[name] = _str(v, at)
+            kwargs[name] = read.string(v, at)
         elif tp is bool:
-            if not isinstance(v, bool):
-                raise ValueError(f"{at} must be true or false, got {v!r}")
-            kwargs[name] = v
+            kwargs[name] = read.boolean(v, at)
         elif tp is MoveMix:  # kind -> share; a kind added since the save gets 0, as the session ran without it
             if not isinstance(v, dict):
                 raise ValueError(f"{at} must map move kinds to shares, got {v!r}")
-            kwargs[name] = MoveMix.from_dict({str(k): _float(x, f"{at}.{k}") for k, x in v.items()})
+            kwargs[name] = MoveMix.from_dict({str(k): read.number(x, f"{at}.{k}") for k, x in v.items()})
         elif tp == tuple[tuple[int, str], ...]:  # e.g. PhysicsConfig.shape_overrides: (obj_id, kind) pairs
             if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 for p in v):
                 raise ValueError(f"{at} must be a list of [integer, string] pairs, got {v!r}")
-            kwargs[name] = tuple((_int(a, at), _str(b, at)) for a, b in v)
+            kwargs[name] = tuple((read.integer(a, at), read.string(b, at)) for a, b in v)
         else:
             raise ValueError(f"{at}: settings of type {tp} cannot be restored")
     return cls(**kwargs)
