@@ -18,7 +18,7 @@ from workbench.app import protocol as p
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.moves.registry import MoveMix
-from workbench.sessions.store import config_from_dict
+from workbench.sessions.document import config_from_dict
 
 
 @dataclass(frozen=True)
