@@ -22,6 +22,7 @@ from workbench.errors import InputError
 from workbench.inference.answer.posterior import Posterior
 from workbench.io import bop
 from workbench.io.outputs import OutputLock, check_output_file, replace_file, write_file
+from workbench.io.readers import parse_pose
 from workbench.problem.problem import Problem
 from workbench.problem.scene import Frame
 
@@ -151,7 +152,7 @@ def read_results_csv(path: Path) -> list[ResultRow]:
             score, time = float(score), float(time)
         except ValueError as e:
             raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: {cells}") from e
-        rows.append(ResultRow(*ids, score, bop.parse_pose(R, t, path, f"line {n}"), time))
+        rows.append(ResultRow(*ids, score, parse_pose(R, t, path, f"line {n}"), time))
     return rows
 
 

@@ -207,7 +207,7 @@ def _rescore_floor(document: dict) -> None:
 def _upgrade_format_2(document: dict) -> None:
     """Format 2 kept each particle's move kind in the JSON (``estimator.search.kinds``, absent before the search
     existed); format 3 keeps it in the arrays file with the rest of the particle set. Noted in the "arrays" entry
-    (in place) for ``_kinds_from_json`` once the arrays are read."""
+    (in place) for ``kinds_from_json`` once the arrays are read."""
     search = _search_state(document)
     kinds = search.pop("kinds", None) if isinstance(search, dict) else None
     if isinstance(document.get("arrays"), dict):
