@@ -63,10 +63,10 @@ class EstimatorConfig:
     # the settled scenes stay as restful under physics as the annotated ones (section "Settling, third step").
     settle_shift: float = 0.015
     settle_turn: float = 12.0
-    # Leaning starts (inference.search.leaning): every object laid along each slanted flat patch of the observed points,
-    # the best of each patch tried by polish while the estimate is stuck, never drawn into particles. In the library
-    # that particles draw from, they found the generated gelatin box leaning on the wood block but sent the search
-    # astray on the real desk of ycbv-real-dev, with its 5-6 slanted patches of clutter (docs/journal/2026-11.md).
+    # Leaning starts (inference.search.leaning): every object laid along each slanted flat patch of the observed points, the
+    # best of each patch tried by polish while the estimate is stuck, never drawn into particles. In the library that
+    # particles draw from, they found the generated gelatin box leaning on the wood block but sent the search astray
+    # on the real desk of ycbv-real-dev, with its 5-6 slanted patches of clutter (docs/journal/2026-11.md).
     leaning: bool = True
 
     def validate(self, where: str | None = None) -> None:

@@ -1,6 +1,5 @@
 """The estimator a user runs: PI-PF or PI-MCPF (``inference.smc.filter``) with the paper's search or the default one
-(``inference.search.paper_search``, ``inference.search.default_search``), its settings, its answer, and its state for
-sessions.
+(``inference.search.paper_search``, ``inference.search.default_search``), its settings, its answer, and its state for sessions.
 
 ``Estimator.run`` steps the filter until the iteration budget or the paper's convergence rule, then returns the
 search's answer (``settle``): for the default search the estimate fitted to the depth, with its near ties.
@@ -12,18 +11,18 @@ from dataclasses import replace
 
 import numpy as np
 
+from workbench.sessions.answer import Answer, answer_json, parse_answer
 from workbench.evaluation import Evaluator
-from workbench.inference.answer.posterior import Posterior
-from workbench.inference.answer.settle import Tie
-from workbench.inference.config import EstimatorConfig
 from workbench.inference.search import datadriven
+from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.default_search import DefaultSearch
+from workbench.inference.smc.filter import IterationReport, ParticleFilter, Search
 from workbench.inference.search.moves.registry import MoveKind
 from workbench.inference.search.paper_search import PaperSearch
-from workbench.inference.smc.filter import IterationReport, ParticleFilter, Search
+from workbench.inference.answer.posterior import Posterior
+from workbench.inference.answer.settle import Tie
 from workbench.io import readers as read
 from workbench.problem.problem import Problem
-from workbench.sessions.answer import Answer, answer_json, parse_answer
 
 
 def make_search(problem: Problem, proposals: str) -> Search:
