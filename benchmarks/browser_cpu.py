@@ -126,9 +126,10 @@ def main() -> int:
     probes = load_probes()
     sys.path.insert(0, str(args.root.resolve()))
 
+    from headless import free_port
+
     import workbench
     from workbench.app import protocol as p
-    from headless import free_port
     from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 

@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
 from workbench.inference.answer.posterior import found_probability, probabilities
 from workbench.io import bop
+from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
 from workbench.score.metrics import heading_offset_deg, is_right
 
 GRID = np.geomspace(2.0, 400.0, 60)

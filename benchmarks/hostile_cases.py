@@ -177,11 +177,11 @@ def hold_lock(proc_unused, ws: Path):  # set up before the command: see run_case
 SAVE_SESSION = """
 import sys
 from pathlib import Path
-from workbench import sessions
-from workbench.estimators import Estimator
+from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.inference.config import EstimatorConfig
-from workbench.pipeline import load_bop_problem
+from workbench.problem.build import load_bop_problem
+from workbench.sessions import store as sessions
 demo, folder = Path(sys.argv[1]), Path(sys.argv[2])
 frame, problem = load_bop_problem(demo, 0, 0)
 ev = LocalEvaluator(problem)

@@ -20,8 +20,8 @@ from workbench.inference.search import datadriven
 from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.scenepoints import clusters
 from workbench.io import bop
-from workbench.score.metrics import is_right
 from workbench.problem.build import load_bop_problem
+from workbench.score.metrics import is_right
 
 
 def main() -> None:

@@ -22,15 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from workbench.cli import clutter_floor_arg
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator, make_evaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator
 from workbench.io import bop
-from workbench.score.metrics import is_right, position_error, rotation_error
 from workbench.problem.build import load_bop_problem
 from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig, scene_loglik
+from workbench.score.metrics import is_right, position_error, rotation_error
 
 
 def run_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorConfig, workers: int,

@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator
 from workbench.io import bop
-from workbench.score.metrics import model_points
 from workbench.physics import STATUS_NAMES, STATUS_REST, STATUS_STEP_CAP, PhysicsConfig, PhysicsProjector
 from workbench.physics.collision import collision_shape_for
 from workbench.problem.build import load_bop_problem
+from workbench.score.metrics import model_points
 
 
 class RecordingEvaluator(LocalEvaluator):

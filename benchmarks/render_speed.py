@@ -14,8 +14,8 @@ import numpy as np
 import trimesh
 
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
-from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig
 from workbench.problem.scene import Camera
+from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig
 
 
 def roi_camera() -> Camera:

@@ -13,14 +13,15 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.score.scoring import score_results
 from workbench.geometry import invert_pose
 from workbench.io import bop
+from workbench.io.results import ResultRow, read_results_csv
 from workbench.score.metrics import position_error, rotation_error
+from workbench.score.scoring import score_results
 from workbench.track.motion import read_world_poses
 
 
-def top_poses(rows: list[bop.ResultRow], scene_id: int) -> dict[int, dict[int, np.ndarray]]:
+def top_poses(rows: list[ResultRow], scene_id: int) -> dict[int, dict[int, np.ndarray]]:
     """Per image id, per obj_id, the most likely row's pose (camera frame); one instance per object."""
     out: dict[int, dict[int, tuple[float, np.ndarray]]] = {}
     for r in rows:
@@ -54,7 +55,7 @@ def main() -> None:
     p.add_argument("results", type=Path)
     p.add_argument("--scene", type=int, required=True)
     args = p.parse_args()
-    rows = [r for r in bop.read_results_csv(args.results) if r.scene_id == args.scene]
+    rows = [r for r in read_results_csv(args.results) if r.scene_id == args.scene]
     frames = score_results(args.dataset, rows)
     seconds = {r.im_id: r.time for r in rows}
     for f in frames:

@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from workbench.geometry import invert_pose, rotation_angle
-from workbench.io import bop
-from workbench.score.metrics import model_points
+from workbench.io import bop, readers
 from workbench.physics import STATUS_NAMES, PhysicsConfig, PhysicsProjector
 from workbench.physics.collision import collision_shape_for
 from workbench.problem.build import load_bop_problem
+from workbench.score.metrics import model_points
 
 
 def movement(T_a: np.ndarray, T_b: np.ndarray, points: list[np.ndarray]) -> np.ndarray:
@@ -58,7 +58,7 @@ def summary(rows: list[tuple[str, np.ndarray]], title: str, column: int = 0) -> 
 
 def object_names(dataset: Path) -> dict[int, str]:
     """obj_id -> the "name" of models_info.json where it has one (YCB-Video's do), else "obj N"."""
-    info = bop.read_json(bop._models_dir(dataset) / "models_info.json")
+    info = readers.read_json(bop._models_dir(dataset) / "models_info.json")
     return {int(k): v.get("name", f"obj {k}") for k, v in info.items()}
 
 

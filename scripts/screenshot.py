@@ -28,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))  # the browser test tooling
 
 from headless import chromium, dismiss_notifications, free_port, image_stats, open_workbench  # noqa: E402
+
 from workbench.app.ui.server import serve  # noqa: E402
 from workbench.inference.config import EstimatorConfig  # noqa: E402
 

@@ -24,6 +24,7 @@ from headless import (
 from workbench.app.engine.snapshot import DEFAULT_DISPLAY
 from workbench.app.protocol import Failure, Run
 from workbench.app.ui.run.display import SCENE_INTERVAL_S
+from workbench.io.results import ResultRow, read_results_csv, write_results_csv
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -351,7 +352,6 @@ def test_the_visibility_bar_shows_and_hides_each_layer(page, workbench):
 
 def test_the_truth_table_agrees_with_workbench_score(page, workbench, tmp_path):
     """The per-object errors against scene_gt.json, as shown, are what `workbench score` says of the same estimate."""
-    from workbench.io import bop
     from workbench.score.scoring import score_results
 
     app = workbench.app
@@ -360,15 +360,16 @@ def test_the_truth_table_agrees_with_workbench_score(page, workbench, tmp_path):
     truth = app.state.truth
     table = page.get_by_text("Estimate vs ground truth")
     table.wait_for(timeout=TIMEOUT_MS)
-    expect(page.get_by_text(re.compile(rf"iteration {truth.iteration} · \d+/\d+ right"))).to_be_visible(timeout=TIMEOUT_MS)
+    right = re.compile(rf"iteration {truth.iteration} · \d+/\d+ right")
+    expect(page.get_by_text(right)).to_be_visible(timeout=TIMEOUT_MS)
     view = app.state.view
     scene_id, im_id = view.where[1], view.where[2]
     T_cam_world = np.linalg.inv(view.T_world_cam)
     obj_ids = [r["obj_id"] for r in truth.rows]
-    rows = [bop.ResultRow(scene_id, im_id, o, 1.0, T_cam_world @ T, -1.0) for o, T in zip(obj_ids, truth.estimate)]
+    rows = [ResultRow(scene_id, im_id, o, 1.0, T_cam_world @ T, -1.0) for o, T in zip(obj_ids, truth.estimate)]
     csv = tmp_path / "results.csv"
-    bop.write_results_csv(csv, rows)
-    scored = score_results(Path(view.where[0]), bop.read_results_csv(csv))[0].objects
+    write_results_csv(csv, rows)
+    scored = score_results(Path(view.where[0]), read_results_csv(csv))[0].objects
     for shown, ref in zip(truth.rows, scored):
         assert shown["obj_id"] == ref.obj_id and shown["right"] == ref.right
         assert np.isclose(shown["position_cm"], ref.position_cm, atol=1e-6)

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workbench.score import metrics
 from workbench import synth
 from workbench.bench import baseline
 from workbench.geometry import invert_pose
 from workbench.io import bop
+from workbench.score import metrics
 
 pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)
 

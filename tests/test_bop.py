@@ -16,6 +16,7 @@ from workbench.errors import InputError
 from workbench.geometry import make_pose, rot_x, rot_z
 from workbench.io import bop
 from workbench.io.plainframe import load_plain_frame
+from workbench.io.results import ResultRow, read_results_csv, write_results_csv
 
 W, H = 64, 48
 K = np.array([[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])
@@ -142,13 +143,13 @@ def test_split_folder_and_requested_objects(dataset):
 
 
 def test_results_csv_round_trip(tmp_path):
-    rows = [bop.ResultRow(3, 4, 1, 0.75, GT[0][1], 1.25), bop.ResultRow(3, 4, 2, 0.5, GT[1][1], -1.0)]
+    rows = [ResultRow(3, 4, 1, 0.75, GT[0][1], 1.25), ResultRow(3, 4, 2, 0.5, GT[1][1], -1.0)]
     path = tmp_path / "res.csv"
-    bop.write_results_csv(path, rows)
+    write_results_csv(path, rows)
     lines = path.read_text().splitlines()
     assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time"
     assert lines[1].split(",")[5].split() == [f"{v:.12g}" for v in GT[0][1][:3, 3] * 1000]
-    back = bop.read_results_csv(path)
+    back = read_results_csv(path)
     for a, b in zip(rows, back):
         assert (a.scene_id, a.im_id, a.obj_id, a.score, a.time) == (b.scene_id, b.im_id, b.obj_id, b.score, b.time)
         np.testing.assert_allclose(a.T_cam_obj, b.T_cam_obj, atol=1e-9)

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from workbench.io.bop import read_results_csv
+from workbench.io.results import read_results_csv
 
 pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
 

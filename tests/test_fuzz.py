@@ -24,15 +24,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench.sessions import store as sessions
 from workbench.app.engine.engine import DEMO_DIR
-from workbench.score import gt_info
 from workbench.errors import InputError
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator
 from workbench.io import bop
 from workbench.problem.build import load_bop_problem
+from workbench.score import gt_info
+from workbench.sessions import store as sessions
 
 pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
 
@@ -244,8 +244,9 @@ def test_every_mutated_input_ends_in_success_or_a_clear_error(demo, saved_sessio
         npz = session_files[1]
         targets.append((saved_session, json_mutations(saved_session.read_text())))
         npz_bytes = npz.read_bytes()
+        changed = npz_bytes[:100] + bytes([npz_bytes[100] ^ 1]) + npz_bytes[101:]
         targets.append((npz, iter([("truncated", npz_bytes[: len(npz_bytes) // 2]), ("empty", b""),
-                                   ("one byte changed", npz_bytes[:100] + bytes([npz_bytes[100] ^ 1]) + npz_bytes[101:])])))
+                                   ("one byte changed", changed)])))
         for path, mutations in targets:
             original = path.read_bytes()
             is_session = path in session_files
@@ -291,6 +292,7 @@ def test_every_mutated_input_ends_in_success_or_a_clear_error(demo, saved_sessio
         if result == "ok":
             assert run.returncode == 0 and out.is_file(), f"{path.name}: {description}\n{run.stderr}"
         else:
-            assert run.returncode == 2 and "workbench: error: " in run.stderr, f"{path.name}: {description}\n{run.stderr}"
+            assert run.returncode == 2 and "workbench: error: " in run.stderr, \
+                f"{path.name}: {description}\n{run.stderr}"
             assert not out.exists()
     print(f"fuzz: {len(sample)} of the dataset cases also ran as `workbench estimate` subprocesses")

@@ -4,17 +4,17 @@ renderer where they are used."""
 import numpy as np
 import pytest
 
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, make_pose, rot_z
+from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator
 from workbench.inference.search import datadriven, refine
 from workbench.inference.search.moves import resting, stacking
-from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.moves.context import MoveContext
 from workbench.inference.search.moves.registry import MOVES, REGISTRY, MoveKind, MoveMix
-from workbench.inference.smc.particles import Sigma, initial_particles
 from workbench.inference.search.moves.relocate import random_relocations
 from workbench.inference.search.scenepoints import clusters, object_badness
+from workbench.inference.smc.particles import Sigma, initial_particles
 from workbench.problem.build import load_bop_problem
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
@@ -223,8 +223,8 @@ def test_polish_tries_the_candidates_of_unexplained_points_first(frame_and_probl
 def test_seating_an_object_moves_the_one_on_its_place_out_of_the_way():
     """An ejection chain: the can goes back to its place, the box that sat there moves to its own free candidate,
     which pushes the marker off the box's place onto the marker's; the bowl, in nobody's way, stays."""
-    from workbench.inference.search import datadriven
     from workbench.inference.answer import polish
+    from workbench.inference.search import datadriven
 
     def at(x, y):
         T = np.eye(4)
@@ -249,8 +249,8 @@ def test_seating_an_object_moves_the_one_on_its_place_out_of_the_way():
 def test_seating_with_hide_puts_what_it_pushes_out_behind_the_object_that_pushed_it():
     """With ``hide``, the box on the can's place goes to its hiding place behind the can, not to its candidate,
     and the objects out of the way stay."""
-    from workbench.inference.search import datadriven
     from workbench.inference.answer import polish
+    from workbench.inference.search import datadriven
 
     def at(x, y):
         T = np.eye(4)

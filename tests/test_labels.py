@@ -8,7 +8,7 @@ import pytest
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, rot_z
-from workbench.io import bop
+from workbench.io import bop, readers
 from workbench.labels import (
     fit_label,
     label_errors,
@@ -18,9 +18,9 @@ from workbench.labels import (
     save_labels,
     snap_to_plausible,
 )
-from workbench.score.metrics import position_error
 from workbench.physics import STATUS_REST
 from workbench.problem.build import load_bop_problem
+from workbench.score.metrics import position_error
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
@@ -90,13 +90,13 @@ def test_labelling_one_object_keeps_every_other_objects_truth(scene, tmp_path):
     work = tmp_path / "dataset"
     shutil.copytree(dataset, work)
     scene_gt = work / "test" / "000000" / "scene_gt.json"
-    content = bop.read_json(scene_gt)
+    content = readers.read_json(scene_gt)
     stranger = {"cam_R_m2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_m2c": [0, 0, 900], "obj_id": 99}
     content["0"].append(stranger)
     scene_gt.write_text(__import__("json").dumps(content))
     moved = _perturbed(gt)
     save_labels(work, 0, 0, problem.camera.T_cam_world, [None, moved[1]], frame.object_ids, overwrite_original=True)
-    entries = bop.read_json(scene_gt)["0"]
+    entries = readers.read_json(scene_gt)["0"]
     assert [e["obj_id"] for e in entries] == [*frame.object_ids, 99]
     assert entries[0] == content["0"][0] and entries[2] == stranger
     back = load_labels(work, 0, 0, problem.camera.T_cam_world, frame.object_ids, path=scene_gt)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from workbench.score import metrics
 from workbench.geometry import make_pose, pose_from_xyz_rpy, rot_x, rot_y, rot_z
+from workbench.score import metrics
 
 CRACKER = (0.16, 0.06, 0.21)
 

@@ -1,6 +1,6 @@
-"""The posterior per object (inference.answer.posterior): modes up to the model's symmetries, calibrated probabilities, the
-open heading of a mug whose handle is hidden. The pure parts are in the fast tier; the mug runs real physics and
-the real renderer."""
+"""The posterior per object (inference.answer.posterior): modes up to the model's symmetries, calibrated
+probabilities, the open heading of a mug whose handle is hidden. The pure parts are in the fast tier; the mug runs
+real physics and the real renderer."""
 
 from types import SimpleNamespace
 
@@ -210,6 +210,7 @@ def _mug_posterior(touching_dataset, seeing, handle_from_view_deg: float, estima
     from workbench.evaluation import LocalEvaluator
     from workbench.inference.config import EstimatorConfig
     from workbench.inference.estimator import Estimator
+    from workbench.inference.smc.filter import Update
     from workbench.problem.build import load_bop_problem
     from workbench.problem.problem import build_problem
     from workbench.problem.scene import ObjectModel
@@ -247,7 +248,7 @@ def _mug_posterior(touching_dataset, seeing, handle_from_view_deg: float, estima
     try:
         estimator = Estimator(seen, EstimatorConfig(particles=4, seed=0), evaluator)
         estimator.step()  # a particle set for the spread
-        estimator.filter.estimate, estimator.filter.estimate_loglik = rested.projected[1].copy(), float(rested.loglik[1])
+        estimator.filter.apply(Update(estimate=(rested.projected[1].copy(), float(rested.loglik[1]))))
         estimator.settle()
     finally:
         evaluator.close()

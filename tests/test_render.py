@@ -10,10 +10,10 @@ import trimesh
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
+from workbench.problem.scene import Camera
 from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
 from workbench.render.likelihood import LikelihoodConfig, scene_loglik, scene_terms
 from workbench.render.shared import common_poses, draw_shared, drawn_loglik, render_shared
-from workbench.problem.scene import Camera
 
 pytestmark = pytest.mark.slow  # needs OpenGL
 

@@ -153,7 +153,7 @@ def test_a_second_run_on_the_same_out_is_refused_naming_the_first_runs_pid(demo,
         holder.kill()
         holder.wait()
     # The lock dies with its process: the file can be written again.
-    from workbench.run.runner import ResultsFile
+    from workbench.io.results import ResultsFile
 
     results = ResultsFile.open(out, resume=True)
     results.close()
@@ -236,8 +236,7 @@ def test_no_frames_in_a_split_is_said_without_none(demo, capsys):
 
 def test_a_full_disk_keeps_the_old_results_and_says_so(tmp_path, monkeypatch):
     from workbench.errors import InputError
-    from workbench.io.bop import ResultRow
-    from workbench.run.runner import ResultsFile
+    from workbench.io.results import ResultRow, ResultsFile
 
     out = _results(tmp_path / "r.csv", ROW)
     before = out.read_bytes()
@@ -253,8 +252,7 @@ def test_a_full_disk_keeps_the_old_results_and_says_so(tmp_path, monkeypatch):
 
 
 def test_results_through_a_symlink_keep_the_link(tmp_path):
-    from workbench.io.bop import ResultRow
-    from workbench.run.runner import ResultsFile
+    from workbench.io.results import ResultRow, ResultsFile
 
     target = _results(tmp_path / "real.csv", ROW)
     link = tmp_path / "link.csv"
@@ -335,8 +333,8 @@ def test_sessions_are_saved_only_where_a_session_may_be(demo, tmp_path):
 def test_serve_refuses_a_session_whose_dataset_is_gone(demo, tmp_path, capsys, monkeypatch):
     from types import SimpleNamespace
 
-    from workbench.sessions import store as sessions
     from workbench.app.ui import server
+    from workbench.sessions import store as sessions
 
     state = SimpleNamespace(frame=SimpleNamespace(dataset=str(tmp_path / "gone"), files={"x.json": "0"}))
     monkeypatch.setattr(sessions, "load_session", lambda path: state)
@@ -562,8 +560,8 @@ def test_the_search_lays_a_heavy_mesh_on_a_reduced_hull_and_once_per_shape():
 def test_loading_a_heavy_mesh_says_so_and_a_light_one_says_nothing(tmp_path, capfd, monkeypatch):
     import time
 
-    from workbench.meshes import heavy
     from workbench.io import bop
+    from workbench.meshes import heavy
 
     trimesh.creation.icosphere(3, radius=40.0).export(tmp_path / "obj_000006.ply")  # 1280 faces, mm
     trimesh.creation.icosphere(1, radius=40.0).export(tmp_path / "obj_000005.ply")  # 80 faces
@@ -596,9 +594,9 @@ def test_loading_a_heavy_mesh_says_so_and_a_light_one_says_nothing(tmp_path, cap
 
 
 def test_the_particles_of_a_heavy_mesh_start_from_its_lowest_point_without_its_hull(monkeypatch):
-    from workbench.meshes import heavy
     from workbench.geometry import random_rotations
     from workbench.inference.smc import particles
+    from workbench.meshes import heavy
     from workbench.problem.scene import ObjectModel, Table
 
     rotations = random_rotations(np.random.default_rng(0), 50)
@@ -649,7 +647,8 @@ def test_a_heavy_model_is_drawn_from_its_render_mesh_a_light_one_from_itself(mon
     calls = []
     monkeypatch.setattr(observation, "HEAVY_FACES", 10_000)
     monkeypatch.setattr("workbench.evaluation.local.prepare_meshes", lambda pr: calls.append("prepare"))
-    monkeypatch.setattr("workbench.inference.search.geometry.search_mesh", lambda m, pr: calls.append(m.obj_id) or render)
+    monkeypatch.setattr("workbench.inference.search.geometry.search_mesh",
+                        lambda m, pr: calls.append(m.obj_id) or render)
     drawn_ball, drawn_box = observation.object_meshes(problem)
     assert calls == ["prepare", 6]  # simplified (or read from the cache) once, before anything is drawn
     assert len(drawn_ball.faces) == 20_480 and len(drawn_ball.solid[1]) == 320  # never the model's faces

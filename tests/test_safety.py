@@ -16,11 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench import checks, labels
-from workbench.sessions import store as sessions
+from workbench import labels
 from workbench.app.engine.engine import DEMO_DIR
 from workbench.errors import InputError
-from workbench.io import bop
+from workbench.evaluation import pool
+from workbench.io.results import read_results_csv
+from workbench.sessions import store as sessions
 
 pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL
 
@@ -87,7 +88,7 @@ def test_out_keeps_a_users_file_unless_forced_and_keeps_its_mode(demo, tmp_path)
 
     run = _workbench("estimate", demo, *FAST, "--out", mine, "--force")
     assert run.returncode == 0, run.stderr
-    assert len({r.obj_id for r in bop.read_results_csv(mine)}) == 2 and stat.S_IMODE(mine.stat().st_mode) == 0o600
+    assert len({r.obj_id for r in read_results_csv(mine)}) == 2 and stat.S_IMODE(mine.stat().st_mode) == 0o600
 
     # Our own results CSV may be replaced without --force (a rerun).
     run = _workbench("estimate", demo, *FAST, "--seed", 1, "--out", mine)
@@ -109,8 +110,9 @@ def test_out_is_checked_before_any_work(demo, tmp_path):
 
 def test_results_are_written_frame_by_frame_and_resume_skips_written_frames(two_frames, tmp_path):
     from workbench.inference.config import EstimatorConfig
+    from workbench.io.results import ResultsFile
     from workbench.problem.problem import ProblemConfig
-    from workbench.run.runner import ResultsFile, estimate_frames
+    from workbench.run.runner import estimate_frames
 
     # A run that fails at its second frame keeps the first frame's results.
     broken = tmp_path / "broken"
@@ -121,7 +123,7 @@ def test_results_are_written_frame_by_frame_and_resume_skips_written_frames(two_
     with pytest.raises(InputError, match="000001"):
         estimate_frames(broken, [(0, 0), (1, 0)], EstimatorConfig(particles=6, iterations=1), ProblemConfig(), 1,
                         on_frame=results.add)
-    first = bop.read_results_csv(out)
+    first = read_results_csv(out)
     assert {(r.scene_id, r.im_id) for r in first} == {(0, 0)} and len({r.obj_id for r in first}) == 2
 
     # --resume estimates only the missing frame and keeps the written rows as they were.
@@ -131,13 +133,13 @@ def test_results_are_written_frame_by_frame_and_resume_skips_written_frames(two_
     assert "1 of 2 frame(s) already" in run.stderr
     after = out.read_text().splitlines()
     assert after[: len(lines)] == lines
-    assert {(r.scene_id, r.im_id) for r in bop.read_results_csv(out)} == {(0, 0), (1, 0)}
+    assert {(r.scene_id, r.im_id) for r in read_results_csv(out)} == {(0, 0), (1, 0)}
 
 
 def test_a_frame_estimated_into_a_log_file_says_how_far_it_is(demo, monkeypatch, capsys):
-    from workbench.run import runner
     from workbench.inference.config import EstimatorConfig
     from workbench.problem.problem import ProblemConfig
+    from workbench.run import runner
 
     monkeypatch.setattr(runner, "LOG_EVERY_S", 0.0)  # every step, not every 10 s
     runner.estimate_frames(demo, [(0, 0)], EstimatorConfig(particles=6, iterations=2), ProblemConfig(), 1)
@@ -178,19 +180,19 @@ def test_make_scenes_refuses_a_folder_that_is_not_empty(demo, tmp_path):
 @pytest.mark.parametrize("workers", [0, -3, 1000])
 def test_workers_outside_the_machines_bound_are_refused(demo, tmp_path, workers):
     _refused(_workbench("estimate", demo, "--workers", workers, "--out", tmp_path / "r.csv"), "--workers",
-             f"to {checks.max_workers()}")
+             f"to {pool.max_workers()}")
     assert not (tmp_path / "r.csv").exists()
 
 
 def test_worker_bound_follows_cores_and_memory():
-    bound = checks.max_workers()
-    assert 1 <= bound <= checks.usable_cores()
-    memory = checks.available_memory()
+    bound = pool.max_workers()
+    assert 1 <= bound <= pool.usable_cores()
+    memory = pool.available_memory()
     if memory is not None:
-        assert bound <= max(1, memory // checks.WORKER_MEMORY_BYTES)
-    assert checks.check_workers(1) == 1
+        assert bound <= max(1, memory // pool.WORKER_MEMORY_BYTES)
+    assert pool.check_workers(1) == 1
     with pytest.raises(InputError):
-        checks.check_workers(True)  # a boolean is not a count
+        pool.check_workers(True)  # a boolean is not a count
 
 
 def test_bad_seed_and_other_parameters_are_refused_before_work(demo, tmp_path):
@@ -204,9 +206,9 @@ def test_bad_seed_and_other_parameters_are_refused_before_work(demo, tmp_path):
 
 
 def _saved_session(demo: Path, folder: Path) -> Path:
-    from workbench.inference.estimator import Estimator
     from workbench.evaluation import LocalEvaluator
     from workbench.inference.config import EstimatorConfig
+    from workbench.inference.estimator import Estimator
     from workbench.problem.build import load_bop_problem
 
     frame, problem = load_bop_problem(demo, 0, 0)

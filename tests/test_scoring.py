@@ -7,16 +7,17 @@ import numpy as np
 import pytest
 from test_cli import _workbench
 
-from workbench.score.scoring import instance_groups, match, report, score_results, summary
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
+from workbench.io.results import ResultRow, write_results_csv
+from workbench.score.scoring import instance_groups, match, report, score_results, summary
 
 pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)
 
 
 def _truth_rows(dataset):
     frame = bop.load_frame(dataset, 0, 0)
-    return frame, [bop.ResultRow(0, 0, obj_id, 1.0, T.copy(), 1.0)
+    return frame, [ResultRow(0, 0, obj_id, 1.0, T.copy(), 1.0)
                    for obj_id, T in zip(frame.object_ids, frame.gt_T_cam_obj)]
 
 
@@ -37,7 +38,7 @@ def test_the_truth_scores_right_and_a_moved_object_does_not(touching_dataset):
 
 def test_a_missing_estimate_is_wrong_and_an_extra_row_is_counted(touching_dataset):
     frame, rows = _truth_rows(touching_dataset)
-    stranger = bop.ResultRow(0, 0, 99, 0.5, rows[0].T_cam_obj.copy(), 1.0)  # an object the frame does not hold
+    stranger = ResultRow(0, 0, 99, 0.5, rows[0].T_cam_obj.copy(), 1.0)  # an object the frame does not hold
     [scored] = score_results(touching_dataset, [rows[0], stranger])
     assert scored.unmatched_rows == 1
     assert scored.objects[0].right and not scored.objects[1].estimated and not scored.objects[1].right
@@ -47,10 +48,10 @@ def test_only_each_objects_top_row_is_its_estimate_the_others_are_modes(touching
     frame, rows = _truth_rows(touching_dataset)
     away = rows[0].T_cam_obj.copy()
     away[:3, 3] += [0.1, 0.0, 0.0]
-    mode = bop.ResultRow(0, 0, frame.object_ids[0], 0.2, away, 1.0)  # a less likely mode 10 cm off: not matched
+    mode = ResultRow(0, 0, frame.object_ids[0], 0.2, away, 1.0)  # a less likely mode 10 cm off: not matched
     [scored] = score_results(touching_dataset, [mode, *rows])
     assert scored.unmatched_rows == 0 and scored.objects[0].right
-    top = bop.ResultRow(0, 0, frame.object_ids[0], 2.0, away, 1.0)  # scored above the truth's row: the estimate
+    top = ResultRow(0, 0, frame.object_ids[0], 2.0, away, 1.0)  # scored above the truth's row: the estimate
     [scored] = score_results(touching_dataset, [top, *rows])
     assert not scored.objects[0].right and scored.objects[1].right
 
@@ -66,7 +67,7 @@ def test_instances_of_one_object_are_matched_nearest_first():
 
 def test_each_instance_of_an_object_is_its_own_run_of_modes():
     def row(score, x):
-        return bop.ResultRow(0, 0, 5, score, make_pose(np.eye(3), [x, 0.0, 1.0]), 1.0)
+        return ResultRow(0, 0, 5, score, make_pose(np.eye(3), [x, 0.0, 1.0]), 1.0)
 
     # Two instances, as `estimate` writes them: the first's second mode outscores the second's estimate.
     a, a2, b, b2, b3 = row(0.52, 0.0), row(0.48, 0.05), row(0.45, 0.3), row(0.3, 0.35), row(0.25, 0.4)
@@ -81,14 +82,14 @@ def test_each_instance_of_an_object_is_its_own_run_of_modes():
 def test_score_command_prints_the_summary_and_names_a_foreign_frame(touching_dataset, tmp_path):
     _, rows = _truth_rows(touching_dataset)
     good = tmp_path / "good.csv"
-    bop.write_results_csv(good, rows)
+    write_results_csv(good, rows)
     run = _workbench("score", touching_dataset, good, "--json", tmp_path / "scores.json")
     assert run.returncode == 0, run.stderr
     assert f"{len(rows)}/{len(rows)} objects right" in run.stdout and "1 with every object right" in run.stdout
     assert (tmp_path / "scores.json").is_file()
 
     foreign = tmp_path / "foreign.csv"
-    bop.write_results_csv(foreign, [bop.ResultRow(7, 3, r.obj_id, r.score, r.T_cam_obj, r.time) for r in rows])
+    write_results_csv(foreign, [ResultRow(7, 3, r.obj_id, r.score, r.T_cam_obj, r.time) for r in rows])
     run = _workbench("score", touching_dataset, foreign)
     assert run.returncode == 2 and "foreign.csv" in run.stderr and "scene 7 image 3" in run.stderr
     assert "Traceback" not in run.stderr

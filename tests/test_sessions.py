@@ -14,16 +14,27 @@ import pytest
 from PIL import Image
 
 from workbench.errors import InputError
-from workbench.inference.estimator import Estimator, parse_search
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator, parse_search
 from workbench.inference.smc.particles import Sigma
 from workbench.physics import PhysicsConfig
 from workbench.problem.build import load_bop_problem
 from workbench.problem.problem import ProblemConfig
 from workbench.render.depth import RenderConfig
 from workbench.render.likelihood import LikelihoodConfig
-from workbench.sessions.store import check_dataset, check_name, frame_ref_for, list_sessions, load_session, restore_estimator, save_session, session_problem, session_state_from, suggest_name
+from workbench.sessions.store import (
+    check_dataset,
+    check_name,
+    frame_ref_for,
+    list_sessions,
+    load_session,
+    restore_estimator,
+    save_session,
+    session_problem,
+    session_state_from,
+    suggest_name,
+)
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 

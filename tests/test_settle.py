@@ -3,14 +3,32 @@
 import numpy as np
 import pytest
 
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose, rot_z
+from workbench.inference.answer.settle import (
+    TURN_MARGIN,
+    half_turn_names,
+    half_turns,
+    hop,
+    is_flat,
+    level_flips,
+    pattern_search,
+    quarter_turn_names,
+    quarter_turns,
+    ridge_moves,
+    run,
+    search,
+    single_moves,
+    small_turns,
+    turn_over,
+    within,
+)
 from workbench.inference.config import EstimatorConfig
-from workbench.inference.answer.settle import TURN_MARGIN, half_turn_names, half_turns, hop, is_flat, level_flips, pattern_search, quarter_turn_names, quarter_turns, ridge_moves, run, search, single_moves, small_turns, turn_over, within
-from workbench.score.metrics import position_error, rotation_error
+from workbench.inference.estimator import Estimator
+from workbench.inference.smc.filter import Update
 from workbench.physics import STATUS_AS_GIVEN
 from workbench.problem.build import load_bop_problem
+from workbench.score.metrics import position_error, rotation_error
 
 pytestmark = pytest.mark.slow  # needs pybullet and OpenGL
 
@@ -134,11 +152,11 @@ def test_settling_fits_the_estimate_to_a_scene_physics_cannot_rest(frame_and_pro
     try:
         estimator = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0), evaluator)
         resting = evaluator.evaluate(gt[None])
-        estimator.filter.estimate, estimator.filter.estimate_loglik = resting.projected[0].copy(), float(resting.loglik[0])
+        estimator.filter.apply(Update(estimate=(resting.projected[0].copy(), float(resting.loglik[0]))))
         settled = estimator.settle()
         as_given = evaluator.evaluate(resting.projected, project=False).loglik[0]
         paper = Estimator(seen_problem, EstimatorConfig(particles=4, seed=0, proposals="paper"), evaluator)
-        paper.filter.estimate, paper.filter.estimate_loglik = estimator.filter.estimate, estimator.filter.estimate_loglik
+        paper.filter.apply(Update(estimate=(estimator.filter.estimate, estimator.filter.estimate_loglik)))
         unsettled = paper.settle()
     finally:
         evaluator.close()
@@ -409,7 +427,7 @@ def test_settling_turns_a_mug_whose_handle_faces_the_wrong_way(frame_and_problem
     evaluator = LocalEvaluator(seen)
     try:
         estimator = Estimator(seen, EstimatorConfig(particles=4, seed=0), evaluator)
-        estimator.filter.estimate, estimator.filter.estimate_loglik = rested.projected[1].copy(), float(rested.loglik[1])
+        estimator.filter.apply(Update(estimate=(rested.projected[1].copy(), float(rested.loglik[1]))))
         settled = estimator.settle()
     finally:
         evaluator.close()

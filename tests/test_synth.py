@@ -11,11 +11,12 @@ import pytest
 import trimesh
 from PIL import Image
 
-from workbench.score import metrics
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_z
 from workbench.io import bop
+from workbench.io.results import read_results_csv
 from workbench.problem.support import estimate_support
+from workbench.score import metrics
 from workbench.synth import CATEGORIES, load_distractors, make_demo, make_scenes, true_table_pose, visible_masks
 from workbench.synth.config import DESKS, PAPER_CATEGORIES, SHAPE_CATEGORIES, SynthConfig
 from workbench.synth.objects import BOX_BY_ID, BOXES, OBJECT_BY_ID, OBJECTS, ROUND, item_mesh, tilt_deg
@@ -338,6 +339,6 @@ def test_estimate_runs_on_a_frame_without_the_table_pose(dataset, tmp_path):
     csv = tmp_path / "r.csv"
     assert main(["estimate", str(out), "--scene", str(m["scene_id"]), "--frame", "0", "--particles", "16",
                  "--iterations", "2", "--out", str(csv)]) == 0
-    rows = bop.read_results_csv(csv)
+    rows = read_results_csv(csv)
     assert sorted({r.obj_id for r in rows}) == sorted(m["obj_ids"])  # each object's modes, one row or more
     assert all(np.all(np.isfinite(r.T_cam_obj)) and 0.2 < r.T_cam_obj[2, 3] < 3.0 for r in rows)

@@ -14,7 +14,7 @@ import trimesh
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, rotation_angle
-from workbench.io import bop
+from workbench.io import bop, readers
 from workbench.physics.bullet import pybullet as pb
 from workbench.synth import load_distractors, make_scenes, true_table_pose
 from workbench.synth.config import SHAPE_CATEGORIES, SynthConfig
@@ -180,7 +180,7 @@ def test_raised_objects_rest_on_the_box_above_the_table(dataset):
     scene_dir = out / "test" / f"{m['scene_id']:06d}"
     assert "cam_R_w2c" not in json.loads((scene_dir / "scene_camera.json").read_text())["0"]
     support = next(e for e in _distractor_entries(out, m["scene_id"]) if e["kind"] == "support")
-    height = support["extents_mm"][2] * bop.MM
+    height = support["extents_mm"][2] * readers.MM
     assert 0.05 <= height <= 0.20 and min(support["extents_mm"][:2]) >= 300
     for i, T_i in zip(m["obj_ids"], _world_poses(out, m)):
         lowest = (MODELS[i].vertices @ T_i[:3, :3].T + T_i[:3, 3])[:, 2].min()

@@ -18,7 +18,7 @@ from workbench.bench.tables import (
     table_one,
     table_two,
 )
-from workbench.io.bop import read_results_csv
+from workbench.io.results import read_results_csv
 from workbench.problem.scene import ObjectModel
 
 pytestmark = pytest.mark.slow  # needs whole benchmarks: pybullet and OpenGL

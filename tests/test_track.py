@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench.score.scoring import score_results
 from workbench.cli import main
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.track_search import settle_each
 from workbench.io import bop
-from workbench.score.metrics import is_right
+from workbench.io.results import read_results_csv
 from workbench.problem.support import estimate_support
+from workbench.score.metrics import is_right
+from workbench.score.scoring import score_results
 from workbench.synth.sequence import Push, TakeOut, make_sequences
 from workbench.track.config import TrackConfig
 from workbench.track.motion import depth_motion, given_motion, read_world_poses
@@ -59,7 +60,7 @@ def test_a_static_sequence_is_tracked_with_every_object_right(tmp_path, capsys):
                  *FIRST]) == 0
     err = capsys.readouterr().err
     assert "scene 0 frame 1: tracked in" in err and "scene 0 frame 2: tracked in" in err
-    frames = score_results(data, bop.read_results_csv(out))
+    frames = score_results(data, read_results_csv(out))
     assert [f.im_id for f in frames] == [0, 1, 2] and all(f.right for f in frames)
 
 

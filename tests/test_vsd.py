@@ -10,11 +10,12 @@ import pytest
 import trimesh
 from test_cli import _workbench
 
-from workbench.score.vsd import VSDConfig, diameter, distance_image, frame_vsd, object_vsd, render_alone, vsd_errors
 from workbench.cli import DEMO_DATASET
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
+from workbench.io.results import ResultRow, write_results_csv
 from workbench.score.metrics import is_right, rotation_error
+from workbench.score.vsd import VSDConfig, diameter, distance_image, frame_vsd, object_vsd, render_alone, vsd_errors
 
 TAU, DELTA = VSDConfig().tau, VSDConfig().delta
 
@@ -153,9 +154,9 @@ def test_an_object_without_an_estimate_is_an_error_of_one(mug_frame):
 @pytest.mark.slow  # a `workbench score` process: OpenGL
 def test_score_reports_vsd_per_object_and_in_the_summary(tmp_path):
     frame = bop.load_frame(DEMO_DATASET, 0, 0)
-    truth = [bop.ResultRow(0, 0, obj_id, 1.0, T.copy(), 1.0) for obj_id, T in zip(frame.object_ids, frame.gt_T_cam_obj)]
+    truth = [ResultRow(0, 0, obj_id, 1.0, T.copy(), 1.0) for obj_id, T in zip(frame.object_ids, frame.gt_T_cam_obj)]
     results = tmp_path / "truth.csv"
-    bop.write_results_csv(results, truth)
+    write_results_csv(results, truth)
     run = _workbench("score", DEMO_DATASET, results, "--json", tmp_path / "truth.json")
     assert run.returncode == 0, run.stderr
     n = len(truth)
@@ -170,7 +171,7 @@ def test_score_reports_vsd_per_object_and_in_the_summary(tmp_path):
     # The first object 30 cm away; the second not estimated at all
     away = truth[0].T_cam_obj.copy()
     away[:3, 3] += [0.3, 0.0, 0.0]
-    bop.write_results_csv(results, [bop.ResultRow(0, 0, truth[0].obj_id, 1.0, away, 1.0)])
+    write_results_csv(results, [ResultRow(0, 0, truth[0].obj_id, 1.0, away, 1.0)])
     run = _workbench("score", DEMO_DATASET, results, "--json", tmp_path / "truth.json")  # ours: replaced
     assert run.returncode == 0, run.stderr
     scores = json.loads((tmp_path / "truth.json").read_text())

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.checks import check_count, check_estimator_config, check_problem_config, check_seed, check_workers
-from workbench.errors import InputError
-from workbench.inference.config import METHODS, EstimatorConfig
+from workbench.errors import InputError, check_count
+from workbench.evaluation.pool import check_workers
+from workbench.inference.config import METHODS, EstimatorConfig, check_seed
 from workbench.inference.search.moves.registry import PROPOSALS
 from workbench.inference.smc.particles import STATES, Sigma
 from workbench.problem.problem import ProblemConfig
@@ -116,8 +116,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
     # Every setting and the output path are checked before anything is loaded or started.
     config, problem = estimator_config(args), problem_config(args)
-    check_estimator_config(config)
-    check_problem_config(problem)
+    config.validate("")
+    problem.validate()
     check_workers(args.workers)
     check_count(args.max_retries, "--max-retries", low=0)
     ray = ray_config(args)
@@ -134,7 +134,7 @@ def _open_outputs(args: argparse.Namespace):
     """``estimate``'s and ``track``'s output files, checked to be two different files and each locked for the run
     -> (the PosteriorFile or None, the ResultsFile)."""
     from workbench.io.outputs import check_distinct
-    from workbench.run.runner import PosteriorFile, ResultsFile
+    from workbench.io.results import PosteriorFile, ResultsFile
 
     check_distinct({"--out": args.out, "--posterior": args.posterior})
     posterior = (None if args.posterior is None else
@@ -151,7 +151,8 @@ def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, p
                    posterior=None) -> int:
     """``estimate``'s frames, once its settings are checked and its results file is open."""
     from workbench.io import bop
-    from workbench.run.runner import check_resumed, estimate_frames
+    from workbench.io.results import check_resumed
+    from workbench.run.runner import estimate_frames
 
     frames = bop.list_frames(args.dataset, split=args.split)
     if args.scene is not None:
@@ -188,8 +189,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
     # Every setting, the frames and the output paths are checked before anything is loaded or started.
     config, problem = estimator_config(args), problem_config(args)
-    check_estimator_config(config)
-    check_problem_config(problem)
+    config.validate("")
+    problem.validate()
     check_workers(args.workers)
     check_count(args.max_retries, "--max-retries", low=0)
     check_count(args.track_particles, "--track-particles", low=1)
@@ -202,7 +203,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         sequences[scene] = sequence_frames(args.dataset, scene, args.split, args.frames)
         # The camera poses, if given, all there.
         sequence_world(args.dataset, scene, args.split, args.motion, sequences[scene])
-    from workbench.run.runner import check_resumed
+    from workbench.io.results import check_resumed
     from workbench.track.run import track_sequences
 
     posterior, results = _open_outputs(args)
@@ -238,15 +239,16 @@ def _cmd_track(args: argparse.Namespace) -> int:
 def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
+    from workbench.io.results import read_results_csv
     from workbench.score.scoring import report, score_results, summary
     from workbench.score.vsd import VSDConfig
-    from workbench.io import bop
 
     if not args.dataset.is_dir():
         raise InputError(args.dataset, "no such dataset folder")
     from workbench.io.outputs import check_distinct
 
-    check_distinct({"the results CSV being scored": args.results, "--json": args.json, "--reliability": args.reliability})
+    check_distinct({"the results CSV being scored": args.results, "--json": args.json,
+                    "--reliability": args.reliability})
     if args.json is not None:  # before any scoring: --json gets the guards of every file a command writes
         from workbench.io.outputs import check_output_file
 
@@ -257,7 +259,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
         check_output_file(args.reliability, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n",
                           force=args.force, what="a reliability diagram", flag="--reliability")
     vsd = VSDConfig()  # BOP's: tau 20 mm, theta 0.3, delta 15 mm; AR_VSD's grid
-    frames = score_results(args.dataset, bop.read_results_csv(args.results), split=args.split,
+    frames = score_results(args.dataset, read_results_csv(args.results), split=args.split,
                            results_path=args.results, vsd=vsd)
     print("\n".join(report(frames, vsd)))
     if args.reliability is not None:
@@ -313,8 +315,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
         check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
-    config.validate()  # before any server starts
-    check_estimator_config(config)
+    config.validate("")  # before any server starts
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
           session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
     return 0
@@ -431,7 +432,7 @@ def _check_bench_out(out: Path, methods: list[str]) -> None:
     files it writes there replace only those an earlier bench wrote (the guards of every output file)."""
     from workbench.bench.tables import is_report_json, is_report_md
     from workbench.io.outputs import check_output_file, dataset_folder_of
-    from workbench.run.runner import is_results_csv
+    from workbench.io.results import is_results_csv
 
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file: --out names the folder the tables are written to")

@@ -13,6 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from workbench.errors import InputError
+
+# Rotation and bottom-row tolerance of a rigid pose (``check_rigid``): files store rotations with ~6 digits, products
+# of many rotations drift by ~1e-12.
+RIGID_TOLERANCE = 1e-3
+
 
 def rot_x(a: np.ndarray | float) -> np.ndarray:
     """Rotation about x. ``a``: (...) -> (..., 3, 3)."""
@@ -188,3 +194,26 @@ def principal_heading(points: np.ndarray) -> float:
     xy = points[:, :2] - points[:, :2].mean(axis=0)
     _, v = np.linalg.eigh(xy.T @ xy)
     return float(np.arctan2(v[1, -1], v[0, -1]))
+
+
+def check_rigid(T, what: str, path=None) -> np.ndarray:
+    """Poses (..., 4, 4) -> float64 copy, or InputError(path, ...) naming ``what`` when a pose is not finite,
+    its rotation is not orthonormal with determinant +1 (a reflection), or its bottom row is not 0 0 0 1."""
+    try:
+        T = np.array(T, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise InputError(path, f"{what}: poses must be 4x4 matrices of numbers") from e
+    if T.ndim < 2 or T.shape[-2:] != (4, 4):
+        raise InputError(path, f"{what}: poses must be 4x4 matrices, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InputError(path, f"{what}: a pose contains NaN or inf")
+    if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(initial=0.0) > RIGID_TOLERANCE:
+        raise InputError(path, f"{what}: the bottom row of a pose must be [0, 0, 0, 1]")
+    R = T[..., :3, :3]
+    # Entries of a rotation lie in [-1, 1]: checked first so that huge values are refused without overflowing.
+    if np.abs(R).max(initial=0.0) > 1 + RIGID_TOLERANCE or \
+            np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max(initial=0.0) > RIGID_TOLERANCE:
+        raise InputError(path, f"{what}: a rotation is not orthonormal")
+    if np.any(np.linalg.det(R) < 0):
+        raise InputError(path, f"{what}: a rotation has determinant -1 (a reflection, not a rotation)")
+    return T

@@ -18,19 +18,18 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.checks import check_rigid
 from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
-from workbench.geometry import invert_pose
+from workbench.geometry import check_rigid, invert_pose
 from workbench.inference.answer.settle import pattern_search
-from workbench.io import bop
-from workbench.score.metrics import add_s, model_points, position_error, rotation_error
+from workbench.io import bop, readers
+from workbench.io.readers import MM
 from workbench.problem.problem import Problem
 from workbench.render.likelihood import scene_loglik
+from workbench.score.metrics import add_s, model_points, position_error, rotation_error
 
 LABELS_FILE = "scene_gt_labels.json"
 ORIGINAL_FILE = "scene_gt.json"
-MM = bop.MM
 
 
 def _scene(problem: Problem, T_world_obj) -> np.ndarray:
@@ -178,7 +177,7 @@ def _image_entries(path: Path, im_id: int) -> list:
     InputError naming the file where the entry is not a list of objects (nothing is then written)."""
     if not path.is_file():
         return []
-    content = bop.read_json(path)
+    content = readers.read_json(path)
     if not isinstance(content, dict):
         raise InputError(path, "expected a JSON object keyed by image id")
     entries = content.get(str(im_id), [])
@@ -224,7 +223,7 @@ def load_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarra
     path = labels_path(dataset, scene_id, split) if path is None else Path(path)
     if not path.is_file():
         return [None] * len(obj_ids)
-    content = bop.read_json(path)
+    content = readers.read_json(path)
     if not isinstance(content, dict):
         raise InputError(path, "expected a JSON object keyed by image id")
     entries = content.get(str(im_id), [])
@@ -239,7 +238,7 @@ def load_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarra
             if not used[j] and isinstance(e, dict) and e.get("obj_id") == obj_id:
                 if "cam_R_m2c" not in e or "cam_t_m2c" not in e:
                     raise InputError(path, f"image {im_id} object {obj_id}: needs cam_R_m2c and cam_t_m2c")
-                T_cam_obj = bop.parse_pose(e["cam_R_m2c"], e["cam_t_m2c"], path, f"image {im_id} object {obj_id}")
+                T_cam_obj = readers.parse_pose(e["cam_R_m2c"], e["cam_t_m2c"], path, f"image {im_id} object {obj_id}")
                 found, used[j] = T_world_cam @ T_cam_obj, True
                 break
         out.append(found)

@@ -20,9 +20,9 @@ import trimesh
 
 from workbench.errors import InputError
 from workbench.geometry import backproject, invert_pose, make_pose, transform_points
-from workbench.score.metrics import box_symmetries
 from workbench.problem.scene import Frame, ObjectModel
 from workbench.problem.support import ransac_plane
+from workbench.score.metrics import box_symmetries
 from workbench.synth import visible_masks
 
 

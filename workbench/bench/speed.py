@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.inference.estimator import Estimator
 from workbench.evaluation import STAGES, make_evaluator
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator
 from workbench.io import bop
 from workbench.physics import collision_shapes
 from workbench.problem.build import load_bop_problem

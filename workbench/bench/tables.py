@@ -22,21 +22,30 @@ import numpy as np
 from tqdm import tqdm
 
 from workbench.bench.baseline import estimate_icp_fits
-from workbench.score.gt_info import HIDDEN_VISIB, scene_categories, visib_fractions
 from workbench.errors import InputError
-from workbench.inference.estimator import Estimator, object_confidence
 from workbench.evaluation import ChunkedEvaluator, Evaluator, make_evaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
-from workbench.run.frames import FrameFailure, run_frames
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
+from workbench.inference.estimator import Estimator, object_confidence
 from workbench.io import bop
-from workbench.io.bop import ResultRow
-from workbench.score.metrics import add_s, closest_symmetric, iterations_to_converge, model_points, mssd, position_error, rotation_error, rpy_errors
 from workbench.io.outputs import write_file
+from workbench.io.results import RESULTS_HEADER, ResultRow, results_csv_lines
 from workbench.problem.build import load_bop_problem
 from workbench.problem.problem import Problem
 from workbench.problem.scene import Frame, ObjectModel
+from workbench.run.frames import FrameFailure, run_frames
+from workbench.score.gt_info import HIDDEN_VISIB, scene_categories, visib_fractions
+from workbench.score.metrics import (
+    add_s,
+    closest_symmetric,
+    iterations_to_converge,
+    model_points,
+    mssd,
+    position_error,
+    rotation_error,
+    rpy_errors,
+)
 from workbench.synth import CATEGORIES, frame_table_pose
 
 METHODS = ("icp", "pipf", "mcpf")
@@ -604,9 +613,9 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
     }
     report = build_report(settings_out, objects, runs)
     for method in methods:  # each whole or not at all; a full disk is an InputError naming the file
-        lines = bop.results_csv_lines([row for r in done for row in r.rows[method]])
+        lines = results_csv_lines([row for r in done for row in r.rows[method]])
         write_file(out / f"results_{method}.csv",
-                   "".join(f"{line}\n" for line in [",".join(bop.RESULTS_HEADER), *lines]))
+                   "".join(f"{line}\n" for line in [",".join(RESULTS_HEADER), *lines]))
     write_file(out / "report.json", json.dumps(report, indent=1) + "\n")
     markdown = render_report(report)
     write_file(out / "report.md", markdown)

@@ -15,8 +15,8 @@ from typing import Callable, ClassVar, Protocol
 
 import numpy as np
 
-from workbench.checks import check_rigid
 from workbench.errors import InputError
+from workbench.geometry import check_rigid
 from workbench.inference.smc.particleset import Rows
 from workbench.problem.problem import Problem
 from workbench.problem.scene import Table

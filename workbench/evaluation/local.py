@@ -8,8 +8,8 @@ from typing import Callable
 
 import numpy as np
 
-from workbench.checks import check_rigid
 from workbench.evaluation.base import Done, Evaluation, admissible, check_sink, run_here, split_batch
+from workbench.geometry import check_rigid
 from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer

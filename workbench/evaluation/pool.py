@@ -11,11 +11,60 @@ from typing import Callable
 
 import numpy as np
 
+from workbench.errors import InputError, is_whole_number
 from workbench.evaluation.base import Evaluation, WorkerCrashed, joined, split_batch, split_calls
 from workbench.evaluation.local import LocalEvaluator, prepare_meshes
 from workbench.problem.problem import Problem
 
 log = logging.getLogger(__name__)
+# Memory one evaluation worker needs: docs/benchmarks.md's speed table measured 433 MB peak per worker (4 objects, 1444
+# particles); the rest is headroom for larger meshes and the main process's share. It bounds ``--workers``.
+WORKER_MEMORY_BYTES = 600 * 2**20
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, not the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new processes (Linux MemAvailable), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def max_workers() -> int:
+    """The most evaluation workers worth starting here: one per usable core, and no more than the available
+    memory holds at ``WORKER_MEMORY_BYTES`` each (at least 1)."""
+    bound = usable_cores()
+    memory = available_memory()
+    if memory is not None:
+        bound = min(bound, memory // WORKER_MEMORY_BYTES)
+    return max(1, int(bound))
+
+
+def check_workers(workers, where: str = "--workers") -> int:
+    """``workers`` if 1 <= workers <= max_workers(), else InputError saying the bound and why."""
+    bound = max_workers()
+    if not is_whole_number(workers) or not 1 <= workers <= bound:
+        memory = available_memory()
+        free = "" if memory is None else f", {memory / 2**30:.1f} GiB free"
+        raise InputError(where, f"evaluation workers must be a whole number from 1 to {bound} on this machine "
+                                f"({usable_cores()} cores{free}, ~{WORKER_MEMORY_BYTES // 2**20} MB per worker), "
+                                f"got {workers!r}")
+    return int(workers)
 
 
 def _worker(problem: Problem, conn, factory: Callable[[Problem], object] | None = None) -> None:

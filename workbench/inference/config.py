@@ -3,15 +3,26 @@ the search (proposals, the move mix, the library, coarse to fine, settling)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from workbench.errors import InputError
+from workbench.errors import InputError, check_count, is_whole_number
 from workbench.inference.search.moves.registry import PROPOSALS, MoveMix
 from workbench.inference.smc.particles import STATES, Sigma
 
 METHODS = ("pipf", "mcpf")
+MAX_SEED = 2**64 - 1
+MAX_SIGMA_M = 1.0  # a diffusion step of more than a metre leaves any table scene
+MAX_SIGMA_RAD = 2 * math.pi
+
+
+def check_seed(seed, where: str = "--seed") -> int:
+    """numpy's generators take seeds 0 <= seed < 2**64 here (a negative one would fail only inside a worker)."""
+    if not is_whole_number(seed) or not 0 <= seed <= MAX_SEED:
+        raise InputError(where, f"the seed must be a whole number from 0 to 2**64-1, got {seed!r}")
+    return int(seed)
 
 
 @dataclass(frozen=True)
@@ -59,7 +70,10 @@ class EstimatorConfig:
     # (docs/journal/2026-11.md).
     leaning: bool = True
 
-    def validate(self) -> None:
+    def validate(self, where: str | None = None) -> None:
+        """InputError naming the first setting at fault. Settings a user gave (``where`` not None: "" on the command
+        line, whose flags name them, or the prefix of their names in a file, e.g. ``estimator_config.``) are also
+        held to the bounds of a run: the seed numpy takes, whole counts, a diffusion that stays on a table."""
         if self.method not in METHODS:
             raise InputError("method", f"unknown method {self.method!r}; use one of {', '.join(METHODS)}")
         if self.state not in STATES:
@@ -82,3 +96,12 @@ class EstimatorConfig:
         if not 0.0 < self.target_ess <= 1.0:
             raise InputError("target_ess", f"must lie in (0, 1], got {self.target_ess}")
         self.sigma.validate()
+        if where is None:
+            return
+        check_seed(self.seed, f"{where}seed" if where else "--seed")
+        check_count(self.iterations, f"{where}iterations" if where else "--iterations", low=0)
+        check_count(self.particles, f"{where}particles" if where else "--particles", high=100_000)
+        sigma = np.asarray(self.sigma.as_array(), dtype=np.float64)  # x, y, z metres; roll, pitch, yaw radians
+        if np.any(sigma[:3] > MAX_SIGMA_M) or np.any(sigma[3:] > MAX_SIGMA_RAD):
+            raise InputError(f"{where}sigma", f"diffusion must be at most {MAX_SIGMA_M:g} m and 360 degrees per "
+                                              f"iteration, got {sigma.tolist()}")

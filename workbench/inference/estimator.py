@@ -12,8 +12,6 @@ from dataclasses import replace
 
 import numpy as np
 
-from workbench.checks import check_rigid
-from workbench.errors import InputError
 from workbench.evaluation import Evaluator
 from workbench.inference.answer.posterior import Posterior
 from workbench.inference.answer.settle import Tie
@@ -23,7 +21,7 @@ from workbench.inference.search.default_search import DefaultSearch
 from workbench.inference.search.moves.registry import MoveKind
 from workbench.inference.search.paper_search import PaperSearch
 from workbench.inference.smc.filter import IterationReport, ParticleFilter, Search
-from workbench.io.bop import MAX_TABLE_DISTANCE
+from workbench.io import readers as read
 from workbench.problem.problem import Problem
 from workbench.sessions.answer import Answer, answer_json, parse_answer
 
@@ -170,32 +168,6 @@ class Estimator:
         self._settled_from = None if answer is None else estimate.copy()
 
 
-def _array(value, shape: tuple, dtype, where: str) -> np.ndarray:
-    a = np.asarray(value, dtype=dtype)
-    if a.shape != shape or not np.all(np.isfinite(a)):
-        raise ValueError(f"search.{where} must be finite numbers of shape {shape}, got shape {a.shape}")
-    return a
-
-
-def _poses(value, shape: tuple, where: str) -> np.ndarray:
-    """Scene poses of the given ``shape`` (..., 4, 4), table frame, m: rigid, and within MAX_TABLE_DISTANCE of the
-    table's origin. A corrupt session's pose 1e308 m away would otherwise overflow the search's distances."""
-    a = _array(value, shape, np.float64, where)
-    try:
-        check_rigid(a, f"search.{where}")
-    except InputError as e:
-        raise ValueError(e.problem) from e
-    if np.abs(a[..., :3, 3]).max(initial=0.0) > MAX_TABLE_DISTANCE:
-        raise ValueError(f"search.{where}: a position lies more than {MAX_TABLE_DISTANCE:g} m from the table")
-    return a
-
-
-def _bool(value, where: str) -> bool:
-    if not isinstance(value, bool):
-        raise ValueError(f"search.{where} must be true or false, got {value!r}")
-    return value
-
-
 def parse_search(search, K: int) -> dict:
     """The ``search`` entry of a ``state_dict`` (plain JSON lists) for K objects -> ``map`` (K, 4, 4) or None,
     ``map_loglik``, ``map_kind`` (MoveKind), ``floor_in`` (``ParticleFilter.floor_in``; true in states saved
@@ -210,15 +182,16 @@ def parse_search(search, K: int) -> dict:
     try:
         m = search.get("map")
         ll = search.get("map_loglik")
-        sink = float(_array(search.get("sink", 0.0), (), np.float64, "sink"))
+        sink = float(read.finite_array(search.get("sink", 0.0), (), np.float64, "search.sink"))
         if not 0.0 <= sink <= 1.0:
             raise ValueError(f"search.sink must lie in [0, 1] m, got {sink}")
         lib = search.get("library")
         library = None
         if lib is not None:
-            poses = [_poses(p, (len(p), 4, 4), "library.poses") if len(p) else np.zeros((0, 4, 4))
+            poses = [read.table_poses(p, (len(p), 4, 4), "search.library.poses") if len(p) else np.zeros((0, 4, 4))
                      for p in lib["poses"]]
-            weights = [_array(w, (len(p),), np.float64, "library.weights") for w, p in zip(lib["weights"], poses)]
+            weights = [read.finite_array(w, (len(p),), np.float64, "search.library.weights")
+                       for w, p in zip(lib["weights"], poses)]
             if len(poses) != K or len(weights) != K:
                 raise ValueError(f"search.library must list {K} objects")
             if any(len(w) and (np.any(w < 0) or abs(w.sum() - 1.0) > 1e-6) for w in weights):
@@ -226,22 +199,24 @@ def parse_search(search, K: int) -> dict:
             library = datadriven.Library(poses, weights)
         fitted = set()
         for key in search.get("fitted", []):
-            pairs = tuple((int(k), tuple(_array(pose, (16,), np.float64, "fitted").tolist())) for k, pose in key)
+            pairs = tuple((int(k), tuple(read.finite_array(pose, (16,), np.float64, "search.fitted").tolist()))
+                          for k, pose in key)
             if not pairs or any(not 0 <= k < K for k, _ in pairs):
                 raise ValueError(f"search.fitted must list assemblies of objects 0 to {K - 1}")
             fitted.add(pairs)
         polished_at = search.get("polished_at")
         return {
-            "map": None if m is None else _poses(m, (K, 4, 4), "map"),
-            "map_loglik": float("-inf") if ll is None else float(_array(ll, (), np.float64, "map_loglik")),
+            "map": None if m is None else read.table_poses(m, (K, 4, 4), "search.map"),
+            "map_loglik": float("-inf") if ll is None
+            else float(read.finite_array(ll, (), np.float64, "search.map_loglik")),
             "map_kind": MoveKind(int(search.get("map_kind", 0))),
-            "floor_in": _bool(search.get("floor_in", True), "floor_in"),
+            "floor_in": read.boolean(search.get("floor_in", True), "search.floor_in"),
             "sink": sink,
-            "evaluations": int(_array(search.get("evaluations", 0), (), np.int64, "evaluations")),
+            "evaluations": int(read.finite_array(search.get("evaluations", 0), (), np.int64, "search.evaluations")),
             "library": library,
             "fitted": fitted,
             "polished_at": float("-inf") if polished_at is None
-            else float(_array(polished_at, (), np.float64, "polished_at")),
+            else float(read.finite_array(polished_at, (), np.float64, "search.polished_at")),
         }
     except (TypeError, KeyError, IndexError, OverflowError) as e:
         raise ValueError(f"malformed search entry ({type(e).__name__}: {e})") from e

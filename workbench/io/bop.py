@@ -1,4 +1,4 @@
-"""Reading and writing datasets in the BOP format, and the BOP results CSV.
+"""Reading and writing datasets in the BOP format (the results CSV is ``io/results.py``'s).
 
 Format (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md)::
 
@@ -13,17 +13,16 @@ Format (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_form
 
 Rotations are 9 numbers row-major, translations millimetres. In memory everything is metres (``problem/scene.py``).
 ``DATASET`` may be the dataset root or a split folder (then the models are in its parent). Every problem with
-the files raises ``InputError`` naming the file. The readers and checks (``read_json``, ``read_depth_png``,
-``read_mesh``, ``parse_K``, ``parse_pose``, ``parse_T``, ``check_*``) are shared with ``plainframe.py``.
+the files raises ``InputError`` naming the file: the typed JSON readers are ``io/readers.py``'s; the image, mesh and
+camera readers and checks here (``read_depth_png``, ``read_mesh``, ``parse_K``, ``check_*``) are shared with
+``plainframe.py``.
 """
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -33,14 +32,24 @@ from PIL import Image, UnidentifiedImageError
 
 from workbench.errors import InputError
 from workbench.geometry import make_pose
-from workbench.meshes.heavy import loading
 from workbench.io.outputs import replace_file
+from workbench.io.readers import (
+    MAX_TABLE_DISTANCE,
+    MM,
+    expect_int,
+    expect_list,
+    expect_number,
+    expect_object,
+    parse_pose,
+    parse_T,
+    read_json,
+)
+from workbench.meshes.heavy import loading
 from workbench.problem.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
 _WARNED_OPEN: set[tuple[str, int, int]] = set()  # open meshes already warned about (read_mesh)
 
-MM = 1e-3  # metres per millimetre
 # Folders that hold the meshes, in order of preference (T-LESS ships models_cad/models_reconst, no models/).
 MODEL_DIRS = ("models", "models_cad", "models_eval", "models_reconst")
 # A table scene seen by a depth sensor: the median valid depth must lie in this range (metres) or the units are off.
@@ -48,22 +57,11 @@ PLAUSIBLE_MEDIAN_DEPTH = (0.15, 6.0)
 # Continuous symmetries (bowls, cans) become this many discrete rotations about their axis.
 CONTINUOUS_SYMMETRY_STEPS = 36
 MAX_FOCAL_IN_IMAGES = 100
-MAX_TABLE_DISTANCE = 100.0  # metres from the camera to the table frame's origin (along any axis)
 MAX_DEPTH_SCALE = 1e4  # millimetres per PNG unit; beyond it 16-bit depth holds nothing but astronomy
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # Files
-
-
-def read_json(path: Path) -> dict | list:
-    """The parsed JSON file, or InputError naming it."""
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(path, f"corrupt JSON ({e}); re-export or re-download the file") from e
 
 
 def _write_json(path: Path, content: dict) -> None:
@@ -111,42 +109,6 @@ def read_rgb(path: Path) -> np.ndarray:
         raise InputError(path, f"corrupt or unreadable image ({e})") from e
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# Typed values: JSON that parses may still hold a string where a number belongs. Each reader names the file, the
-# key and what was expected.
-
-
-def expect_object(value, path: Path, what: str) -> dict:
-    if not isinstance(value, dict):
-        raise InputError(path, f"{what} must be a JSON object {{...}}, got {_kind(value)}")
-    return value
-
-
-def expect_list(value, path: Path, what: str) -> list:
-    if not isinstance(value, list):
-        raise InputError(path, f"{what} must be a JSON list [...], got {_kind(value)}")
-    return value
-
-
-def expect_int(value, path: Path, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise InputError(path, f"{what} must be a whole number, got {_kind(value)}")
-    return value
-
-
-def expect_number(value, path: Path, what: str) -> float:
-    """A finite JSON number -> float."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(path, f"{what} must be a number, got {_kind(value)}")
-    try:
-        number = float(value)
-    except OverflowError:  # an integer beyond float range
-        number = float("inf")
-    if not np.isfinite(number):
-        raise InputError(path, f"{what} must be a finite number, got {value!r:.40}")
-    return number
-
-
 def image_ids(content, path: Path) -> list[int]:
     """The image ids keying a per-image JSON object (scene_camera.json, scene_gt.json, ...)."""
     expect_object(content, path, "the file")
@@ -154,13 +116,6 @@ def image_ids(content, path: Path) -> list[int]:
     if bad:
         raise InputError(path, f"keys must be image ids (whole numbers), got {bad[0]!r:.40}")
     return [int(k) for k in content]
-
-
-def _kind(value) -> str:
-    """A JSON value for an error message: its type and the start of its text."""
-    names = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", int: "a number",
-             float: "a number", type(None): "null"}
-    return f"{names.get(type(value), type(value).__name__)} {json.dumps(value)[:40]}"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -182,35 +137,6 @@ def parse_K(values, path: Path) -> np.ndarray:
     if abs(K[0, 1]) > 1e-6 * K[0, 0] or K[1, 0] != 0:
         raise InputError(path, f"cam_K must be [fx, 0, cx, 0, fy, cy, 0, 0, 1] (no skew), got {K.ravel().tolist()}")
     return K
-
-
-def parse_pose(R, t, path: Path, what: str, t_unit: float = MM) -> np.ndarray:
-    """Rotation (9 numbers row-major) and translation (3 numbers, in units of ``t_unit`` metres) -> (4, 4) metres.
-
-    The rotation is re-orthonormalised: JSON files store it with a few digits only."""
-    try:
-        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
-        t = np.asarray(t, dtype=np.float64).reshape(3)
-    except (TypeError, ValueError) as e:
-        raise InputError(path, f"{what}: rotation must be 9 numbers and translation 3 numbers") from e
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        raise InputError(path, f"{what} contains NaN or inf")
-    # Entries of a rotation lie in [-1, 1]: checked first so that huge values are refused without overflowing.
-    if np.abs(R).max() > 1.001 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
-        raise InputError(path, f"{what}: the rotation is not orthonormal with determinant +1 ({R.ravel().tolist()})")
-    U, _, Vt = np.linalg.svd(R)
-    return make_pose(U @ Vt, t * t_unit)
-
-
-def parse_T(values, path: Path, what: str, t_unit: float = 1.0) -> np.ndarray:
-    """A 4x4 rigid pose (nested list or 16 numbers, translation in units of ``t_unit`` metres) -> (4, 4) metres."""
-    try:
-        T = np.asarray(values, dtype=np.float64).reshape(4, 4)
-    except (TypeError, ValueError) as e:
-        raise InputError(path, f"{what} must be a 4x4 matrix") from e
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise InputError(path, f"{what}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    return parse_pose(T[:3, :3], T[:3, 3], path, what, t_unit)
 
 
 def check_depth_units(depth: np.ndarray, path: Path, setting: str, fix: Callable[[float], str]) -> None:
@@ -685,7 +611,8 @@ def load_frame(
     )
 
 
-def _R_t_mm(T: np.ndarray) -> tuple[list[float], list[float]]:
+def R_t_mm(T: np.ndarray) -> tuple[list[float], list[float]]:
+    """A pose (4, 4) metres -> (R 9 numbers row-major, t 3 numbers mm), as scene_gt.json and the results CSV keep it."""
     T = np.asarray(T, dtype=np.float64)
     return T[:3, :3].ravel().tolist(), (T[:3, 3] / MM).tolist()
 
@@ -721,80 +648,13 @@ def save_frame(
         replace_file(scene_dir / "rgb" / f"{im_id:06d}.png", _png_bytes(np.asarray(rgb, dtype=np.uint8)))
     cam = {"cam_K": np.asarray(K, dtype=np.float64).ravel().tolist(), "depth_scale": float(depth_scale)}
     if T_cam_world is not None:
-        cam["cam_R_w2c"], cam["cam_t_w2c"] = _R_t_mm(T_cam_world)
+        cam["cam_R_w2c"], cam["cam_t_w2c"] = R_t_mm(T_cam_world)
     _merge_json(scene_dir / "scene_camera.json", im_id, cam)
     if gt is not None:
         entries = []
         for obj_id, T in gt:
-            R, t = _R_t_mm(T)
+            R, t = R_t_mm(T)
             entries.append({"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": int(obj_id)})
         _merge_json(scene_dir / "scene_gt.json", im_id, entries)
     if gt_info is not None:
         _merge_json(scene_dir / "scene_gt_info.json", im_id, gt_info)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Results
-
-
-@dataclass
-class ResultRow:
-    """One estimate in the BOP results format. ``T_cam_obj``: (4, 4) metres; ``time``: seconds for the whole
-    image (-1 when unknown)."""
-
-    scene_id: int
-    im_id: int
-    obj_id: int
-    score: float
-    T_cam_obj: np.ndarray
-    time: float
-
-
-RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
-
-
-def results_csv_lines(rows: list[ResultRow]) -> list[str]:
-    """The data lines (no header, no newline) of a BOP results CSV: R 9 numbers row-major, t 3 numbers in mm,
-    space-separated."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    for r in rows:
-        R, t = _R_t_mm(r.T_cam_obj)
-        w.writerow(
-            [r.scene_id, r.im_id, r.obj_id, f"{r.score:.12g}", " ".join(f"{v:.12g}" for v in R),
-             " ".join(f"{v:.12g}" for v in t), f"{r.time:.12g}"]
-        )
-    return buf.getvalue().splitlines()
-
-
-def write_results_csv(path: Path, rows: list[ResultRow]) -> None:
-    """BOP results CSV (``results_csv_lines`` under the header)."""
-    write_results_lines(path, results_csv_lines(rows))
-
-
-def write_results_lines(path: Path, lines: list[str]) -> None:
-    """The header and ``lines`` (from ``results_csv_lines``), atomically."""
-    replace_file(Path(path), "".join(f"{line}\n" for line in [",".join(RESULTS_HEADER), *lines]).encode())
-
-
-def read_results_csv(path: Path) -> list[ResultRow]:
-    """Inverse of ``write_results_csv``."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "results file not found")
-    lines = list(csv.reader(path.read_text().splitlines()))
-    if not lines or [c.strip() for c in lines[0]] != RESULTS_HEADER:
-        raise InputError(path, f"first line must be the header {','.join(RESULTS_HEADER)}")
-    rows = []
-    for n, cells in enumerate(lines[1:], start=2):
-        if not cells:
-            continue
-        try:
-            scene_id, im_id, obj_id, score, R, t, time = cells
-            ids = (int(scene_id), int(im_id), int(obj_id))
-            R, t = [float(v) for v in R.split()], [float(v) for v in t.split()]
-            score, time = float(score), float(time)
-        except ValueError as e:
-            raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: {cells}") from e
-        rows.append(ResultRow(*ids, score, parse_pose(R, t, path, f"line {n}"), time))
-    return rows

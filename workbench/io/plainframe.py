@@ -25,19 +25,14 @@ import trimesh
 from workbench.errors import InputError
 from workbench.io.bop import (
     MAX_DEPTH_SCALE,
-    MM,
     check_depth,
     check_depth_units,
     check_principal_point,
-    expect_int,
-    expect_number,
     parse_K,
-    parse_pose,
-    parse_T,
     read_depth_png,
-    read_json,
     read_mesh,
 )
+from workbench.io.readers import MM, expect_int, expect_number, parse_pose, parse_T, read_json
 from workbench.problem.scene import Camera, Frame, ObjectModel
 
 UNITS = {"mm": MM, "m": 1.0}

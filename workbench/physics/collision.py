@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from workbench.meshes import cache
 from workbench.errors import InputError
 from workbench.geometry import make_pose
+from workbench.meshes import cache
 from workbench.meshes.heavy import working_mesh
 from workbench.physics.bullet import pybullet
 

@@ -12,12 +12,21 @@ from functools import cached_property
 
 import numpy as np
 
-from workbench.errors import InputError
+from workbench.errors import InputError, check_count
 from workbench.geometry import backproject, invert_pose, transform_points
 from workbench.physics import PhysicsConfig
+from workbench.problem.scene import Camera, Frame, ObjectModel, Table
 from workbench.render.depth import RenderConfig
 from workbench.render.likelihood import LikelihoodConfig, clutter_segments
-from workbench.problem.scene import Camera, Frame, ObjectModel, Table
+
+# Upper bounds of the physics and render settings a user (or a session file) may give: beyond them a step never ends
+# (a simulation that may run 10**30 steps) or pybullet and OpenGL overflow their C integers.
+PHYSICS_MAX = {"timestep": 0.1, "solver_iterations": 10_000, "max_steps": 100_000, "check_every": 10_000,
+               "rest_checks": 10_000, "separation_iterations": 10_000, "rest_linear": 100.0, "rest_angular": 1000.0,
+               "table_thickness": 10.0, "max_speed": 1e4, "max_angular": 1e5, "max_distance": 1e3,
+               "penetration_tolerance": 1.0, "gravity": 1e3, "table_friction": 100.0}
+RENDER_BACKENDS = ("auto", "osmesa", "egl")
+MAX_FRAMEBUFFER = 16384
 
 
 @dataclass(frozen=True)
@@ -35,6 +44,29 @@ class ProblemConfig:
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+
+    def validate(self, where: str = "") -> None:
+        """What ``build_problem`` would refuse only after the frame is loaded, and the bounds of the physics and
+        render settings (``PhysicsConfig`` checks only their signs): InputError naming the setting, its name
+        prefixed by ``where`` (e.g. ``problem_config.`` in a session file)."""
+        self.likelihood.validate()
+        lik = self.likelihood
+        for name in ("sigma", "depth_range", "max_residual"):  # metres; squared and divided by, so not too small
+            value = getattr(lik, name)
+            if not (isinstance(value, (int, float)) and 1e-6 <= value <= 1e3):
+                raise InputError(f"{where}likelihood.{name}", f"must be from 1e-6 to 1000 metres, got {value!r}")
+        check_count(self.max_render_pixels, f"{where}max_render_pixels" if where else "--max-render-pixels", low=64)
+        check_count(self.min_object_pixels, f"{where}min_object_pixels", low=0)
+        for name, high in PHYSICS_MAX.items():
+            value = getattr(self.physics, name)
+            if not value <= high:
+                raise InputError(f"{where}physics.{name}", f"must be at most {high:g}, got {value!r}")
+        if not self.physics.off_table_z >= -1e3:
+            raise InputError(f"{where}physics.off_table_z", f"must be at least -1000, got {self.physics.off_table_z!r}")
+        if self.render.backend not in RENDER_BACKENDS:
+            raise InputError(f"{where}render.backend", f"must be one of {', '.join(RENDER_BACKENDS)}, got "
+                                                       f"{self.render.backend!r}")
+        check_count(self.render.max_framebuffer, f"{where}render.max_framebuffer", low=64, high=MAX_FRAMEBUFFER)
 
 
 # Readings at least this high (m) above the table are objects, not table noise, when telling what hides what.

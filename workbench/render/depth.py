@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from workbench.meshes import cache
 from workbench.errors import InputError
+from workbench.meshes import cache
 from workbench.meshes.heavy import working_mesh
 from workbench.problem.scene import Camera
 

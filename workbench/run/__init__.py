@@ -1,1 +1,2 @@
-"""Running the estimator over dataset frames: the one frame loop, here or on Ray (``frames``), and ``estimate``'s runner with its progress (``runner``)."""
+"""Running the estimator over dataset frames: the one frame loop, here or on Ray (``frames``), and ``estimate``'s
+runner with its progress (``runner``)."""

@@ -18,7 +18,7 @@ from tqdm import tqdm
 from workbench.errors import InputError
 from workbench.evaluation.ray import RayConfig, connect  # imports Ray only when used
 
-Frame = tuple[int, int]  # (scene_id, im_id)
+FrameKey = tuple[int, int]  # (scene_id, im_id): which frame, not the loaded one (problem.scene.Frame)
 Result = TypeVar("Result")
 
 
@@ -27,7 +27,7 @@ class FrameFailure:
     """A frame that produced no result: ``problem`` says why in words (its input error, or its worker dying more
     often than ``RayConfig.max_retries`` allows)."""
 
-    frame: Frame
+    frame: FrameKey
     problem: str
 
 
@@ -42,12 +42,12 @@ def _frame_problem(ray, err: Exception, retries: int) -> str:
 
 
 def run_frames(
-    frames: list[Frame],
+    frames: list[FrameKey],
     here: Callable[[int, int], Result],
     task: Callable[..., Result],
     args: tuple,
     ray: RayConfig | None,
-    on_result: Callable[[Frame, Result], None],
+    on_result: Callable[[FrameKey, Result], None],
     on_failure: Callable[[FrameFailure], None],
     desc: str = "frames",
 ) -> None:
@@ -71,7 +71,7 @@ def run_frames(
 
 def run_ray_tasks(task: Callable[..., Result], units: list[tuple], args: tuple, config: RayConfig,
                   on_result: Callable[[tuple, Result], None], on_failure: Callable[[FrameFailure], None], desc: str,
-                  unit: str, named: Callable[[tuple], tuple[Frame, str]]) -> None:
+                  unit: str, named: Callable[[tuple], tuple[FrameKey, str]]) -> None:
     """``task(*unit, *args)`` for every unit of work (a tuple of its own arguments: a frame's (scene_id, im_id), a
     sequence's scene and frames) as a Ray task of one CPU, as many at once as the cluster has CPUs; each result to
     ``on_result(unit, result)`` in the order the tasks finish, each unit that failed to ``on_failure`` (as the

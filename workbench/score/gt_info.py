@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from workbench.errors import InputError
-from workbench.io import bop
+from workbench.io import bop, readers
 from workbench.problem.scene import Frame
 
 # visib_fract below this: the object counts as hidden. BOP's test targets leave such objects out (the depth hardly
@@ -23,10 +23,10 @@ def gt_info_path(frame: Frame) -> Path:
 def visib_fractions(frame: Frame) -> list[float]:
     """scene_gt_info.json visib_fract per object of the frame (same order as scene_gt.json)."""
     path = gt_info_path(frame)
-    content = bop.read_json(path)
+    content = readers.read_json(path)
     bop.image_ids(content, path)
-    info = bop.expect_list(content.get(str(frame.im_id)), path, f"image {frame.im_id}")
-    fractions = [bop.expect_number(bop.expect_object(i, path, "an object entry").get("visib_fract"), path,
+    info = readers.expect_list(content.get(str(frame.im_id)), path, f"image {frame.im_id}")
+    fractions = [readers.expect_number(readers.expect_object(i, path, "an object entry").get("visib_fract"), path,
                                    f"image {frame.im_id} visib_fract") for i in info]
     if len(fractions) != len(frame.object_ids):
         raise InputError(path, f"image {frame.im_id}: {len(fractions)} entries for {len(frame.object_ids)} objects")
@@ -41,11 +41,11 @@ def scenes_path(dataset: Path) -> Path:
 def scene_categories(dataset: Path) -> dict[int, str]:
     """scene_id -> category, from ``scenes_path(dataset)``."""
     path = scenes_path(dataset)
-    meta = bop.expect_object(bop.read_json(path), path, "the file")
+    meta = readers.expect_object(readers.read_json(path), path, "the file")
     out = {}
-    for s in bop.expect_list(meta.get("scenes"), path, "scenes"):
-        s = bop.expect_object(s, path, "a scene")
-        out[bop.expect_int(s.get("scene_id"), path, "scene_id")] = s.get("category")
+    for s in readers.expect_list(meta.get("scenes"), path, "scenes"):
+        s = readers.expect_object(s, path, "a scene")
+        out[readers.expect_int(s.get("scene_id"), path, "scene_id")] = s.get("category")
         if not isinstance(out[s["scene_id"]], str):
             raise InputError(path, f"scene {s['scene_id']}: category must be a string, got {s.get('category')!r:.40}")
     return out

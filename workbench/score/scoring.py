@@ -22,13 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
+from workbench.errors import InputError
+from workbench.io import bop
+from workbench.io.results import ResultRow
 from workbench.score import calibration
 from workbench.score.calibration import ObjectModes
 from workbench.score.gt_info import HIDDEN_VISIB, gt_info_path, scene_categories, scenes_path, visib_fractions
-from workbench.score.vsd import VSDConfig, diameter, frame_vsd
-from workbench.errors import InputError
-from workbench.io import bop
 from workbench.score.metrics import RIGHT_CM, RIGHT_DEG, add_s, is_right, model_points, position_error, rotation_error
+from workbench.score.vsd import VSDConfig, diameter, frame_vsd
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,7 @@ def match(gt: np.ndarray, est: np.ndarray, symmetries: np.ndarray) -> list[tuple
     return out
 
 
-def instance_groups(rows: list[bop.ResultRow], n: int) -> list[list[bop.ResultRow]]:
+def instance_groups(rows: list[ResultRow], n: int) -> list[list[ResultRow]]:
     """One model's rows of one frame (file order) as up to ``n`` instances, each its rows best first: runs of rows
     whose scores sum to 1, as `estimate` writes each instance's modes (its posterior). Rows that do not fall into
     such runs (another tool's results: one row per instance, any score) are each an instance of their own, the
@@ -119,13 +120,13 @@ def instance_groups(rows: list[bop.ResultRow], n: int) -> list[list[bop.ResultRo
     return groups
 
 
-def score_results(dataset: Path, rows: list[bop.ResultRow], split: str | None = None,
+def score_results(dataset: Path, rows: list[ResultRow], split: str | None = None,
                   results_path: Path | None = None, vsd: VSDConfig | None = None) -> list[FrameScore]:
-    """Every frame that ``rows`` (a results CSV, ``bop.read_results_csv``) holds, scored against the dataset's
+    """Every frame that ``rows`` (a results CSV, ``io.results.read_results_csv``) holds, scored against the dataset's
     scene_gt.json, frames in (scene, image) order. InputError, naming the file, when a frame is not in the dataset
     or has no ground truth. With ``vsd``, each object's VSD too (renders each object alone at the estimated and the
     true pose, at the frame's resolution: OpenGL in this process)."""
-    frames: dict[tuple[int, int], list[bop.ResultRow]] = {}
+    frames: dict[tuple[int, int], list[ResultRow]] = {}
     for r in rows:
         frames.setdefault((r.scene_id, r.im_id), []).append(r)
     known = set(bop.list_frames(dataset, split=split))

@@ -130,8 +130,8 @@ def render_alone(K: np.ndarray, width: int, height: int, meshes: list[trimesh.Tr
     """Each ``(mesh index, T_cam_obj (4, 4) metres)`` of ``poses`` drawn alone, the full mesh, at ``width`` x
     ``height`` with intrinsics ``K`` -> (N, H, W) float32 camera-z depth in metres, 0 where the object is not.
     One renderer and one batch for all of them (the renderer's context costs more than a frame's renderings)."""
-    from workbench.render.depth import DepthRenderer, RenderConfig
     from workbench.problem.scene import Camera
+    from workbench.render.depth import DepthRenderer, RenderConfig
 
     out = np.zeros((len(poses), height, width), dtype=np.float32)
     if not poses:

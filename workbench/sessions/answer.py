@@ -13,10 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workbench.checks import check_rigid
-from workbench.errors import InputError
 from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
 from workbench.inference.answer.settle import Tie
+from workbench.io import readers as read
 
 
 @dataclass(frozen=True)
@@ -64,21 +63,21 @@ def parse_answer(value, K: int) -> Answer | None:
     if value is None:
         return None
     where = "answer"
-    _keys(value, ("scene", "loglik", "ties", "posterior"), where)
-    scene = _poses(value["scene"], (K, 4, 4), f"{where}.scene")
-    loglik = _number(value["loglik"], f"{where}.loglik", finite=False)
-    ties = [_tie(t, K, f"{where}.ties[{i}]") for i, t in enumerate(_list(value["ties"], f"{where}.ties"))]
+    read.exact_keys(value, ("scene", "loglik", "ties", "posterior"), where)
+    scene = read.poses(value["scene"], (K, 4, 4), f"{where}.scene")
+    loglik = read.quantity(value["loglik"], f"{where}.loglik", finite=False)
+    ties = [_tie(t, K, f"{where}.ties[{i}]") for i, t in enumerate(read.json_list(value["ties"], f"{where}.ties"))]
     post = value["posterior"]
     return Answer(scene, loglik, ties, None if post is None else parse_posterior(post, K, f"{where}.posterior"))
 
 
 def parse_posterior(value, K: int, where: str = "posterior") -> Posterior:
     """A ``posterior_json`` for K objects -> Posterior; ValueError naming what is malformed."""
-    _keys(value, ("temperature", "objects"), where)
-    temperature = _number(value["temperature"], f"{where}.temperature")
+    read.exact_keys(value, ("temperature", "objects"), where)
+    temperature = read.quantity(value["temperature"], f"{where}.temperature")
     if temperature <= 0:
         raise ValueError(f"{where}.temperature must be > 0, got {temperature!r}")
-    objects = _list(value["objects"], f"{where}.objects")
+    objects = read.json_list(value["objects"], f"{where}.objects")
     if len(objects) != K:
         raise ValueError(f"{where}.objects must list the {K} objects, got {len(objects)}")
     return Posterior([_object(o, k, f"{where}.objects[{k}]") for k, o in enumerate(objects)], temperature)
@@ -87,26 +86,26 @@ def parse_posterior(value, K: int, where: str = "posterior") -> Posterior:
 def _object(value, k: int, where: str) -> ObjectPosterior:
     keys = ("obj", "modes", "position_spread_m", "yaw_range_deg")
     # Sessions saved before the chance of "elsewhere" was reported have neither entry: no doubt, as they showed.
-    _keys(value, keys + ("seen_through", "elsewhere") if "elsewhere" in value else keys, where)
-    elsewhere = _number(value.get("elsewhere", 0.0), f"{where}.elsewhere")
-    seen_through = _number(value.get("seen_through", 0.0), f"{where}.seen_through")
+    read.exact_keys(value, keys + ("seen_through", "elsewhere") if "elsewhere" in value else keys, where)
+    elsewhere = read.quantity(value.get("elsewhere", 0.0), f"{where}.elsewhere")
+    seen_through = read.quantity(value.get("seen_through", 0.0), f"{where}.seen_through")
     if not (0.0 <= elsewhere <= 1.0 and 0.0 <= seen_through <= 1.0):
         raise ValueError(f"{where}.elsewhere and .seen_through must lie in [0, 1], got {elsewhere!r} and "
                          f"{seen_through!r}")
     if value["obj"] != k or isinstance(value["obj"], bool):
         raise ValueError(f"{where}.obj must be {k} (objects in order), got {value['obj']!r}")
-    modes = [_mode(m, f"{where}.modes[{j}]") for j, m in enumerate(_list(value["modes"], f"{where}.modes"))]
+    modes = [_mode(m, f"{where}.modes[{j}]") for j, m in enumerate(read.json_list(value["modes"], f"{where}.modes"))]
     if not modes:
         raise ValueError(f"{where}.modes is empty: the estimate is always a mode")
     p = np.array([m.probability for m in modes])
     if abs(p.sum() - 1.0) > 1e-6 or np.any(np.diff(p) > 1e-12):
         raise ValueError(f"{where}.modes must be probabilities summing to 1, most likely first, got {p.tolist()}")
-    spread = _number(value["position_spread_m"], f"{where}.position_spread_m")
+    spread = read.quantity(value["position_spread_m"], f"{where}.position_spread_m")
     if not 0.0 <= spread <= 1.0:
         raise ValueError(f"{where}.position_spread_m must lie in [0, 1] m, got {spread!r}")
     yaw = value["yaw_range_deg"]
     if yaw is not None:
-        yaw = tuple(_number(v, f"{where}.yaw_range_deg") for v in _list(yaw, f"{where}.yaw_range_deg"))
+        yaw = tuple(read.quantity(v, f"{where}.yaw_range_deg") for v in read.json_list(yaw, f"{where}.yaw_range_deg"))
         if len(yaw) != 2 or not -180.0 <= yaw[0] <= 0.0 <= yaw[1] <= 180.0:
             raise ValueError(f"{where}.yaw_range_deg must be [lo, hi] degrees with -180 <= lo <= 0 <= hi <= 180, "
                              f"got {list(yaw)}")
@@ -114,61 +113,19 @@ def _object(value, k: int, where: str) -> ObjectPosterior:
 
 
 def _mode(value, where: str) -> Mode:
-    _keys(value, ("T", "loglik", "gap", "probability", "what"), where)
-    probability = _number(value["probability"], f"{where}.probability")
+    read.exact_keys(value, ("T", "loglik", "gap", "probability", "what"), where)
+    probability = read.quantity(value["probability"], f"{where}.probability")
     if not 0.0 <= probability <= 1.0:
         raise ValueError(f"{where}.probability must lie in [0, 1], got {probability!r}")
-    return Mode(_poses(value["T"], (4, 4), f"{where}.T"), _number(value["loglik"], f"{where}.loglik"),
-                _number(value["gap"], f"{where}.gap"), probability, _text(value["what"], f"{where}.what"))
+    return Mode(read.poses(value["T"], (4, 4), f"{where}.T"), read.quantity(value["loglik"], f"{where}.loglik"),
+                read.quantity(value["gap"], f"{where}.gap"), probability,
+                read.short_text(value["what"], f"{where}.what"))
 
 
 def _tie(value, K: int, where: str) -> Tie:
-    _keys(value, ("obj", "turn", "T", "gap"), where)
+    read.exact_keys(value, ("obj", "turn", "T", "gap"), where)
     obj = value["obj"]
     if isinstance(obj, bool) or not isinstance(obj, int) or not 0 <= obj < K:
         raise ValueError(f"{where}.obj must be an object index below {K}, got {obj!r}")
-    return Tie(obj, _text(value["turn"], f"{where}.turn"), _poses(value["T"], (4, 4), f"{where}.T"),
-               _number(value["gap"], f"{where}.gap"))
-
-
-# Typed readers: a hand-edited value of the wrong type is reported by name.
-
-
-def _keys(value, keys: tuple[str, ...], where: str) -> None:
-    if not isinstance(value, dict):
-        raise ValueError(f"{where} must be an object")
-    if sorted(value) != sorted(keys):
-        raise ValueError(f"{where} must have exactly the entries {list(keys)}, got {sorted(value)}")
-
-
-def _list(value, where: str) -> list:
-    if not isinstance(value, list):
-        raise ValueError(f"{where} must be a list")
-    return value
-
-
-def _text(value, where: str) -> str:
-    if not isinstance(value, str) or len(value) > 200:
-        raise ValueError(f"{where} must be a short text")
-    return value
-
-
-def _number(value, where: str, finite: bool = True) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or np.isnan(value) \
-            or (finite and not np.isfinite(value)):
-        raise ValueError(f"{where} must be a {'finite ' if finite else ''}number, got {value!r}")
-    return float(value)
-
-
-def _poses(value, shape: tuple, where: str) -> np.ndarray:
-    """Rigid poses of ``shape`` (a reflection or a bad bottom row is refused)."""
-    try:
-        T = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError) as e:
-        raise ValueError(f"{where} must be finite numbers of shape {shape}") from e
-    if T.shape != shape or not np.all(np.isfinite(T)):
-        raise ValueError(f"{where} must be finite numbers of shape {shape}, got shape {T.shape}")
-    try:
-        return check_rigid(T, where)
-    except InputError as e:
-        raise ValueError(e.problem) from e
+    return Tie(obj, read.short_text(value["turn"], f"{where}.turn"), read.poses(value["T"], (4, 4), f"{where}.T"),
+               read.quantity(value["gap"], f"{where}.gap"))

@@ -1,5 +1,5 @@
-"""A sequence's position as a session keeps it (``sessions.store.SessionState.sequence``): the processed frames with their
-timeline entries, the frame on show, and the settings a frame estimated from scratch runs with (the panel's; a
+"""A sequence's position as a session keeps it (``SessionState.sequence``): the processed frames with their timeline
+entries, the frame on show, and the settings a frame estimated from scratch runs with (the panel's; a
 tracked frame's run has its own). Plain JSON, so that the session file stays readable; read back with every field
 checked, so that a hand-edited file is an InputError naming it, never a broken timeline.
 
@@ -15,11 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from workbench.app import protocol as p
-from workbench.checks import check_estimator_config
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.moves.registry import MoveMix
-from workbench.sessions.store import config_from_dict
+from workbench.sessions.document import config_from_dict
 
 
 @dataclass(frozen=True)
@@ -48,7 +47,7 @@ def parse_record(data: dict, path: Path, n_objects: int, im_id: int) -> Sequence
     naming the session file ``path`` and the entry at fault."""
     try:
         config = config_from_dict(EstimatorConfig, data["config"], "sequence.config")
-        check_estimator_config(config, "sequence.config.")
+        config.validate("sequence.config.")
         frames = [_frame(f, n_objects, f"sequence.frames[{i}]") for i, f in enumerate(data["frames"])]
         current = data["current"]
     except InputError as err:

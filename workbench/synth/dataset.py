@@ -14,7 +14,7 @@ from PIL import Image
 
 from workbench.errors import InputError
 from workbench.geometry import make_pose
-from workbench.io import bop
+from workbench.io import bop, readers
 from workbench.score.metrics import box_symmetries
 from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, SHAPE_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.distractors import Distractor, distractor_mesh
@@ -44,9 +44,9 @@ def write_scene(out: Path, scene_id: int, sample: SceneSample, cfg: SynthConfig,
     _write_masks(scene_dir / "mask_visib", 0, sample.mask_visib)
     _write_masks(scene_dir / "mask", 0, sample.mask_all)
     if not sample.table_pose:
-        R, t = sample.T_cam_world[:3, :3], sample.T_cam_world[:3, 3] / bop.MM
+        R, t = sample.T_cam_world[:3, :3], sample.T_cam_world[:3, 3] / readers.MM
         table = {"cam_R_w2c": R.ravel().tolist(), "cam_t_w2c": t.tolist(),
-                 "table_size": [v / bop.MM for v in sample.table_size]}
+                 "table_size": [v / readers.MM for v in sample.table_size]}
         _write_json(scene_dir / "scene_table.json", {"0": table})
     if sample.distractors:
         _write_json(scene_dir / "scene_distractors.json",
@@ -57,10 +57,10 @@ def _distractor_entry(d: Distractor, T_cam_world: np.ndarray) -> dict:
     """A distractor as JSON: kind, sizes in mm (a model: its obj_id), pose in the camera frame (BOP's cam_R_m2c,
     cam_t_m2c)."""
     T = T_cam_world @ d.T
-    params = {k: (np.asarray(v) / bop.MM).tolist() for k, v in d.params.items()}
+    params = {k: (np.asarray(v) / readers.MM).tolist() for k, v in d.params.items()}
     model = {} if d.item is None else {"obj_id": d.item.obj_id}
     return {"kind": d.kind, **model, **{f"{k}_mm": v for k, v in params.items()},
-            "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": (T[:3, 3] / bop.MM).tolist()}
+            "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": (T[:3, 3] / readers.MM).tolist()}
 
 
 def load_distractors(dataset: Path, scene_id: int, im_id: int = 0,
@@ -71,9 +71,9 @@ def load_distractors(dataset: Path, scene_id: int, im_id: int = 0,
     if not path.is_file():
         return []
     out = []
-    for e in bop.read_json(path).get(str(im_id), []):
-        params = {k[:-3]: np.asarray(v) * bop.MM for k, v in e.items() if k.endswith("_mm")}
-        T = bop.parse_pose(e["cam_R_m2c"], e["cam_t_m2c"], path, f"image {im_id} distractor")
+    for e in readers.read_json(path).get(str(im_id), []):
+        params = {k[:-3]: np.asarray(v) * readers.MM for k, v in e.items() if k.endswith("_mm")}
+        T = readers.parse_pose(e["cam_R_m2c"], e["cam_t_m2c"], path, f"image {im_id} distractor")
         if e["kind"] == "model":
             mesh = bop.load_models(dataset, [e["obj_id"]])[e["obj_id"]].mesh
         else:
@@ -98,9 +98,9 @@ def frame_table_pose(frame) -> np.ndarray:
 def _table_pose_in(scene_dir: Path, im_id: int) -> np.ndarray:
     for name in ("scene_camera.json", "scene_table.json"):
         path = scene_dir / name
-        entry = bop.read_json(path).get(str(im_id), {}) if path.is_file() else {}
+        entry = readers.read_json(path).get(str(im_id), {}) if path.is_file() else {}
         if "cam_R_w2c" in entry:
-            return bop.parse_pose(entry["cam_R_w2c"], entry["cam_t_w2c"], path, f"image {im_id} table pose")
+            return readers.parse_pose(entry["cam_R_w2c"], entry["cam_t_w2c"], path, f"image {im_id} table pose")
     raise InputError(scene_dir, f"image {im_id}: no table pose in scene_camera.json or scene_table.json")
 
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, rot_x, rot_z
-from workbench.io import bop
+from workbench.io import bop, readers
 from workbench.synth.config import CATEGORIES, DESKS, SHAPE_CATEGORIES, DeskSpec, SynthConfig
 from workbench.synth.dataset import _scene_meta, _write_camera_json, check_out_folder, save_object_models
 from workbench.synth.layout import Placed
@@ -144,7 +144,7 @@ def write_sequence(out: Path, scene_id: int, sample: SceneSample, cfg: SynthConf
         bop.save_frame(out, scene_id, i, apply_sensor(clean, rng, cfg.sensor), cfg.K(),
                        T if sample.table_pose else None, gt, split=split)
         T_c_w = T @ WORLD_FROM_TABLE
-        world[str(i)] = {"R_w2c": T_c_w[:3, :3].ravel().tolist(), "t_w2c": (T_c_w[:3, 3] / bop.MM).tolist()}
+        world[str(i)] = {"R_w2c": T_c_w[:3, :3].ravel().tolist(), "t_w2c": (T_c_w[:3, 3] / readers.MM).tolist()}
     path = Path(out) / split / f"{scene_id:06d}" / "scene_camera_world.json"
     path.write_text(json.dumps(world, indent=1) + "\n")
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.io import bop
+from workbench.io import bop, readers
 from workbench.track.motion import WORLD_FILE, read_world_poses
 
 
@@ -35,7 +35,7 @@ def sequence_frames(dataset: Path, scene_id: int, split: str | None, frames: str
     depth image is."""
     folder = bop.scene_folder(dataset, scene_id, split)
     cam_path = folder / "scene_camera.json"
-    ids = sorted(bop.image_ids(bop.read_json(cam_path), cam_path))
+    ids = sorted(bop.image_ids(readers.read_json(cam_path), cam_path))
     if not ids:
         raise InputError(cam_path, "lists no frames")
     lo, hi = ids[0], ids[-1]

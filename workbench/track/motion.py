@@ -19,7 +19,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, transform_points
-from workbench.io import bop
+from workbench.io import bop, readers
 from workbench.problem.scene import Frame
 
 WORLD_FILE = "scene_camera_world.json"
@@ -31,15 +31,15 @@ def read_world_poses(scene_dir: Path) -> dict[int, np.ndarray] | None:
     path = Path(scene_dir) / WORLD_FILE
     if not path.is_file():
         return None
-    content = bop.expect_object(bop.read_json(path), path, "the file")
+    content = readers.expect_object(readers.read_json(path), path, "the file")
     poses = {}
     for im_id in bop.image_ids(content, path):
-        entry = bop.expect_object(content[str(im_id)], path, f"image {im_id}")
+        entry = readers.expect_object(content[str(im_id)], path, f"image {im_id}")
         for key in ("R_w2c", "t_w2c"):
             if key not in entry:
                 raise InputError(path, f"image {im_id} has no {key} (the camera's pose in the world frame: R_w2c 9 "
                                        "numbers row-major, t_w2c 3 numbers in mm)")
-        poses[im_id] = bop.parse_pose(entry["R_w2c"], entry["t_w2c"], path, f"image {im_id} R_w2c/t_w2c")
+        poses[im_id] = readers.parse_pose(entry["R_w2c"], entry["t_w2c"], path, f"image {im_id} R_w2c/t_w2c")
     return poses
 
 

@@ -20,9 +20,9 @@ from tqdm import tqdm
 
 from workbench.evaluation import ChunkedEvaluator
 from workbench.evaluation.ray import RayConfig  # imports Ray only when used
-from workbench.run.frames import FrameFailure, run_ray_tasks
 from workbench.inference.config import EstimatorConfig
 from workbench.problem.problem import Problem, ProblemConfig
+from workbench.run.frames import FrameFailure, run_ray_tasks
 from workbench.track.config import TrackConfig
 from workbench.track.sequence import FrameResult, Tracker, track_frames
 

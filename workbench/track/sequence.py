@@ -32,8 +32,8 @@ from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.scenepoints import object_badness
 from workbench.inference.search.track_search import Carried, TrackSearch
 from workbench.io import bop
-from workbench.io.bop import ResultRow
-from workbench.problem.build import posterior_rows, problem_for_frame, result_rows
+from workbench.io.results import ResultRow, posterior_rows, result_rows
+from workbench.problem.build import problem_for_frame
 from workbench.problem.problem import Problem, ProblemConfig
 from workbench.problem.scene import Frame
 from workbench.run.runner import estimator_rows, run_estimator

@@ -57,10 +57,10 @@ class Processed:
 
 def scene_frame_ids(dataset: Path, scene_id: int, split: str | None) -> tuple[int, ...]:
     """The image ids of the scene's ``scene_camera.json``, in order."""
-    from workbench.io import bop
+    from workbench.io import bop, readers
 
     path = bop.scene_folder(dataset, scene_id, split) / "scene_camera.json"
-    return tuple(sorted(bop.image_ids(bop.read_json(path), path)))
+    return tuple(sorted(bop.image_ids(readers.read_json(path), path)))
 
 
 def run_summary(estimator) -> tuple[np.ndarray, np.ndarray]:

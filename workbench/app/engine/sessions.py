@@ -12,6 +12,7 @@ from pathlib import Path
 from workbench.app import protocol as p
 from workbench.errors import InputError
 from workbench.sessions import store as sessions
+from workbench.sessions.document import SessionState
 from workbench.sessions.sequence_record import SequenceRecord, parse_record, record_json
 
 
@@ -21,7 +22,7 @@ class OpenedSession:
     confirmed; ``sequence``: its position in a sequence, if it was saved in one."""
 
     path: Path
-    state: sessions.SessionState
+    state: SessionState
     frame: object  # scene.Frame
     problem: object  # problem.Problem
     warnings: list[str]

@@ -104,7 +104,8 @@ class Reporter:
         state = self.state()
         state.failures.append(failure)
         where = f"`{failure.path}`: " if failure.path else ""
-        self.current[f"{failure.title}|{failure.path}"] = f"**{escape(failure.title)}** — {where}{escape(failure.problem)}"
+        text = f"**{escape(failure.title)}** — {where}{escape(failure.problem)}"
+        self.current[f"{failure.title}|{failure.path}"] = text
         self.show_banner()
         view = state.view  # a failed load leaves the loaded frame in place
         self.set_title(view.title if view else "nothing loaded")

@@ -1,6 +1,6 @@
-"""The posterior per object (``inference.answer.posterior``) in words, for every part of the workbench that shows it: the
-3D view's mode labels and legend, the Inspect tab's table, the Label tab's choice of mode; and the labelled scene
-made of the modes chosen there (computed in the engine process)."""
+"""The posterior per object (``inference.answer.posterior``) in words, for every part of the workbench that shows
+it: the 3D view's mode labels and legend, the Inspect tab's table, the Label tab's choice of mode; and the labelled
+scene made of the modes chosen there (computed in the engine process)."""
 
 from __future__ import annotations
 

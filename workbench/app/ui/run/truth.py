@@ -75,4 +75,5 @@ def truth_markdown(iteration: int, rows: list[dict], names: list[str]) -> str:
     n_right = sum(r["right"] for r in rows)
     return (f"**Estimate vs ground truth** · iteration {iteration} · {n_right}/{len(rows)} right\n\n"
             "| object | pos. (cm) | rot. (°) | ADD-S (mm) | | p |\n|---|---:|---:|---:|:---:|---:|\n" + "\n".join(lines)
-            + f"\n\n<small>as `workbench score`; right: within {RIGHT_CM:g} cm, {RIGHT_DEG:g}°; p: confidence (– until the run ends)</small>")
+            + f"\n\n<small>as `workbench score`; right: within {RIGHT_CM:g} cm, {RIGHT_DEG:g}°; p: confidence (– until "
+              "the run ends)</small>")

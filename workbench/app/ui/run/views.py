@@ -304,7 +304,8 @@ class ChosenLayer:
                     h.wxyz, h.position = q, t + shift
                 if side and show[which]:
                     poses = getattr(c, which)
-                    top = poses[:, :3, 3].mean(axis=0) * np.array([1.0, 1.0, 0.0]) + [0.0, 0.0, poses[:, 2, 3].max() + 0.08]
+                    above = [0.0, 0.0, poses[:, 2, 3].max() + 0.08]
+                    top = poses[:, :3, 3].mean(axis=0) * np.array([1.0, 1.0, 0.0]) + above
                     self.extras.add(self.server.scene.add_label(
                         f"/chosen/{which}_label", f"{which} physics", position=top + shift
                     ))

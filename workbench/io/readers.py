@@ -1,0 +1,213 @@
+"""Typed readers of JSON values, one set for every file the workbench reads: JSON that parses may still hold a
+string where a number belongs, or a reflection where a pose belongs, and each reader names where and what was
+expected, so that a hand-edited or corrupt value is reported, never passed on to fail somewhere later.
+
+Two families, by who names the file:
+- ``read_json`` and the ``expect_*`` / ``parse_*`` readers of a dataset's files (``io.bop``, ``io.plainframe``,
+  ``score``, ``track``) raise ``InputError(path, ...)`` naming the file and the key;
+- the entry readers of a session (``sessions.document``, ``sessions.answer``, ``inference.estimator.parse_search``)
+  raise ``ValueError`` naming the entry ("estimator.beta must be a number ..."), which the session loader turns into
+  an ``InputError`` naming the session file.
+Their messages differ where the files' users read different words; each reader keeps its own.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from workbench.errors import InputError
+from workbench.geometry import check_rigid, make_pose
+
+MM = 1e-3  # metres per millimetre: BOP's files give translations in millimetres
+MAX_TABLE_DISTANCE = 100.0  # metres from the camera to the table frame's origin (along any axis)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A dataset's files: InputError naming the file
+
+
+def read_json(path: Path) -> dict | list:
+    """The parsed JSON file, or InputError naming it."""
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(path, f"corrupt JSON ({e}); re-export or re-download the file") from e
+
+
+def expect_object(value, path: Path, what: str) -> dict:
+    if not isinstance(value, dict):
+        raise InputError(path, f"{what} must be a JSON object {{...}}, got {json_kind(value)}")
+    return value
+
+
+def expect_list(value, path: Path, what: str) -> list:
+    if not isinstance(value, list):
+        raise InputError(path, f"{what} must be a JSON list [...], got {json_kind(value)}")
+    return value
+
+
+def expect_int(value, path: Path, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(path, f"{what} must be a whole number, got {json_kind(value)}")
+    return value
+
+
+def expect_number(value, path: Path, what: str) -> float:
+    """A finite JSON number -> float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(path, f"{what} must be a number, got {json_kind(value)}")
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float range
+        number = float("inf")
+    if not np.isfinite(number):
+        raise InputError(path, f"{what} must be a finite number, got {value!r:.40}")
+    return number
+
+
+def json_kind(value) -> str:
+    """A JSON value for an error message: its type and the start of its text."""
+    names = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", int: "a number",
+             float: "a number", type(None): "null"}
+    return f"{names.get(type(value), type(value).__name__)} {json.dumps(value)[:40]}"
+
+
+def parse_pose(R, t, path: Path, what: str, t_unit: float = MM) -> np.ndarray:
+    """Rotation (9 numbers row-major) and translation (3 numbers, in units of ``t_unit`` metres) -> (4, 4) metres.
+
+    The rotation is re-orthonormalised: JSON files store it with a few digits only."""
+    try:
+        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(t, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError) as e:
+        raise InputError(path, f"{what}: rotation must be 9 numbers and translation 3 numbers") from e
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise InputError(path, f"{what} contains NaN or inf")
+    # Entries of a rotation lie in [-1, 1]: checked first so that huge values are refused without overflowing.
+    if np.abs(R).max() > 1.001 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+        raise InputError(path, f"{what}: the rotation is not orthonormal with determinant +1 ({R.ravel().tolist()})")
+    U, _, Vt = np.linalg.svd(R)
+    return make_pose(U @ Vt, t * t_unit)
+
+
+def parse_T(values, path: Path, what: str, t_unit: float = 1.0) -> np.ndarray:
+    """A 4x4 rigid pose (nested list or 16 numbers, translation in units of ``t_unit`` metres) -> (4, 4) metres."""
+    try:
+        T = np.asarray(values, dtype=np.float64).reshape(4, 4)
+    except (TypeError, ValueError) as e:
+        raise InputError(path, f"{what} must be a 4x4 matrix") from e
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InputError(path, f"{what}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    return parse_pose(T[:3, :3], T[:3, 3], path, what, t_unit)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A session's entries: ValueError naming the entry
+
+
+def integer(v, where: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ValueError(f"{where} must be an integer, got {v!r}")
+    return v
+
+
+def number(v, where: str) -> float:
+    """Any JSON number as float, NaN and infinities too (Python's JSON writes them: a log-likelihood may be -inf)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ValueError(f"{where} must be a number, got {v!r}")
+    return float(v)
+
+
+def string(v, where: str) -> str:
+    if not isinstance(v, str):
+        raise ValueError(f"{where} must be a string, got {v!r}")
+    return v
+
+
+def boolean(v, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise ValueError(f"{where} must be true or false, got {v!r}")
+    return v
+
+
+def pair(v, where: str) -> tuple[float, float]:
+    if not isinstance(v, list) or len(v) != 2:
+        raise ValueError(f"{where} must be two numbers")
+    return (number(v[0], where), number(v[1], where))
+
+
+def exact_keys(value, keys: tuple[str, ...], where: str) -> None:
+    if not isinstance(value, dict):
+        raise ValueError(f"{where} must be an object")
+    if sorted(value) != sorted(keys):
+        raise ValueError(f"{where} must have exactly the entries {list(keys)}, got {sorted(value)}")
+
+
+def json_list(value, where: str) -> list:
+    if not isinstance(value, list):
+        raise ValueError(f"{where} must be a list")
+    return value
+
+
+def short_text(value, where: str) -> str:
+    if not isinstance(value, str) or len(value) > 200:
+        raise ValueError(f"{where} must be a short text")
+    return value
+
+
+def quantity(value, where: str, finite: bool = True) -> float:
+    """A number that is not NaN, and finite unless ``finite`` is False."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or np.isnan(value) \
+            or (finite and not np.isfinite(value)):
+        raise ValueError(f"{where} must be a {'finite ' if finite else ''}number, got {value!r}")
+    return float(value)
+
+
+def finite_array(value, shape: tuple, dtype, where: str) -> np.ndarray:
+    """Finite numbers of ``shape`` as an array of ``dtype``. A value numpy cannot convert raises numpy's own error."""
+    a = np.asarray(value, dtype=dtype)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise ValueError(f"{where} must be finite numbers of shape {shape}, got shape {a.shape}")
+    return a
+
+
+def rigid(T: np.ndarray, where: str) -> np.ndarray:
+    """``geometry.check_rigid`` for an entry: its problem as a ValueError (the loader names the file)."""
+    try:
+        return check_rigid(T, where)
+    except InputError as e:
+        raise ValueError(e.problem) from e
+
+
+def pose(v, where: str) -> np.ndarray:
+    """A rigid 4x4 pose (a reflection or a bad bottom row is refused, not turned into another pose)."""
+    try:
+        T = np.array(v, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise ValueError(f"{where} must be a finite 4x4 matrix") from e
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{where} must be a finite 4x4 matrix")
+    return rigid(T, where)
+
+
+def poses(value, shape: tuple, where: str) -> np.ndarray:
+    """Rigid poses of ``shape`` (a reflection or a bad bottom row is refused)."""
+    try:
+        T = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise ValueError(f"{where} must be finite numbers of shape {shape}") from e
+    return rigid(finite_array(T, shape, np.float64, where), where)
+
+
+def table_poses(value, shape: tuple, where: str) -> np.ndarray:
+    """Scene poses of the given ``shape`` (..., 4, 4), table frame, m: rigid, and within MAX_TABLE_DISTANCE of the
+    table's origin. A corrupt session's pose 1e308 m away would otherwise overflow the search's distances."""
+    a = rigid(finite_array(value, shape, np.float64, where), where)
+    if np.abs(a[..., :3, 3]).max(initial=0.0) > MAX_TABLE_DISTANCE:
+        raise ValueError(f"{where}: a position lies more than {MAX_TABLE_DISTANCE:g} m from the table")
+    return a
