@@ -110,3 +110,26 @@ def test_every_relative_link_and_image_resolves(page: Path):
         elif anchor and goal.suffix == ".md" and anchor not in anchors(goal):
             broken.append(f"{target}: no heading with that anchor in {goal.relative_to(ROOT)}")
     assert not broken, f"{page.relative_to(ROOT)}: " + "; ".join(broken)
+
+
+# What a newcomer asked for first: each must have a row in the map, and every path the map names must
+# exist, so that a module moved without its row fails here.
+MAP_MUST_NAME = ("the estimate's display", "a mode's ghost", "saving labels", "the sequence timeline",
+                 "the results CSV", "the session format", "a new move kind")
+
+
+def newcomers_map() -> dict[str, str]:
+    """docs/design.md's "Newcomer's map": {what to change: the path to look in}."""
+    text = (ROOT / "docs" / "design.md").read_text(encoding="utf-8")
+    section = text.split("## Newcomer's map", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\|\s*(.+?)\s*\|\s*`([^`]+)`\s*\|\s*$", section, re.M)
+    return dict(rows)
+
+
+def test_the_newcomers_map_names_a_module_for_each_first_question_and_every_path_exists():
+    rows = newcomers_map()
+    for question in MAP_MUST_NAME:
+        assert any(what.startswith(question) for what in rows), f"the map has no row for {question!r}"
+    missing = {what: path for what, path in rows.items() if not (ROOT / path).exists()}
+    assert not missing, missing
+    assert len(rows) >= len(MAP_MUST_NAME)
