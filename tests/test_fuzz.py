@@ -244,9 +244,9 @@ def test_every_mutated_input_ends_in_success_or_a_clear_error(demo, saved_sessio
         npz = session_files[1]
         targets.append((saved_session, json_mutations(saved_session.read_text())))
         npz_bytes = npz.read_bytes()
-        changed = npz_bytes[:100] + bytes([npz_bytes[100] ^ 1]) + npz_bytes[101:]
+        flipped = npz_bytes[:100] + bytes([npz_bytes[100] ^ 1]) + npz_bytes[101:]
         targets.append((npz, iter([("truncated", npz_bytes[: len(npz_bytes) // 2]), ("empty", b""),
-                                   ("one byte changed", changed)])))
+                                   ("one byte changed", flipped)])))
         for path, mutations in targets:
             original = path.read_bytes()
             is_session = path in session_files
