@@ -72,7 +72,7 @@ def seeing():
 @pytest.fixture(scope="module")
 def cluster():
     """A one-node Ray cluster of 2 CPUs, as `ray start --head --num-cpus 2` would start -> its address (one per test
-    module that asks for it: tests/test_ray.py, tests/test_track_ray.py)."""
+    module that asks for it: tests/test_estimate_ray.py, tests/test_track_ray.py)."""
     ray = pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
 

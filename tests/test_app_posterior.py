@@ -1,4 +1,4 @@
-"""The posterior in the workbench, without a browser (issue 30, item 3): the engine settles a finished run and its
+"""The posterior in the workbench, without a browser: the engine settles a finished run and its
 snapshot carries the posterior; the server draws the other modes as ghosts with their probabilities, shows each
 object's confidence in the legend and the Inspect tab, and offers the modes in the Label tab; a session brings the
 same posterior back."""

@@ -1,4 +1,4 @@
-"""The posterior in real headless Chromium (issue 30, item 3): a finished run's other modes drawn in the 3D view and
+"""The posterior in real headless Chromium: a finished run's other modes drawn in the 3D view and
 hidden by the visibility bar, the confidences in the legend and the Inspect tab, a mode chosen in the Label tab
 taken as label, and the same posterior back from a saved session."""
 

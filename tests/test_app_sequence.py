@@ -1,4 +1,4 @@
-"""Sequences in the workbench's engine (issue 31, item 5): a generated three-frame sequence loaded, its first frame
+"""Sequences in the workbench's engine: a generated three-frame sequence loaded, its first frame
 run, Next frame twice (tracked as `workbench track` tracks), a jump back showing the frame's own run, Next from
 there stepping along the timeline, a session saving the position and a fresh engine restoring it, and bad input
 (Next on the last frame, a next frame without depth) leaving the frame on show as it was. Real pybullet and

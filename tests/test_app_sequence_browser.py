@@ -1,4 +1,4 @@
-"""Sequences in the workbench in real headless Chromium (issue 31, item 5): a generated three-frame sequence loaded,
+"""Sequences in the workbench in real headless Chromium: a generated three-frame sequence loaded,
 its first frame stepped to the end, Next frame twice, the timeline listing the three frames with their statuses, a
 jump back showing that frame's own estimate, the plots across frames drawn, and a saved session bringing the
 position back, from where Next goes on."""

@@ -476,7 +476,7 @@ def test_changed_or_missing_dataset_files_are_reported(touching_dataset, tmp_pat
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# The settled answer and its posterior (issue 30): saved with the run, shown again on load without settling
+# The settled answer and its posterior: saved with the run, shown again on load without settling
 
 
 @pytest.fixture(scope="module")

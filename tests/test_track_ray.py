@@ -1,5 +1,5 @@
-"""`workbench track --engine ray` (issue 31, item 7) on a real Ray cluster started inside the test (2 CPUs, one head
-node; no mocks), as tests/test_ray.py does for `estimate`: each sequence is one task, the sequences run side by
+"""`workbench track --engine ray` on a real Ray cluster started inside the test (2 CPUs, one head
+node; no mocks), as tests/test_estimate_ray.py does for `estimate`: each sequence is one task, the sequences run side by
 side, the results equal the local engine's, and a sequence that fails is reported while the others are written."""
 
 from __future__ import annotations

@@ -166,6 +166,11 @@ def test_score_reports_vsd_per_object_and_in_the_summary(tmp_path):
     assert [o["vsd"] for o in scores["objects"]] == [0.0] * n
     assert all(o["vsd_right"] and o["ar_vsd"] == 1.0 and o["right"] for o in scores["objects"])
     assert scores["summary"]["vsd_right"] == n and scores["summary"]["ar_vsd"] == 1.0
+    # BOP 2019's AR: the truth recalls every threshold of the three
+    assert all(o["mssd_mm"] == pytest.approx(0.0, abs=1e-9) and o["mspd_px"] == pytest.approx(0.0, abs=1e-6)
+               for o in scores["objects"])
+    assert [scores["summary"][k] for k in ("ar", "ar_mssd", "ar_mspd")] == [1.0, 1.0, 1.0]
+    assert "AR 1.000 = mean of AR_VSD 1.000, AR_MSSD 1.000 and AR_MSPD 1.000" in run.stdout
     assert scores["summary"]["vsd_tau_mm"] == pytest.approx(20.0) and scores["summary"]["vsd_theta"] == 0.3
 
     # The first object 30 cm away; the second not estimated at all
@@ -178,4 +183,10 @@ def test_score_reports_vsd_per_object_and_in_the_summary(tmp_path):
     first, second = scores["objects"][:2]
     assert first["vsd"] == 1.0 and not first["vsd_right"] and first["ar_vsd"] == 0.0
     assert second["position_cm"] is None and second["vsd"] == 1.0 and second["ar_vsd"] == 0.0
+    # 30 cm is beyond every MSSD threshold (at most half a diameter) and every MSPD one (at most 50 px)
+    assert first["mssd_mm"] == pytest.approx(300.0, rel=1e-6) and first["ar_mssd"] == 0.0 and first["ar_mspd"] == 0.0
+    assert second["mssd_mm"] is None and second["ar_mssd"] == 0.0 and second["ar_mspd"] == 0.0
+    rest = scores["objects"][2:]
+    assert scores["summary"]["ar"] == pytest.approx(np.mean([(o["ar_vsd"] + o["ar_mssd"] + o["ar_mspd"]) / 3
+                                                             for o in [first, second, *rest]]))
     assert scores["summary"]["vsd_right"] == n - 2 and f"{n - 2}/{n} objects right by BOP's" in run.stdout

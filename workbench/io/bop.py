@@ -313,9 +313,23 @@ def _model_name(info: dict, path: Path, obj_id: int) -> str:
     return name.strip()
 
 
-def _symmetries(info: dict, path: Path, obj_id: int) -> np.ndarray:
+def load_symmetries(dataset: Path, obj_ids: list[int], steps: int) -> dict[int, np.ndarray]:
+    """The symmetries of the dataset's models ``obj_ids`` (models_info.json), each continuous one sampled at
+    ``steps`` rotations: obj_id -> (S, 4, 4) metres, identity first. Scoring samples finer than the estimator."""
+    info_path = _models_dir(Path(dataset)) / "models_info.json"
+    info = read_json(info_path)
+    known = sorted(_object_ids(info, info_path))
+    out = {}
+    for obj_id in obj_ids:
+        if str(obj_id) not in info:
+            raise InputError(info_path, f"unknown obj_id {obj_id}; this dataset has objects {known}")
+        out[obj_id] = _symmetries(info[str(obj_id)], info_path, obj_id, steps)
+    return out
+
+
+def _symmetries(info: dict, path: Path, obj_id: int, steps: int = CONTINUOUS_SYMMETRY_STEPS) -> np.ndarray:
     """models_info entry -> (S, 4, 4) metres, identity first: discrete ones, each combined with the continuous
-    ones discretised into CONTINUOUS_SYMMETRY_STEPS rotations (as bop_toolkit's get_symmetry_transformations)."""
+    ones discretised into ``steps`` rotations (as bop_toolkit's get_symmetry_transformations)."""
     what = f"object {obj_id}"
     expect_object(info, path, what)
     discrete = [np.eye(4)]
@@ -332,7 +346,7 @@ def _symmetries(info: dict, path: Path, obj_id: int) -> np.ndarray:
             raise InputError(path, f"{what} symmetries_continuous axis must not be zero")
         axis = axis / np.linalg.norm(axis)
         K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        for a in np.arange(1, CONTINUOUS_SYMMETRY_STEPS) * 2 * np.pi / CONTINUOUS_SYMMETRY_STEPS:
+        for a in np.arange(1, steps) * 2 * np.pi / steps:
             R = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
             continuous.append(make_pose(R, offset - R @ offset))
     return np.stack([c @ d for d in discrete for c in continuous])

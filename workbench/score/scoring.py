@@ -6,8 +6,10 @@ position error (cm), rotation error (deg), ADD-S (mm). An object is *right* with
 ``RIGHT_DEG``, the tolerances of docs/benchmarks.md; a frame is right when all its objects are. Poses stay in the
 camera frame (OpenCV, metres): both errors are the same in any frame both poses share.
 
-With ``vsd`` (``score_results``), each object is also scored by what the camera sees of it: BOP's Visible Surface
-Discrepancy (``vsd.py``) against the frame's depth image, the same estimate matched to the same instance.
+With ``vsd`` (``score_results``), each object is also scored as BOP 2019 scores it: by what the camera sees of it,
+the Visible Surface Discrepancy (``vsd.py``) against the frame's depth image, and by the MSSD and MSPD of its
+vertices up to the model's symmetries (``ar.py``), the same estimate matched to the same instance; AR is the mean of
+AR_VSD, AR_MSSD and AR_MSPD, as the BOP leaderboard reports it.
 
 Where the dataset says how much of each object the camera sees (scene_gt_info.json), objects under
 ``gt_info.HIDDEN_VISIB`` are also counted apart: BOP's test targets leave them out, the depth hardly constrains
@@ -25,10 +27,19 @@ import numpy as np
 from workbench.errors import InputError
 from workbench.io import bop
 from workbench.io.results import ResultRow
-from workbench.score import calibration
+from workbench.score import ar, calibration
 from workbench.score.calibration import ObjectModes
 from workbench.score.gt_info import HIDDEN_VISIB, gt_info_path, scene_categories, scenes_path, visib_fractions
-from workbench.score.metrics import RIGHT_CM, RIGHT_DEG, add_s, is_right, model_points, position_error, rotation_error
+from workbench.score.metrics import (
+    RIGHT_CM,
+    RIGHT_DEG,
+    add_s,
+    is_right,
+    model_points,
+    mssd,
+    position_error,
+    rotation_error,
+)
 from workbench.score.vsd import VSDConfig, diameter, frame_vsd
 
 
@@ -47,6 +58,12 @@ class ObjectScore:
     vsd: float = np.nan
     vsd_right: bool | None = None
     ar_vsd: float = np.nan
+    # BOP's MSSD (mm) and MSPD (px) up to the symmetries and the object's shares of AR_MSSD's and AR_MSPD's
+    # thresholds (``ar``; NaN errors and 0 shares without an estimate); NaN when not scored as BOP scores
+    mssd_mm: float = np.nan
+    mspd_px: float = np.nan
+    ar_mssd: float = np.nan
+    ar_mspd: float = np.nan
     visib_fract: float = np.nan  # scene_gt_info.json's; NaN where the dataset does not say
 
     @property
@@ -135,7 +152,8 @@ def score_results(dataset: Path, rows: list[ResultRow], split: str | None = None
     if missing:
         raise InputError(results_path, f"{len(missing)} frame(s) are not in {dataset}, e.g. scene {missing[0][0]} "
                          f"image {missing[0][1]}: is this the dataset the results were made on?")
-    models: dict[int, tuple] = {}  # obj_id -> (symmetries, ADD-S points, mesh, diameter m)
+    # obj_id -> (symmetries, ADD-S points, mesh, diameter m, BOP's symmetries (continuous ones sampled finer))
+    models: dict[int, tuple] = {}
     out = []
     for (scene_id, im_id), mine in sorted(frames.items()):
         try:
@@ -146,9 +164,11 @@ def score_results(dataset: Path, rows: list[ResultRow], split: str | None = None
             raise
         if frame.gt_T_cam_obj is None:
             raise InputError(dataset, f"scene {scene_id} image {im_id} has no scene_gt.json: nothing to score against")
-        for obj_id, m in _load_shapes(dataset, sorted(set(frame.object_ids) - set(models))).items():
+        new = sorted(set(frame.object_ids) - set(models))
+        fine = bop.load_symmetries(dataset, new, ar.continuous_steps()) if vsd is not None and new else {}
+        for obj_id, m in _load_shapes(dataset, new).items():
             models[obj_id] = (m.symmetries, model_points(m.mesh, 500), m.mesh,
-                              diameter(m.mesh) if vsd is not None else np.nan)
+                              diameter(m.mesh) if vsd is not None else np.nan, fine.get(obj_id))
         objects, matched, extra, modes = [], 0, 0, []
         seen = []  # per ground-truth instance, in the order of ``objects``: (obj_id, T_gt, T_est or None)
         visib = visib_fractions(frame) if gt_info_path(frame).is_file() else [np.nan] * len(frame.object_ids)
@@ -179,33 +199,48 @@ def score_results(dataset: Path, rows: list[ResultRow], split: str | None = None
                                            rotation_error(T_gt, T_est, sym), 1000 * add_s(T_gt, T_est, points),
                                            is_right(T_gt, T_est, sym), visib_fract=visib[k]))
         if vsd is not None:
-            objects = _with_vsd(objects, seen, frame, models, vsd)
+            objects = _with_bop(objects, seen, frame, models, vsd)
         out.append(FrameScore(scene_id, im_id, objects, len(mine) - matched - extra, modes, categories.get(scene_id)))
     return out
 
 
-def _with_vsd(objects: list[ObjectScore], seen: list[tuple], frame, models: dict, config: VSDConfig
+def _with_bop(objects: list[ObjectScore], seen: list[tuple], frame, models: dict, config: VSDConfig
               ) -> list[ObjectScore]:
-    """``objects`` of one frame with their VSD against its depth image; ``seen`` (obj_id, T_gt, T_est or None)
-    per object, in the same order."""
+    """``objects`` of one frame scored as BOP 2019 scores them: their VSD against its depth image, and their MSSD
+    and MSPD; ``seen`` (obj_id, T_gt, T_est or None) per object, in the same order."""
     ids = sorted({obj_id for obj_id, _, _ in seen})
     results = frame_vsd(frame.depth, frame.camera.K, [models[i][2] for i in ids], [models[i][3] for i in ids],
                         [(ids.index(obj_id), T_gt, T_est) for obj_id, T_gt, T_est in seen], config)
-    return [replace(o, vsd=v.error, vsd_right=v.right, ar_vsd=v.ar) for o, v in zip(objects, results)]
+    width = frame.depth.shape[1]
+    out = []
+    for o, v, (obj_id, T_gt, T_est) in zip(objects, results, seen):
+        o = replace(o, vsd=v.error, vsd_right=v.right, ar_vsd=v.ar)
+        if T_est is None:
+            out.append(replace(o, ar_mssd=0.0, ar_mspd=0.0))
+            continue
+        _, _, mesh, size, symmetries = models[obj_id]
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        e_mssd = mssd(T_gt, T_est, vertices, symmetries)
+        e_mspd = ar.mspd(T_gt, T_est, vertices, frame.camera.K, symmetries)
+        out.append(replace(o, mssd_mm=1000 * e_mssd, mspd_px=e_mspd, ar_mssd=ar.ar_mssd(e_mssd, size),
+                           ar_mspd=ar.ar_mspd(e_mspd, width)))
+    return out
 
 
 def summary(frames: list[FrameScore], vsd: VSDConfig = VSDConfig()) -> dict:
     """The counts the report's summary gives, for ``score --json``: objects and frames right within 2 cm and
     10 degrees, and (when scored, with ``vsd`` the settings they were scored with) objects VSD-right and AR_VSD,
     the mean over objects of their share of AR_VSD's (tau, theta) pairs (an object without an estimate counts 0:
-    BOP's recall over every ground-truth instance). Where the dataset gives visibilities: the same counts over the
-    objects seen (``visible``: BOP's test targets) and the hidden ones (``hidden``). In sets with scenes.json:
-    ``categories``, per category the object counts, all, seen and hidden."""
+    BOP's recall over every ground-truth instance), AR_MSSD and AR_MSPD likewise, and AR, the mean of the three.
+    Where the dataset gives visibilities: the same counts over the objects seen (``visible``: BOP's test targets)
+    and the hidden ones (``hidden``). In sets with scenes.json: ``categories``, per category the object counts, all,
+    seen and hidden."""
     objects = [o for f in frames for o in f.objects]
     out = {"frames": len(frames), "frames_right": sum(f.right for f in frames), **_counts(objects),
            "right_cm": RIGHT_CM, "right_deg": RIGHT_DEG}
     if "vsd_right" in out:
-        out.update(ar_vsd=float(np.mean([o.ar_vsd for o in objects])), vsd_tau_mm=1000 * vsd.tau,
+        recalls = {key: float(np.mean([getattr(o, key) for o in objects])) for key in ("ar_vsd", "ar_mssd", "ar_mspd")}
+        out.update(ar=float(np.mean(list(recalls.values()))), **recalls, vsd_tau_mm=1000 * vsd.tau,
                    vsd_theta=vsd.theta, vsd_delta_mm=1000 * vsd.delta)
     if any(np.isfinite(o.visib_fract) for o in objects):
         out.update(hidden_visib=HIDDEN_VISIB, **_counts_by_visibility(objects))
@@ -261,6 +296,8 @@ def report(frames: list[FrameScore], vsd: VSDConfig = VSDConfig()) -> list[str]:
         lines.append(f"# {totals['vsd_right']}/{len(objects)} objects right by BOP's visible surface discrepancy "
                      f"(VSD < {totals['vsd_theta']:g} at tau {totals['vsd_tau_mm']:g} mm, delta "
                      f"{totals['vsd_delta_mm']:g} mm); AR_VSD {totals['ar_vsd']:.3f}")
+        lines.append(f"# BOP 2019 average recall AR {totals['ar']:.3f} = mean of AR_VSD {totals['ar_vsd']:.3f}, "
+                     f"AR_MSSD {totals['ar_mssd']:.3f} and AR_MSPD {totals['ar_mspd']:.3f}")
         differ = [o for o in objects if o.estimated and o.vsd_right != o.right]
         if differ:  # what VSD forgives (a hidden part) or catches that the pose tolerances do not
             lines.append("# VSD and 2 cm/10 deg differ on " + ", ".join(

@@ -1,4 +1,4 @@
-"""The workbench read at a glance (issue 33), in real headless Chromium, on a small dataset of its own: the demo's
+"""The workbench read at a glance, in real headless Chromium, on a small dataset of its own: the demo's
 frame with a colour image (rgb/) and the demo's ground truth. The colour image is shown; the truth table gives each
 object's confidence once the run has a posterior ("–" before); the run's buttons share one row, so the tabs start
 high; the plots resize and pop out into a window of their own and come back."""

@@ -1,4 +1,4 @@
-"""`--engine ray` (issue 11) on a real Ray cluster started inside the test (2 CPUs, one head node; no mocks): a
+"""`--engine ray` on a real Ray cluster started inside the test (2 CPUs, one head node; no mocks): a
 frame's result does not depend on the engine, a killed worker is survived, `--resume` skips finished frames, a bad
 frame is reported while the others go on, and a missing Ray says how to install it."""
 

@@ -1,4 +1,4 @@
-"""Issue 9's measured failures, each as a test: nothing a user made is overwritten, and every bad input ends in
+"""Bad input, each measured failure as a test: nothing a user made is overwritten, and every bad input ends in
 `workbench: error: FILE: problem` with exit code 2 before any work starts, never a traceback."""
 
 from __future__ import annotations

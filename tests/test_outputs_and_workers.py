@@ -1,4 +1,4 @@
-"""Nothing lost, nothing stuck (issue 34), the parts that need no physics, rendering, Ray or a browser: damaged
+"""Nothing lost, nothing stuck, the parts that need no physics, rendering, Ray or a browser: damaged
 caches rebuilt, results files locked and guarded, every output a command writes checked, a dead evaluation worker
 restarted with its batch retried."""
 
