@@ -27,6 +27,7 @@ from typing import Callable
 from workbench.app import protocol as p
 from workbench.app.engine.evaluators import CRASH_ERRORS, Evaluators
 from workbench.app.engine.labels import FrameLabels
+from workbench.app.engine.on_show import RunOnShow
 from workbench.app.engine.sequence import EngineSequence
 from workbench.app.engine.sessions import open_session, save_session
 from workbench.app.engine.snapshot import ParticleDisplay
@@ -125,7 +126,7 @@ class Engine:
         self.results = results
         self.evaluators = Evaluators(results, workers, ray)
         self.display = ParticleDisplay()
-        self.labels = FrameLabels(self)
+        self.labels = FrameLabels(results, self.evaluators, self.on_show)
         self.sequence = EngineSequence(self)
         self.problem = None
         self.frame = None
@@ -170,7 +171,7 @@ class Engine:
         elif isinstance(cmd, p.FitLabels):
             self.aside("labels", self.labels.fit)
         elif isinstance(cmd, p.UseBestAsLabel):
-            self.aside("labels", lambda: self.labels.use_best(cmd.modes, cmd.iteration))
+            self.aside("labels", lambda: self.labels.use_best(cmd.modes, cmd.iteration) and self.publish())
         elif isinstance(cmd, p.SaveLabels):
             self.aside("labels", lambda: self.labels.save(cmd.overwrite_original))
         elif isinstance(cmd, p.SaveSession):
@@ -182,6 +183,10 @@ class Engine:
             self.sequence.guarded(self.sequence.next)
         elif isinstance(cmd, p.ShowFrame):
             self.sequence.guarded(lambda: self.sequence.show(cmd.im_id))
+
+    def on_show(self) -> RunOnShow:
+        """The run on show, read-only, as the helpers (``labels``, ``sequence``) see it."""
+        return RunOnShow(self.frame, self.problem, self.estimator, self.config, self.running, self.stop_on_convergence)
 
     def aside(self, topic: str, action: Callable[[], None]) -> None:
         """A labelling or session action: bad input is reported next to its button and the run goes on (``fail``
