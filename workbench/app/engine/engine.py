@@ -27,8 +27,9 @@ from typing import Callable
 from workbench.app import protocol as p
 from workbench.app.engine.evaluators import CRASH_ERRORS, Evaluators
 from workbench.app.engine.labels import FrameLabels
-from workbench.app.engine.sequence import EngineSequence
-from workbench.app.engine.sessions import open_session, save_session
+from workbench.app.engine.on_show import RunOnShow
+from workbench.app.engine.sequence import EngineSequence, HeldRun
+from workbench.app.engine.sessions import OpenedSession, open_session, save_session
 from workbench.app.engine.snapshot import ParticleDisplay
 from workbench.errors import InputError
 
@@ -80,7 +81,9 @@ def demo_dataset() -> Path:
 
 
 def load(source: p.Source, likelihood: str):
-    """-> (dataset folder, frame, problem) for ``source``; raises ``InputError`` naming the file at fault."""
+    """-> (dataset folder, frame, problem, the frame's view) for ``source``; raises ``InputError`` naming the file at
+    fault."""
+    from workbench.app.engine.observation import build_view
     from workbench.io import bop
     from workbench.problem.build import load_bop_problem
     from workbench.problem.problem import ProblemConfig
@@ -100,7 +103,14 @@ def load(source: p.Source, likelihood: str):
         scene_id, im_id = frames[0] if im_id is None else (frames[0][0], im_id)
     config = ProblemConfig(likelihood=LikelihoodConfig(model=likelihood))
     frame, problem = load_bop_problem(dataset, scene_id, im_id, config=config)
-    return dataset, frame, problem
+    return dataset, frame, problem, build_view(frame, problem, source.title(frame.scene_id, frame.im_id), dataset)
+
+
+def with_likelihood(problem, likelihood: str):
+    """``problem`` with the likelihood model ``likelihood`` (checked)."""
+    likelihood_config = replace(problem.config.likelihood, model=likelihood)
+    likelihood_config.validate()
+    return replace(problem, config=replace(problem.config, likelihood=likelihood_config))
 
 
 def session_source(dataset: Path, split: str | None, frame) -> p.Source:
@@ -111,26 +121,43 @@ def session_source(dataset: Path, split: str | None, frame) -> p.Source:
     return p.Source(dataset / split if split else dataset, frame.scene_id, frame.im_id)
 
 
+def prepare_session(cmd: p.LoadSession) -> tuple[OpenedSession, p.Source, p.ObservationView] | p.SessionQuestion:
+    """The session ``cmd`` names, with what a restarted engine reloads for its frame and that frame's view, or the
+    question to ask first (``sessions.open_session``). Touches nothing of the current run."""
+    from workbench.app.engine.observation import build_view
+
+    opened = open_session(Path(cmd.path), cmd.confirmed)
+    if isinstance(opened, p.SessionQuestion):
+        return opened
+    source = session_source(opened.dataset, opened.state.frame.split, opened.frame)
+    return opened, source, build_view(opened.frame, opened.problem, opened.title(), opened.dataset)
+
+
+def nothing_to_run(est) -> p.Failure:
+    """What a Run on the finished run ``est`` is told."""
+    return p.Failure("Nothing to run", f"the run is at iteration {est.iteration} of {est.config.iterations}"
+                                       + (" and has converged" if est.converged else "")
+                                       + ": raise the iteration budget, press Step, or Reset")
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # The engine
 
 
 class Engine:
     """One estimation run on the loaded frame, answering the server's commands (``handle``). Its collaborators:
-    ``evaluators`` (the worker pool and an in-process renderer), ``display`` (what of the run is shown),
-    ``labels`` (the frame's labels) and ``sequence`` (the frames of its scene, one after another)."""
+    ``evaluators`` (the worker pool and an in-process renderer), ``display`` (what of the run is shown), ``labels``
+    (the frame's labels) and ``sequence`` (the frames of its scene). These get only what they use (``on_show``: the
+    run on show, read-only) and change none of the engine's fields: it applies what they return (``put_on_show``)."""
 
     def __init__(self, results, workers: int, ray=None):
         # results: what the engine tells the server, anything with a put (engine_process.Outbox, a test's list)
         self.results = results
         self.evaluators = Evaluators(results, workers, ray)
         self.display = ParticleDisplay()
-        self.labels = FrameLabels(self)
-        self.sequence = EngineSequence(self)
-        self.problem = None
-        self.frame = None
-        self.estimator = None
-        self.config = None
+        self.labels = FrameLabels(results, self.evaluators, self.on_show)
+        self.sequence = EngineSequence(results, self.evaluators, self.on_show, self.pause)
+        self.problem = self.frame = self.estimator = self.config = None
         self.running = False
         self.unshown: int | None = None  # the iteration last published and not yet Shown by the server
         self.stop_on_convergence = True
@@ -160,9 +187,7 @@ class Engine:
             if self.unshown is not None and cmd.iteration >= self.unshown:
                 self.unshown = None
         elif isinstance(cmd, p.Pause):
-            if self.running:
-                self.running = False
-                self.send_state("paused")
+            self.pause()
         elif isinstance(cmd, p.SetLabels):
             self.labels.set(cmd)
         elif isinstance(cmd, p.SnapLabels):
@@ -170,7 +195,7 @@ class Engine:
         elif isinstance(cmd, p.FitLabels):
             self.aside("labels", self.labels.fit)
         elif isinstance(cmd, p.UseBestAsLabel):
-            self.aside("labels", lambda: self.labels.use_best(cmd.modes, cmd.iteration))
+            self.aside("labels", lambda: self.labels.use_best(cmd.modes, cmd.iteration) and self.publish())
         elif isinstance(cmd, p.SaveLabels):
             self.aside("labels", lambda: self.labels.save(cmd.overwrite_original))
         elif isinstance(cmd, p.SaveSession):
@@ -179,9 +204,13 @@ class Engine:
         elif isinstance(cmd, p.LoadSession):
             self.aside("session", lambda: self.load_session(cmd))
         elif isinstance(cmd, p.NextFrame):
-            self.sequence.guarded(self.sequence.next)
+            self.sequence.guarded(lambda: self.put_on_show(self.sequence.next()))
         elif isinstance(cmd, p.ShowFrame):
-            self.sequence.guarded(lambda: self.sequence.show(cmd.im_id))
+            self.sequence.guarded(lambda: self.put_on_show(self.sequence.show(cmd.im_id)))
+
+    def on_show(self) -> RunOnShow:
+        """The run on show, read-only, as the helpers (``labels``, ``sequence``) see it."""
+        return RunOnShow(self.frame, self.problem, self.estimator, self.config, self.running, self.stop_on_convergence)
 
     def aside(self, topic: str, action: Callable[[], None]) -> None:
         """A labelling or session action: bad input is reported next to its button and the run goes on (``fail``
@@ -193,10 +222,7 @@ class Engine:
 
     def load(self, cmd: p.Load) -> None:
         cmd.config.validate()
-        dataset, frame, problem = load(cmd.source, cmd.likelihood)  # on failure the old run stays
-        from workbench.app.engine.observation import build_view
-
-        view = build_view(frame, problem, cmd.source.title(frame.scene_id, frame.im_id), dataset)
+        dataset, frame, problem, view = load(cmd.source, cmd.likelihood)  # on failure the old run stays
         self.replace_frame(cmd.source, view, frame, problem, cmd.config)
         self.new_estimator()
         self.labels.adopt_frame(dataset)
@@ -216,9 +242,7 @@ class Engine:
         config.validate()
         self.config = config
         if likelihood != self.problem.config.likelihood.model:
-            likelihood_config = replace(self.problem.config.likelihood, model=likelihood)
-            likelihood_config.validate()
-            self.problem = replace(self.problem, config=replace(self.problem.config, likelihood=likelihood_config))
+            self.problem = with_likelihood(self.problem, likelihood)
             self.evaluators.use(self.problem)
         self.new_estimator()
 
@@ -245,15 +269,15 @@ class Engine:
             raise InputError(None, "nothing is loaded: load a dataset or the demo first")
         self.stop_on_convergence = stop_on_convergence
         if self.finished():
-            self.results.put(p.Failure(
-                "Nothing to run",
-                f"the run is at iteration {self.estimator.iteration} of {self.estimator.config.iterations}"
-                + (" and has converged" if self.estimator.converged else "")
-                + ": raise the iteration budget, press Step, or Reset",
-            ))
+            self.results.put(nothing_to_run(self.estimator))
             return
         self.running = True
         self.send_state("running")
+
+    def pause(self) -> None:
+        if self.running:
+            self.running = False
+            self.send_state("paused")
 
     def may_step(self) -> bool:
         """Running, and the server shows the last iteration (see ``protocol.Shown``)."""
@@ -262,9 +286,8 @@ class Engine:
     def finished(self) -> bool:
         """At the run's own budget (a tracked frame's is its short search's), or converged."""
         est = self.estimator
-        return est.iteration >= est.config.iterations or (
-            self.stop_on_convergence and est.iteration >= 0 and est.converged
-        )
+        return est.iteration >= est.config.iterations or (self.stop_on_convergence and est.iteration >= 0
+                                                          and est.converged)
 
     def step(self) -> None:
         from workbench.evaluation import WorkerCrashed
@@ -322,27 +345,36 @@ class Engine:
             self.results.put(p.Failure(f"Estimator error ({type(err).__name__})", str(err) or repr(err)))
         self.send_state("error")
 
-    # -- sessions
+    # -- sequences and sessions
+
+    def put_on_show(self, held: HeldRun | None) -> None:
+        """Put a processed frame's ``held`` run (from the sequence's Next or a jump; None: the frame on show stays)
+        in place of the engine's, and tell the server."""
+        if held is None:
+            return
+        self.running, self.unshown = False, None
+        self.frame, self.problem, self.estimator = held.frame, held.problem, held.estimator
+        held.estimator.evaluator = self.evaluators.evaluating(held.problem)
+        self.display.forget()
+        self.results.put(p.Loaded(held.source, held.view, keep_camera=True))
+        self.labels.adopt_frame(self.sequence.dataset)
+        self.sequence.publish(reports=[r.as_dict() for r in held.estimator.history])
+        self.send_state("shown")
+        self.publish()
 
     def load_session(self, cmd: p.LoadSession) -> None:
         """Continue a saved session. Everything that can fail on bad input happens before the current run is
-        touched; stepping the restored estimator then continues the saved run bit for bit, given the same worker
-        count (the tile a hypothesis is rendered in changes the last bits of its depth)."""
-        from workbench.app.engine.observation import build_view
+        touched (``prepare_session``); stepping the restored estimator then continues the saved run bit for bit,
+        given the same worker count (the tile a hypothesis is rendered in changes the last bits of its depth)."""
         from workbench.sessions import store as sessions
 
-        opened = open_session(Path(cmd.path), cmd.confirmed)
-        if isinstance(opened, p.SessionQuestion):
-            self.results.put(opened)
+        prepared = prepare_session(cmd)
+        if isinstance(prepared, p.SessionQuestion):
+            self.results.put(prepared)
             return
-        state, frame, problem = opened.state, opened.frame, opened.problem
-        source = session_source(opened.dataset, state.frame.split, frame)
-        view = build_view(frame, problem, opened.title(), opened.dataset)
-
-        # From here on the current run is replaced. In a sequence the panel's settings are the sequence's (a
-        # tracked frame's run has its own).
-        config = state.estimator_config if opened.sequence is None else opened.sequence.config
-        self.replace_frame(source, view, frame, problem, config)
+        opened, source, view = prepared
+        state, problem, config = opened.state, opened.problem, opened.config
+        self.replace_frame(source, view, opened.frame, problem, config)  # from here on the current run is replaced
         try:
             self.estimator = sessions.restore_estimator(state, problem, self.evaluators.evaluator())
         except Exception:

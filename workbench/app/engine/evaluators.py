@@ -48,6 +48,10 @@ class Evaluators:
         self.problem = problem
         return self.pool
 
+    def evaluating(self, problem):
+        """-> the pool, evaluating ``problem`` (retargeted where it evaluates another frame's)."""
+        return self.retarget(problem) if self.problem is not problem else self.evaluator()
+
     def evaluator(self):
         """The pool, made (and announced to the server) if there is none."""
         if self.pool is None:

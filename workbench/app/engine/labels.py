@@ -13,11 +13,13 @@ import logging
 import time
 import traceback
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from workbench.app import protocol as p
 from workbench.app.engine.evaluators import CRASH_ERRORS
+from workbench.app.engine.on_show import RunOnShow
 from workbench.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -37,6 +39,17 @@ def truth_points(problem) -> list:
     return [model_points(m.mesh, 500) for m in problem.models]
 
 
+def truth_scene(frame, problem) -> np.ndarray | None:
+    """``frame``'s ground truth (K, 4, 4) in ``problem``'s table frame when it has a pose for every object, else
+    None (also with no frame or problem loaded)."""
+    if frame is None or problem is None or frame.gt_T_cam_obj is None:
+        return None
+    from workbench.geometry import invert_pose
+
+    gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
+    return gt if len(gt) == problem.n_objects and np.all(np.isfinite(gt)) else None
+
+
 def movement_table(names: list[str], which: list[int], moved: np.ndarray, turns: np.ndarray) -> str:
     """Markdown table of how far each labelled object (``which``) moved (m -> cm) and turned (deg)."""
     rows = "\n".join(f"| {names[k]} | {moved[k] * 100:.2f} | {turns[k]:.1f} |" for k in which)
@@ -44,11 +57,15 @@ def movement_table(names: list[str], which: list[int], moved: np.ndarray, turns:
 
 
 class FrameLabels:
-    """Per object of ``engine``'s frame a (4, 4) table-frame pose or None, and the frame's place in its dataset
-    (``frame_ref``; None: label files and sessions unavailable, ``frame_ref_problem`` says why)."""
+    """Per object of the frame on show a (4, 4) table-frame pose or None, and the frame's place in its dataset
+    (``frame_ref``; None: label files and sessions unavailable, ``frame_ref_problem`` says why). Given only what it
+    uses of the engine: ``results`` (what the server is told), the ``evaluators`` (renders) and ``on_show`` (-> the
+    run on show, read-only)."""
 
-    def __init__(self, engine):
-        self.engine = engine  # its problem, frame, estimator, evaluators and results
+    def __init__(self, results, evaluators, on_show: Callable[[], RunOnShow]):
+        self.results = results
+        self.evaluators = evaluators
+        self.on_show = on_show
         self.frame_ref = None
         self.frame_ref_problem = "nothing is loaded"
         self.labels: list[np.ndarray | None] = []
@@ -65,7 +82,8 @@ class FrameLabels:
         from workbench import labels as labelling
         from workbench.sessions import store as sessions
 
-        frame, problem, results = self.engine.frame, self.engine.problem, self.engine.results
+        run, results = self.on_show(), self.results
+        frame, problem = run.frame, run.problem
         try:
             self.frame_ref, self.frame_ref_problem = sessions.frame_ref_for(dataset, frame, problem), ""
         except (InputError, OSError) as err:
@@ -91,7 +109,7 @@ class FrameLabels:
         self.dirty = True
 
     def set(self, cmd: p.SetLabels) -> None:
-        problem = self.engine.problem
+        problem = self.on_show().problem
         if problem is None or len(cmd.labels) != problem.n_objects:
             return  # edits of a frame that has since been replaced
         self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in cmd.labels]
@@ -102,7 +120,7 @@ class FrameLabels:
     def labelled(self) -> list[int]:
         """The labelled objects; InputError when there are none."""
         which = [k for k, T in enumerate(self.labels) if T is not None]
-        if self.engine.problem is None or not which:
+        if self.on_show().problem is None or not which:
             raise InputError("labels", "nothing is labelled yet: move an object's gizmo, type its pose, or use the "
                                        "best estimate as label")
         return which
@@ -116,11 +134,12 @@ class FrameLabels:
         missing = [k for k, T in enumerate(self.labels) if T is None]
         if not missing:
             return np.stack(self.labels), ""
-        est = self.engine.estimator
+        run = self.on_show()
+        est = run.estimator
         if est is not None and est.particles is not None:
             fill, how = est.estimate, "best estimate"
         elif leave_out:
-            behind = invert_pose(self.engine.problem.camera.T_cam_world)
+            behind = invert_pose(run.problem.camera.T_cam_world)
             behind[:3, 3] -= 100.0 * behind[:3, 2]  # 100 m behind the sensor: clipped, never drawn
             fill, how = np.broadcast_to(behind, (len(self.labels), 4, 4)), "left out"
         else:
@@ -133,13 +152,13 @@ class FrameLabels:
         for k in which:
             self.labels[k] = np.array(scene[k], dtype=np.float64)
         self.reference = None
-        self.engine.results.put(p.Labels(list(self.labels), reason, note))
+        self.results.put(p.Labels(list(self.labels), reason, note))
         self.dirty = True
 
     def names(self) -> list[str]:
         from workbench.problem.scene import display_names
 
-        return display_names(self.engine.problem.models)
+        return display_names(self.on_show().problem.models)
 
     def snap(self) -> None:
         from workbench import labels as labelling
@@ -147,8 +166,8 @@ class FrameLabels:
 
         which = self.labelled()
         scene, filled = self.scene(leave_out=False)
-        projected, moved, status = labelling.snap_to_plausible(self.engine.problem, scene,
-                                                               self.engine.evaluators.local())
+        projected, moved, status = labelling.snap_to_plausible(self.on_show().problem, scene,
+                                                               self.evaluators.local())
         stand_in = f" (unlabelled objects: the {filled})" if filled else ""
         note = (f"**Snapped**: physics {STATUS_NAMES.get(status, status)}{stand_in}\n\n"
                 + movement_table(self.names(), which, moved, turned(scene, projected)))
@@ -159,19 +178,22 @@ class FrameLabels:
 
         which = self.labelled()
         scene, filled = self.scene(leave_out=False)
-        fitted = labelling.fit_label(self.engine.problem, scene, self.engine.evaluators.local())
+        fitted = labelling.fit_label(self.on_show().problem, scene, self.evaluators.local())
         moved = np.linalg.norm(fitted[:, :3, 3] - scene[:, :3, 3], axis=-1)
         stand_in = f" (unlabelled objects: the {filled}, not changed)" if filled else ""
         note = (f"**Fitted** to the depth, then snapped{stand_in}\n\n"
                 + movement_table(self.names(), which, moved, turned(scene, fitted)))
         self.adopt(fitted, which, "fit", note)
 
-    def use_best(self, modes: tuple[int, ...] = (), iteration: int = -1) -> None:
+    def use_best(self, modes: tuple[int, ...] = (), iteration: int = -1) -> bool:
         """Label every object with the settled estimate, or with the mode ``modes`` names for it (indices into the
-        modes of the posterior shown with the snapshot of ``iteration``)."""
+        modes of the posterior shown with the snapshot of ``iteration``) -> whether the engine is to publish the
+        snapshot again: settling gave the run a posterior the server has not seen (its modes, to show and choose
+        from)."""
         from workbench.app.ui.run.modes import scene_with_modes
 
-        est = self.engine.estimator
+        run = self.on_show()
+        est = run.estimator
         if est is None or est.particles is None:
             raise InputError("labels", "there is no estimate yet: take a step first")
         shown = est.answer_current  # the server has this posterior already
@@ -189,16 +211,16 @@ class FrameLabels:
         if est.ties:
             # The turns the depth scores about as well: a labeller checks these against the image or another view.
             note += ("\n\nThe depth hardly decides between these and the labels (check them; **Turn** or **Lay on "
-                     "face** sets one):\n" + "\n".join(f"- {t.describe(self.engine.problem)}" for t in est.ties))
+                     "face** sets one):\n" + "\n".join(f"- {t.describe(run.problem)}" for t in est.ties))
         self.adopt(best, list(range(len(best))), "best", note)
-        if not shown and est.posterior is not None:
-            self.engine.publish()  # the snapshot again, now with the posterior: its modes to show and choose from
+        return not shown and est.posterior is not None
 
     def save(self, overwrite_original: bool) -> None:
         from workbench import labels as labelling
 
         self.labelled()
-        ref, frame, problem = self.frame_ref, self.engine.frame, self.engine.problem
+        run = self.on_show()
+        ref, frame, problem = self.frame_ref, run.frame, run.problem
         if ref is None:
             raise InputError(None, f"labels are saved into the frame's BOP dataset, and {self.frame_ref_problem}")
         started = time.time()
@@ -209,33 +231,34 @@ class FrameLabels:
         if overwrite_original:
             backups = [b for b in path.parent.glob(f"{path.name}.bak-*") if b.stat().st_mtime >= started - 1]
             note = f"the original was kept as `{max(backups).name}`" if backups else "there was no original to keep"
-        self.engine.results.put(p.Saved("labels", str(path), note))
+        self.results.put(p.Saved("labels", str(path), note))
 
     def publish_errors(self, always: bool = False) -> None:
         """The best scene against the labels (every iteration while something is labelled; ``always`` after an
         edit, so that clearing the labels clears the table)."""
         from workbench import labels as labelling
 
-        est, problem = self.engine.estimator, self.engine.problem
+        run = self.on_show()
+        est, problem = run.estimator, run.problem
         if est is None or est.particles is None or not (always or any(T is not None for T in self.labels)):
             return
         if len(self.labels) != problem.n_objects:
             return
         errors = labelling.label_errors(problem, est.estimate, self.labels)
-        self.engine.results.put(p.LabelErrors(est.iteration, errors))
+        self.results.put(p.LabelErrors(est.iteration, errors))
 
     def work(self) -> None:
         """What the latest label edit needs: the errors, and the heatmap if it is shown. Runs once the command
         queue is drained, so edits that arrived meanwhile were simply overwritten (dropped, not rendered)."""
         self.dirty = False
-        if self.engine.problem is None:
+        if self.on_show().problem is None:
             return
-        results = self.engine.results
+        results = self.results
         try:
             self.publish_errors(always=True)
             if self.heatmap and any(T is not None for T in self.labels):
                 scene, filled = self.scene(leave_out=True)
-                pixels, residual = self.engine.evaluators.explain(scene)
+                pixels, residual = self.evaluators.explain(scene)
                 results.put(p.LabelHeatmap(pixels.astype(np.float32), residual,
                                            float(pixels.sum(dtype=np.float64)), filled))
         except InputError as err:
@@ -251,35 +274,27 @@ class FrameLabels:
         ground truth where it has one for every object, "label_loglik": the labels when every object is labelled},
         NaN where there is none. One render each, cached until the labels, frame or likelihood change."""
         if self.reference is None:
-            frame, problem = self.engine.frame, self.engine.problem
-            scenes = {"truth_loglik": self.truth_scene(), "label_loglik": None}
+            run = self.on_show()
+            frame, problem = run.frame, run.problem
+            scenes = {"truth_loglik": truth_scene(frame, problem), "label_loglik": None}
             if self.labels and all(T is not None for T in self.labels):
                 scenes["label_loglik"] = np.stack(self.labels)
             out = {}
             for key, scene in scenes.items():
                 value = float("nan")
                 if scene is not None and frame is not None and problem is not None:
-                    pixels, _ = self.engine.evaluators.explain(scene)
+                    pixels, _ = self.evaluators.explain(scene)
                     value = float(pixels.sum(dtype=np.float64))
                 out[key] = value
             self.reference = out
         return self.reference
 
-    def truth_scene(self) -> np.ndarray | None:
-        """The frame's ground truth (K, 4, 4) in the table frame when it has a pose for every object, else None."""
-        frame, problem = self.engine.frame, self.engine.problem
-        if frame is None or problem is None or frame.gt_T_cam_obj is None:
-            return None
-        from workbench.geometry import invert_pose
-
-        gt = invert_pose(problem.camera.T_cam_world)[None] @ frame.gt_T_cam_obj
-        return gt if len(gt) == problem.n_objects and np.all(np.isfinite(gt)) else None
-
     def publish_truth(self) -> None:
         """The estimate against the dataset's ground truth, every iteration, where the frame has one: the run's
         settled answer with its posterior's confidences once it has one (what the 3D view draws, and what
         ``workbench estimate`` writes), else the best scene."""
-        est, frame, problem = self.engine.estimator, self.engine.frame, self.engine.problem
+        run = self.on_show()
+        est, frame, problem = run.estimator, run.frame, run.problem
         if est is None or est.particles is None or frame is None or frame.gt_T_cam_obj is None:
             return
         from workbench.app.ui.run.truth import truth_rows
@@ -288,4 +303,4 @@ class FrameLabels:
             self.truth_points = truth_points(problem)
         estimate = np.array(est.settled if est.answer_current else est.estimate, dtype=np.float64)
         rows = truth_rows(frame, problem, estimate, self.truth_points, est.current_posterior)
-        self.engine.results.put(p.TruthErrors(est.iteration, rows, estimate))
+        self.results.put(p.TruthErrors(est.iteration, rows, estimate))

@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from workbench.app import protocol as p
+from workbench.app.engine.on_show import RunOnShow
 from workbench.app.ui.run.truth import top_probabilities
 from workbench.errors import InputError
 from workbench.sessions.sequence_record import SequenceRecord
@@ -75,11 +76,17 @@ def run_summary(estimator) -> tuple[np.ndarray, np.ndarray]:
 
 
 class EngineSequence:
-    """The sequence of ``engine``'s frame (its frame, problem, estimator, evaluators, labels and results), or none
-    (``scene_id`` None: the frame's scene has one frame, or it is not a dataset's)."""
+    """The sequence of the frame on show, or none (``scene_id`` None: the frame's scene has one frame, or it is not
+    a dataset's). Given only what it uses of the engine: ``results`` (what the server is told), the ``evaluators``
+    (the pool a tracked frame is evaluated on), ``on_show`` (-> the run on show, read-only) and ``pause`` (stops a
+    Run, telling the server). It changes nothing of the engine's: Next and a jump return the ``HeldRun`` to put on
+    show, and the engine puts it there (``Engine.put_on_show``)."""
 
-    def __init__(self, engine):
-        self.engine = engine
+    def __init__(self, results, evaluators, on_show: Callable[[], RunOnShow], pause: Callable[[], None]):
+        self.results = results
+        self.evaluators = evaluators
+        self.on_show = on_show
+        self.pause = pause
         self.scene_id: int | None = None
         self.dataset: Path | None = None  # as the frames are loaded from it (the root with ``split``, or a split)
         self.split: str | None = None
@@ -93,7 +100,7 @@ class EngineSequence:
               record: SequenceRecord | None = None) -> None:
         """The engine loaded a frame (from a session with its ``record``, or none): a sequence at it where its
         scene has more frames, else none. Tells the server either way."""
-        e = self.engine
+        e = self.on_show()
         self.scene_id, self.frames, self.at = None, [], 0
         try:
             ids = scene_frame_ids(dataset, e.frame.scene_id, split)
@@ -119,19 +126,19 @@ class EngineSequence:
         try:
             action()
         except InputError as err:
-            self.engine.results.put(p.Failure("Sequence: not done", err.problem, err.path, topic="sequence"))
+            self.results.put(p.Failure("Sequence: not done", err.problem, err.path, topic="sequence"))
         except Exception as err:  # noqa: BLE001 - a failed Next must leave the frame on show usable
             log.error("sequence error\n%s", traceback.format_exc())
-            self.engine.results.put(p.Failure(f"Next frame failed ({type(err).__name__})", str(err) or repr(err),
-                                              topic="sequence"))
+            self.results.put(p.Failure(f"Next frame failed ({type(err).__name__})", str(err) or repr(err),
+                                       topic="sequence"))
 
-    def next(self) -> None:
-        """Go to the scene's frame after the one on show (module docstring)."""
+    def next(self) -> HeldRun:
+        """Go to the scene's frame after the one on show (module docstring) -> its run, to put on show."""
         from workbench.app.engine.observation import build_view
         from workbench.track.config import TrackConfig
         from workbench.track.sequence import Tracker
 
-        e, here = self.engine, self.here()
+        e, here = self.on_show(), self.here()
         est, nxt = e.estimator, self.next_id()
         if nxt is None:
             raise InputError("Next frame", f"frame {here.entry.im_id} is the last of scene {self.scene_id} (frames "
@@ -141,14 +148,11 @@ class EngineSequence:
                                            "first (the next frame starts from its particles)")
         if self.at + 1 < len(self.frames) and here.handed is not None and here.handed[0] is est \
                 and here.handed[1] == est.iteration:
-            self.show(nxt)
-            return
-        if e.running:  # Next during a Run: the run stops where it is, and is tracked from there
-            e.running = False
-            e.send_state("paused")
+            return self.show(nxt)
+        self.pause()  # Next during a Run: the run stops where it is, and is tracked from there
         tracker = Tracker(self.dataset, self.scene_id, [here.entry.im_id, nxt], e.config, TrackConfig(),
                           e.problem.config, split=self.split, early_stop=e.stop_on_convergence,
-                          evaluator_for=e.evaluators.retarget)
+                          evaluator_for=self.evaluators.retarget)
         tracker.resume(e.frame, e.problem, est, est.settle())
         t0 = time.perf_counter()
         try:
@@ -167,10 +171,11 @@ class EngineSequence:
         entry = p.SequenceFrame(nxt, done.status, seconds, done.motion, *run_summary(done.estimator))
         self.frames.append(Processed(entry, HeldRun(source, view, done.frame, done.problem, done.estimator)))
         self.at = len(self.frames) - 1
-        self.show_held()
+        return self.frames[self.at].held
 
-    def show(self, im_id: int) -> None:
-        """Show the processed frame ``im_id`` again, its run as it was left."""
+    def show(self, im_id: int) -> HeldRun | None:
+        """Show the processed frame ``im_id`` again, its run as it was left -> that run, to put on show (None: it is
+        on show already, and the server was told the timeline again)."""
         ids = [f.entry.im_id for f in self.frames]
         if self.scene_id is None or im_id not in ids:
             raise InputError("Frame", f"frame {im_id} has not been processed (processed: {ids or 'none'}); Next frame "
@@ -181,10 +186,10 @@ class EngineSequence:
                                       "the frame on show when it was saved); Next frame goes on from the frame on show")
         if i == self.at:
             self.publish()
-            return
+            return None
         self.leave()
         self.at = i
-        self.show_held()
+        return self.frames[i].held
 
     # -- the frame on show
 
@@ -202,14 +207,14 @@ class EngineSequence:
     def leave(self) -> None:
         """The frame on show is left: its run, as it is now (the user may have stepped or reset it), is kept, and
         its entry says where it got to."""
-        e, here = self.engine, self.frames[self.at]
-        here.held = replace(here.held, estimator=e.estimator)
+        here = self.frames[self.at]
+        here.held = replace(here.held, estimator=self.on_show().estimator)
         self.update_entry(here)
 
     def update_entry(self, here: Processed) -> None:
         """The entry of the frame on show, from its run now: its answer and, for the first frame, its seconds (its
         iterations')."""
-        est = self.engine.estimator
+        est = self.on_show().estimator
         seconds = here.entry.seconds
         if here.entry.status == "estimated":
             seconds = float(sum(r.timings.get("total", 0.0) for r in est.history))
@@ -222,44 +227,29 @@ class EngineSequence:
             self.update_entry(self.frames[self.at])
             self.publish()
 
-    def show_held(self) -> None:
-        """Put the held run of the frame at ``at`` on show, in place of the engine's, and tell the server."""
-        e, held = self.engine, self.frames[self.at].held
-        e.running = False
-        e.unshown = None
-        e.frame, e.problem, e.estimator = held.frame, held.problem, held.estimator
-        held.estimator.evaluator = (e.evaluators.retarget(held.problem) if e.evaluators.problem is not held.problem
-                                    else e.evaluators.evaluator())
-        e.display.forget()
-        e.results.put(p.Loaded(held.source, held.view, keep_camera=True))
-        e.labels.adopt_frame(self.dataset)
-        self.publish(reports=[r.as_dict() for r in held.estimator.history])
-        e.send_state("shown")
-        e.publish()
-
     def pool_back(self) -> None:
         """After a failed Next: the evaluator back on the frame on show (a fresh pool where the old one broke)."""
-        e = self.engine
-        if e.evaluators.problem is e.problem:
+        e, evaluators = self.on_show(), self.evaluators
+        if evaluators.problem is e.problem:
             return
         try:
-            e.estimator.evaluator = e.evaluators.retarget(e.problem)
+            e.estimator.evaluator = evaluators.retarget(e.problem)
         except Exception:  # noqa: BLE001 - a worker died with the failed Next: start the pool again
-            e.evaluators.use(e.problem)
-            e.estimator.evaluator = e.evaluators.evaluator()
+            evaluators.use(e.problem)
+            e.estimator.evaluator = evaluators.evaluator()
 
     # -- telling the server, and sessions
 
     def publish(self, reports: list[dict] | None = None) -> None:
         """The timeline as it stands; ``reports``: the history of the run on show, where the frame on show changed
         (with its settings, where they are not the panel's)."""
-        e = self.engine
+        e = self.on_show()
         if self.scene_id is None:
-            e.results.put(p.SequenceState(None))
+            self.results.put(p.SequenceState(None))
             return
         est = e.estimator
         own = est is not None and replace(est.config, seed=e.config.seed) != e.config
-        e.results.put(p.SequenceState(
+        self.results.put(p.SequenceState(
             self.scene_id, self.frame_ids, [replace(f.entry, held=f.held is not None) for f in self.frames],
             self.frames[self.at].entry.im_id, self.next_id(), reports, est.config if own else None))
 
@@ -268,4 +258,4 @@ class EngineSequence:
         if self.scene_id is None:
             return None
         self.update_entry(self.frames[self.at])
-        return SequenceRecord([f.entry for f in self.frames], self.frames[self.at].entry.im_id, self.engine.config)
+        return SequenceRecord([f.entry for f in self.frames], self.frames[self.at].entry.im_id, self.on_show().config)

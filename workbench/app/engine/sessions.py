@@ -33,6 +33,11 @@ class OpenedSession:
         return self.path.name.removesuffix(".json")
 
     @property
+    def config(self):
+        """The panel's settings: in a sequence the sequence's (a tracked frame's run has its own), else the run's."""
+        return self.state.estimator_config if self.sequence is None else self.sequence.config
+
+    @property
     def dataset(self) -> Path:
         return Path(self.state.frame.dataset)
 
