@@ -13,8 +13,8 @@ was, except the output the case allows to be written.
 ``--quick`` skips the cases that run a real estimate (caches, a killed worker, SIGTERM, a session, a 1.3M-face
 model; a few minutes in all), ``--slow-only`` runs only those. The render-mesh cache is not among them: the demo's
 meshes are too small to be decimated (tests/test_outputs_and_workers.py damages one directly). Extends the
-ideas of tests/test_bad_input_fuzzed.py (which mutates every JSON field and the depth image in-process) with the cases of
-issue 34. Needs no ../shared.
+ideas of tests/test_bad_input_fuzzed.py (which mutates every JSON field and the depth image in-process) with the
+cases of issue 34. Needs no ../shared.
 """
 
 from __future__ import annotations
