@@ -13,8 +13,10 @@ from workbench.labels import (
     fit_label,
     label_errors,
     labels_path,
+    list_backups,
     load_labels,
     residual_map,
+    restore_backup,
     save_labels,
     snap_to_plausible,
 )
@@ -102,6 +104,57 @@ def test_labelling_one_object_keeps_every_other_objects_truth(scene, tmp_path):
     back = load_labels(work, 0, 0, problem.camera.T_cam_world, frame.object_ids, path=scene_gt)
     assert np.allclose(back[0], gt[0], rtol=0, atol=1e-6)
     assert np.allclose(back[1], moved[1], rtol=0, atol=ROUNDTRIP_ATOL)
+
+
+def test_a_backup_is_restored_after_backing_up_the_current_truth(scene, tmp_path):
+    """Two overwriting saves keep two backups, listed newest first; restoring the oldest puts the original bytes
+    back, and the scene_gt.json it replaced is itself kept as a third backup."""
+    dataset, frame, problem, gt, _ = scene
+    work = tmp_path / "dataset"
+    shutil.copytree(dataset, work)
+    scene_gt = work / "test" / "000000" / "scene_gt.json"
+    original = scene_gt.read_bytes()
+    assert list_backups(work, 0) == []
+    moved = _perturbed(gt)
+    save_labels(work, 0, 0, problem.camera.T_cam_world, [moved[0], None], frame.object_ids, overwrite_original=True)
+    once = scene_gt.read_bytes()
+    save_labels(work, 0, 0, problem.camera.T_cam_world, [None, moved[1]], frame.object_ids, overwrite_original=True)
+    twice = scene_gt.read_bytes()
+    backups = list_backups(work, 0)
+    assert [b.path.read_bytes() for b in backups] == [once, original]
+    assert backups[0].time > backups[1].time
+
+    path, kept = restore_backup(work, 0, backups[1].path.name)
+    assert path == scene_gt and scene_gt.read_bytes() == original
+    assert kept is not None and kept.read_bytes() == twice
+    assert [b.path for b in list_backups(work, 0)] == [kept, *(b.path for b in backups)]
+    assert np.allclose(bop.load_frame(work, 0, 0).gt_T_cam_obj, frame.gt_T_cam_obj, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("content, problem", [
+    ('{"0": [{"obj_id": 1', "corrupt JSON"),
+    ('[1, 2]', "must be a JSON object"),
+    ('{"first": []}', "keys must be image ids"),
+    ('{"0": {"obj_id": 1}}', "image 0: expected a list of objects"),
+])
+def test_a_damaged_backup_is_refused_naming_it_and_nothing_is_written(scene, tmp_path, content, problem):
+    dataset, *_ = scene
+    work = tmp_path / "dataset"
+    shutil.copytree(dataset, work)
+    folder = work / "test" / "000000"
+    original = (folder / "scene_gt.json").read_bytes()
+    damaged = folder / "scene_gt.json.bak-20240102T030405000006"
+    damaged.write_text(content)
+    assert [(b.path, b.time.isoformat()) for b in list_backups(work, 0)] == [(damaged, "2024-01-02T03:04:05.000006")]
+    with pytest.raises(InputError, match=problem) as err:
+        restore_backup(work, 0, damaged.name)
+    assert err.value.path == str(damaged)
+    assert (folder / "scene_gt.json").read_bytes() == original and list_backups(work, 0)[0].path == damaged
+    assert len(list_backups(work, 0)) == 1
+    for name in ("scene_gt.json", "../000000/scene_gt.json.bak-20240102T030405000006", "scene_gt.json.bak-missing"):
+        with pytest.raises(InputError, match="not a backup"):
+            restore_backup(work, 0, name)
+    assert (folder / "scene_gt.json").read_bytes() == original
 
 
 def test_snap_puts_a_floating_box_on_the_table(scene):

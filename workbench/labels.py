@@ -7,12 +7,14 @@ that an app reuses its renderer and physics client instead of creating new ones 
 
 Files: labels go to ``scene_gt_labels.json`` beside the scene's scene_gt.json by default (same format: per image a
 list of {"cam_R_m2c": 9 numbers row-major, "cam_t_m2c": 3 numbers in mm, "obj_id"}), so that the dataset's own
-ground truth is never touched unless asked for; then a timestamped backup is kept.
+ground truth is never touched unless asked for; then a timestamped backup is kept, which ``restore_backup`` puts
+back (``list_backups`` lists them).
 """
 
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
@@ -23,6 +25,7 @@ from workbench.evaluation import LocalEvaluator
 from workbench.geometry import check_rigid, invert_pose
 from workbench.inference.answer.settle import pattern_search
 from workbench.io import bop, readers
+from workbench.io.outputs import write_file
 from workbench.io.readers import MM
 from workbench.problem.problem import Problem
 from workbench.render.likelihood import scene_loglik
@@ -30,6 +33,8 @@ from workbench.score.metrics import add_s, model_points, position_error, rotatio
 
 LABELS_FILE = "scene_gt_labels.json"
 ORIGINAL_FILE = "scene_gt.json"
+BACKUP_PREFIX = f"{ORIGINAL_FILE}.bak-"
+STAMP_FORMAT = "%Y%m%dT%H%M%S%f"  # a backup's name: scene_gt.json.bak-<stamp>
 
 
 def _scene(problem: Problem, T_world_obj) -> np.ndarray:
@@ -207,11 +212,56 @@ def merge_entries(old: list[dict], obj_ids: list[int], new: list[dict | None]) -
 
 def _backup(path: Path) -> Path:
     """Copy ``path`` to <name>.bak-<timestamp>, never replacing an earlier backup."""
-    stamp = datetime.now().strftime("%Y%m%dT%H%M%S%f")
+    stamp = datetime.now().strftime(STAMP_FORMAT)
     backup = path.with_name(f"{path.name}.bak-{stamp}")
     with open(backup, "xb") as f:
         f.write(path.read_bytes())
     return backup
+
+
+@dataclass(frozen=True)
+class Backup:
+    """A backup of a scene's scene_gt.json (``path``) and when it was made (``time``: from its name's stamp, else
+    the file's modification time)."""
+
+    path: Path
+    time: datetime
+
+
+def list_backups(dataset: Path, scene_id: int, split: str | None = None) -> list[Backup]:
+    """The backups ``save_labels`` (and ``restore_backup``) kept of the scene's scene_gt.json, newest first."""
+    out = []
+    for path in _scene_dir(dataset, scene_id, split).glob(f"{BACKUP_PREFIX}*"):
+        if not path.is_file():
+            continue
+        try:
+            time = datetime.strptime(path.name[len(BACKUP_PREFIX):], STAMP_FORMAT)
+        except ValueError:  # renamed or copied by hand: when it was last written
+            time = datetime.fromtimestamp(path.stat().st_mtime)
+        out.append(Backup(path, time))
+    return sorted(out, key=lambda b: (b.time, b.path.name), reverse=True)
+
+
+def restore_backup(dataset: Path, scene_id: int, name: str, split: str | None = None) -> tuple[Path, Path | None]:
+    """Put the backup ``name`` (a file name from ``list_backups``) back as the scene's scene_gt.json, byte for byte
+    -> (scene_gt.json, the backup kept of the scene_gt.json it replaced, None when there was none). Nothing is lost:
+    the current scene_gt.json is backed up first, as ``save_labels`` does, and the backup is written atomically.
+    InputError naming the file, with nothing written, for a name that is not one of the scene's backups or a
+    backup that is not scene_gt.json's form (JSON keyed by image ids, each a list of objects)."""
+    scene_dir = _scene_dir(dataset, scene_id, split)
+    backup = scene_dir / str(name)
+    if Path(str(name)).name != str(name) or not str(name).startswith(BACKUP_PREFIX) or not backup.is_file():
+        raise InputError(backup, f"not a backup of {scene_dir / ORIGINAL_FILE} (list the backups again)")
+    data = backup.read_bytes()
+    content = readers.read_json(backup)
+    bop.image_ids(content, backup)
+    for key, entries in content.items():
+        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+            raise InputError(backup, f"image {key}: expected a list of objects")
+    original = scene_dir / ORIGINAL_FILE
+    kept = _backup(original) if original.exists() else None
+    write_file(original, data)
+    return original, kept
 
 
 def load_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarray, obj_ids: list[int],
