@@ -293,6 +293,53 @@ def test_engine_labels_files_and_a_changed_dataset_asks_before_loading(tmp_path)
         engine.close()
 
 
+def test_engine_restores_a_backup_and_the_truth_table_follows_scene_gt(tmp_path):
+    """An overwriting save and a restore each read the frame's truth again (drawn, scored, the Plots' reference);
+    the restore backs up the current scene_gt.json first; no backups and a damaged one are messages naming the
+    file, with nothing written."""
+    import shutil
+
+    from workbench.app.engine.engine import DEMO_DIR, Engine
+    from workbench.inference.config import EstimatorConfig
+
+    dataset = tmp_path / "demo"
+    shutil.copytree(DEMO_DIR, dataset)
+    scene_gt = dataset / "test" / "000000" / "scene_gt.json"
+    original = scene_gt.read_bytes()
+    inbox = Inbox()
+    engine = Engine(inbox, workers=1)
+    try:
+        engine.handle(p.Load(p.Source(dataset=dataset, scene_id=0, im_id=0), EstimatorConfig(particles=12), "robust"))
+        engine.handle(p.ListBackups())
+        assert inbox.of(p.Backups)[-1].backups == [] and inbox.of(p.Backups)[-1].path == str(scene_gt)
+        engine.step()
+        truth = engine.frame.gt_T_cam_obj.copy()
+        engine.handle(p.UseBestAsLabel())
+        engine.handle(p.SaveLabels(overwrite_original=True))
+        drawn = inbox.of(p.TruthReloaded)[-1].gt_T_world_obj
+        label = engine.labels.labels[0]
+        assert np.allclose(drawn[0], label, atol=1e-9) and not np.allclose(engine.frame.gt_T_cam_obj, truth)
+        assert inbox.of(p.TruthErrors)[-1].rows[0]["position_cm"] < 1e-6  # the estimate against its own label
+        assert engine.labels.reference is None  # the Plots' truth log-likelihood is computed again
+        (name, _), = inbox.of(p.Backups)[-1].backups
+
+        engine.handle(p.RestoreBackup(name))
+        assert scene_gt.read_bytes() == original and np.allclose(engine.frame.gt_T_cam_obj, truth, atol=1e-9)
+        restored = inbox.of(p.Saved)[-1]
+        assert restored.kind == "ground truth" and name in restored.note
+        assert len(inbox.of(p.Backups)[-1].backups) == 2  # the labelled scene_gt.json was kept too
+
+        damaged = scene_gt.with_name("scene_gt.json.bak-20200101T000000000000")
+        damaged.write_text('{"0": [')
+        engine.handle(p.RestoreBackup(damaged.name))
+        failure = inbox.of(p.Failure)[-1]
+        assert failure.path == str(damaged) and "corrupt JSON" in failure.problem and failure.topic == "labels"
+        assert scene_gt.read_bytes() == original and len(list(scene_gt.parent.glob("scene_gt.json.bak-*"))) == 3
+        engine.step()  # the run goes on
+    finally:
+        engine.close()
+
+
 def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
     """models_info.json's ``name`` where present, else obj_000006; a repeated model gets " #2" in the scene."""
     import json

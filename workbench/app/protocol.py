@@ -155,6 +155,20 @@ class SaveLabels:
 
 
 @dataclass(frozen=True)
+class ListBackups:
+    """List the backups of the loaded frame's scene_gt.json (``Backups``), as saving with ``overwrite_original``
+    keeps them."""
+
+
+@dataclass(frozen=True)
+class RestoreBackup:
+    """Put the backup ``name`` (a file name ``Backups`` listed) back as the scene's scene_gt.json, the current one
+    backed up first. The server sends it only once the user confirmed."""
+
+    name: str
+
+
+@dataclass(frozen=True)
 class SaveSession:
     directory: Path
     name: str
@@ -188,7 +202,8 @@ class ShowFrame:
 
 
 Command = (Load | Step | Run | Pause | Shown | Reset | SetConfig | Select | SetDisplay | Shutdown | SetLabels
-           | SnapLabels | FitLabels | UseBestAsLabel | SaveLabels | SaveSession | LoadSession | NextFrame | ShowFrame)
+           | SnapLabels | FitLabels | UseBestAsLabel | SaveLabels | ListBackups | RestoreBackup | SaveSession
+           | LoadSession | NextFrame | ShowFrame)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -382,11 +397,29 @@ class TruthErrors:
 
 @dataclass
 class Saved:
-    """A file was written: ``kind`` "labels" or "session"."""
+    """A file was written: ``kind`` "labels", "session" or "ground truth" (a backup of scene_gt.json restored)."""
 
     kind: str
     path: str
     note: str = ""
+
+
+@dataclass
+class Backups:
+    """The backups of the loaded frame's scene_gt.json (``path``), newest first: per backup (its file name, when it
+    was made as "YYYY-MM-DD HH:MM:SS")."""
+
+    path: str
+    backups: list[tuple[str, str]]
+
+
+@dataclass
+class TruthReloaded:
+    """The frame's ground truth was read again, a label save or a restore having written its scene_gt.json:
+    ``gt_T_world_obj`` as ``ObservationView``'s (K, 4, 4), NaN rows where unknown; None: the frame has none now.
+    The truth table's rows against it follow (``TruthErrors``)."""
+
+    gt_T_world_obj: np.ndarray | None
 
 
 @dataclass
@@ -447,4 +480,4 @@ class SequenceState:
 
 
 Message = (Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready | Labels | LabelHeatmap | LabelErrors
-           | TruthErrors | Saved | SessionQuestion | SessionRestored | SequenceState)
+           | TruthErrors | Saved | Backups | TruthReloaded | SessionQuestion | SessionRestored | SequenceState)

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Callable
 
 from workbench.app import protocol as p
+from workbench.app.engine import label_files
 from workbench.app.engine.evaluators import CRASH_ERRORS, Evaluators
 from workbench.app.engine.labels import FrameLabels
 from workbench.app.engine.on_show import RunOnShow
@@ -190,14 +191,12 @@ class Engine:
             self.pause()
         elif isinstance(cmd, p.SetLabels):
             self.labels.set(cmd)
-        elif isinstance(cmd, p.SnapLabels):
-            self.aside("labels", self.labels.snap)
-        elif isinstance(cmd, p.FitLabels):
-            self.aside("labels", self.labels.fit)
+        elif isinstance(cmd, (p.SnapLabels, p.FitLabels)):
+            self.aside("labels", self.labels.snap if isinstance(cmd, p.SnapLabels) else self.labels.fit)
         elif isinstance(cmd, p.UseBestAsLabel):
             self.aside("labels", lambda: self.labels.use_best(cmd.modes, cmd.iteration) and self.publish())
-        elif isinstance(cmd, p.SaveLabels):
-            self.aside("labels", lambda: self.labels.save(cmd.overwrite_original))
+        elif isinstance(cmd, (p.SaveLabels, p.ListBackups, p.RestoreBackup)):
+            self.aside("labels", lambda: self.reload_truth(label_files.act(cmd, self.labels, self.on_show())))
         elif isinstance(cmd, p.SaveSession):
             self.aside("session", lambda: self.results.put(
                 save_session(cmd, self.estimator, self.labels, self.evaluators.describe(), self.sequence.record())))
@@ -325,15 +324,12 @@ class Engine:
         self.labels.publish_truth()
 
     def publish_chosen(self) -> None:
-        if self.estimator is None:
-            return
-        chosen = self.display.chosen(self.estimator, self.evaluators.explain)
+        chosen = None if self.estimator is None else self.display.chosen(self.estimator, self.evaluators.explain)
         if chosen is not None:
             self.results.put(chosen)
 
     def send_state(self, reason: str) -> None:
-        it = -1 if self.estimator is None else self.estimator.iteration
-        self.results.put(p.RunState(self.running, it, reason))
+        self.results.put(p.RunState(self.running, -1 if self.estimator is None else self.estimator.iteration, reason))
 
     def fail(self, err: BaseException) -> None:
         """Tell the user; stop running; keep serving."""
@@ -346,6 +342,12 @@ class Engine:
         self.send_state("error")
 
     # -- sequences and sessions
+
+    def reload_truth(self, frame) -> None:
+        """``frame``: the frame on show with its ground truth read again (scene_gt.json was written), or None."""
+        if frame is not None:
+            self.frame = frame
+            self.labels.publish_truth()
 
     def put_on_show(self, held: HeldRun | None) -> None:
         """Put a processed frame's ``held`` run (from the sequence's Next or a jump; None: the frame on show stays)

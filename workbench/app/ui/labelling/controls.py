@@ -40,6 +40,7 @@ class LabelTab:
     overwrite_original: viser.GuiCheckboxHandle
     save: viser.GuiButtonHandle
     saved: viser.GuiMarkdownHandle
+    backups: viser.GuiFolderHandle  # the scene_gt.json backups (``backups.Backups`` fills it)
     rgb_image: viser.GuiImageHandle  # what the labels are checked against by eye, where the dataset has one
 
 
@@ -77,9 +78,10 @@ def build_label_tab(gui: viser.GuiApi) -> LabelTab:
                                                "otherwise labels go to scene_gt_labels.json beside it")
     save = gui.add_button("Save labels", icon=viser.Icon.DEVICE_FLOPPY)
     saved = gui.add_markdown("")
+    backups = gui.add_folder("scene_gt.json backups", expand_by_default=True)
     rgb_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="colour image", format="jpeg", visible=False)
     return LabelTab(object=obj, state=state, position=position, angles=angles, turns=turns, lay=lay,
                     show_gizmo=show_gizmo, clear=clear, modes=modes,
                     use_best=use_best, snap=snap, fit=fit, result=result, heatmap=heatmap, legend=legend,
                     errors=errors, overwrite_original=overwrite_original, save=save, saved=saved,
-                    rgb_image=rgb_image)
+                    backups=backups, rgb_image=rgb_image)

@@ -13,6 +13,7 @@ from typing import Callable
 import viser
 
 from workbench.app import protocol as p
+from workbench.app.ui.labelling.backups import Backups
 from workbench.app.ui.labelling.controls import LabelTab, build_label_tab
 from workbench.app.ui.labelling.editor import LabelEditor
 from workbench.app.ui.labelling.mode_choice import ModeChoice
@@ -53,10 +54,13 @@ class Labelling:
     editor: LabelEditor = field(init=False)
     heatmap: HeatmapLayer = field(init=False)
     modes: ModeChoice = field(init=False)
+    backups: Backups = field(init=False)
 
     def __post_init__(self) -> None:
         with self.container:
             self.tab = build_label_tab(self.server.gui)
+            with self.tab.backups:
+                self.backups = Backups(self.server.gui, self.send, self.ui)
         self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
         self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet,
                                   on_unlabelled=self.clear_heatmap)
@@ -76,6 +80,7 @@ class Labelling:
         self.heatmap.set_frame(view)
         self.editor.set_frame(view)
         self.modes.set_frame(self.editor.names)
+        self.backups.set_frame()
         if view.rgb_image is not None:
             self.tab.rgb_image.image = view.rgb_image
         self.tab.rgb_image.visible = view.rgb_image is not None
@@ -111,11 +116,15 @@ class Labelling:
             self.tab.errors.content = errors_markdown(msg, self.editor.names)
 
     def show_saved(self, msg: p.Saved) -> None:
+        if msg.kind == "ground truth":  # a backup restored
+            self.backups.show_restored(msg)
+            return
         note = f" · {msg.note}" if msg.note else ""
         self.tab.saved.content = f"Saved labels to `{msg.path}`{note}"
 
     def show_failure(self, failure: p.Failure) -> None:
         self.tab.result.content = f"**⚠ {failure.problem}**"
+        self.backups.show_failure(failure)
 
     # -- actions
 

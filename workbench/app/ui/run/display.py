@@ -7,6 +7,7 @@ panel's text and plots follow every iteration (``server.App``).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -77,6 +78,12 @@ class RunDisplay:
         """Particles drawn: the engine sends that many; once the user sets it (a client's event), frames keep it."""
         self.drawn_by_user |= event.client is not None
         self.send(p.SetDisplay(int(self.inspect.max_particles.value)))
+
+    def truth_reloaded(self, msg: p.TruthReloaded) -> None:
+        """The frame's ground truth read again (a label save or a restore wrote scene_gt.json): drawn anew."""
+        if self.view is not None and (msg.gt_T_world_obj is None or len(msg.gt_T_world_obj) == len(self.view.meshes)):
+            self.view = replace(self.view, gt_T_world_obj=msg.gt_T_world_obj)
+            self.observation.draw(self.view, self.points_visible(), self.view_box.show("truth"))
 
     def set_frame(self, view: p.ObservationView) -> None:
         """A new frame: its observation, and nothing of a run yet (the caller batches this with ``server.atomic``)."""
