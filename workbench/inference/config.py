@@ -28,8 +28,8 @@ def check_seed(seed, where: str = "--seed") -> int:
 @dataclass(frozen=True)
 class EstimatorConfig:
     method: str = "pipf"
-    # Measured (docs/journal/2026-11.md, "The search, fifth step"): 200 x 20 is as accurate as 400 x 60 on the real
-    # YCB-Video dev frames and the generated suite, in a third to a half of the time.
+    # As accurate as more particles and iterations on real and generated frames, at a fraction of the time
+    # (docs/journal/2026-11.md, "The search, fifth step").
     particles: int = 200
     iterations: int = 20
     sigma: Sigma = field(default_factory=Sigma)
@@ -43,8 +43,8 @@ class EstimatorConfig:
     # With the clutter floor on (``LikelihoodConfig.clutter_floor``): the share of the iterations weighed without
     # it. The plain mixture makes an object's readings pull it hard (an unexplained reading is an outlier, about
     # -3.4, not the floor's 2), so the search first puts every object on readings it explains, and the floor then
-    # decides between what it found and the scenes that leave clutter to itself. Measured in docs/journal/2026-11.md,
-    # "The floor weighed in halfway".
+    # decides between what it found and the scenes that leave clutter to itself (docs/journal/2026-11.md, "The floor
+    # weighed in halfway").
     floor_from: float = 0.5
     library_every: int = 2  # iterations between refits of the candidates to what the estimate leaves unexplained
     sigma_floor: float = 0.25  # coarse to fine: Sigma shrinks per object down to this fraction
@@ -56,18 +56,15 @@ class EstimatorConfig:
     converge_patience: int = 10
     # Settling (inference.answer.settle): the estimate is fitted to the depth without physics at the end of a run, each
     # object within this far (m) and this turn (deg) of where physics put it, and each object's half turns are
-    # tried; 0 turns it off, as do the paper's proposals. Measured on the real YCB-Video dev frames
-    # (docs/journal/2026-11.md, "Settling"): 34 -> 37 and 31 -> 34 of 50 objects right (seeds 1, 2), the others ~1 mm
-    # and ~1 degree closer to their annotated poses. 1 cm and 8 degrees held a fifth of the objects at the region's
-    # edge, the banana 10 degrees off where physics rolls it; 1.5 cm and 12 degrees let them reach the depth while
-    # the settled scenes stay as restful under physics as the annotated ones (section "Settling, third step").
+    # tried; 0 turns it off, as do the paper's proposals. Physics rests an object a little off where its depth puts
+    # it; a tighter region holds objects at its edge, a wider one lets settled scenes stop being restful under
+    # physics (docs/journal/2026-11.md, "Settling" and "Settling, third step").
     settle_shift: float = 0.015
     settle_turn: float = 12.0
     # Leaning starts (inference.search.leaning): every object laid along each slanted flat patch of the observed
-    # points, the best of each patch tried by polish while the estimate is stuck, never drawn into particles. In the
-    # library that particles draw from, they found the generated gelatin box leaning on the wood block but sent the
-    # search astray on the real desk of ycbv-real-dev, with its 5-6 slanted patches of clutter
-    # (docs/journal/2026-11.md).
+    # points, the best of each patch tried by polish while the estimate is stuck, never drawn into particles: a real
+    # desk's clutter shows slanted patches, and drawn into particles they send the search astray
+    # (docs/journal/2026-11.md, "Leaning starts").
     leaning: bool = True
 
     def validate(self, where: str | None = None) -> None:

@@ -41,22 +41,22 @@ from workbench.inference.smc.particleset import ParticleSet
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
 
-# The sink (see ParticleFilter) is chosen from 0 to 2 cm in steps of 2 mm. On the real YCB-Video dev frames the
-# annotated objects rest 6-12 mm below the plane fitted to the table's depth.
+# The sink (see ParticleFilter) is chosen from 0 to 2 cm in steps of 2 mm: on real frames the objects rest several
+# millimetres below the plane fitted to the table's depth (docs/journal/2026-11.md, "The search, third step").
 SINK_GRID = np.arange(0.0, 0.0201, 0.002)  # m
 # Only while the estimate is stuck (gained less than STUCK since the last polish) does polish assemble with the wide
 # beam and try leaning starts. The assemblies that lose to the estimate by less than FIT_WITHIN are fitted to the depth
 # (``fit_near_misses``), the best FIT_ASSEMBLIES of them, coarsely (steps down to FIT_MIN_STEP, at most
-# FIT_ROUNDS rounds). Fitting recovers a few centimetres of misfit per object, worth hundreds of log-units
-# (generated clutter frame 5: -191 to +21 coarsely, +297 finely); an assembly losing by thousands is another
-# arrangement, not a misfit. Fitting those too cost real-shape frames 19-48 % of their time and won none of them.
+# FIT_ROUNDS rounds). Fitting recovers a few centimetres of misfit per object, worth hundreds of log-units; an
+# assembly losing by thousands is another arrangement, not a misfit, and fitting it costs time and wins nothing
+# (docs/journal/2026-11.md, "Gated assembly fits landed").
 STUCK = 100.0  # log-units (the estimate creeps up by tens while it is refined; a misplaced object costs hundreds)
 FIT_WITHIN = 1000.0  # log-units
 FIT_ASSEMBLIES = 2
 # And the best FIT_MOVES of polish's one-object moves to another place (a candidate put in place of the object's
 # pose): a candidate was fitted alone to its cluster, so where the data shows the object only in part it is a
-# centimetre or two off and loses to the estimate at rest. YCB-Video's marker (dev frame 2:1), parked 40 cm away by
-# the search: put on its candidate 1.9 cm from the truth it lost by 92, fitted it won by 36.
+# centimetre or two off and loses to the estimate at rest until it is fitted in the scene (docs/journal/2026-11.md,
+# "Slid fits, fitted one-object moves").
 FIT_MOVES = 4
 FIT_MIN_STEP = 0.002  # m
 FIT_ROUNDS = 10
@@ -303,8 +303,8 @@ class DefaultSearch:
             return Update()
         g, estimate = self.geometry(filt), filt.estimate
         # The estimate stuck since the last polish: leaning starts, and a wider beam. A leaning object is rare, and
-        # a real desk's clutter shows slanted patches: tried at every polish, leaning starts won early on
-        # ycbv-real-dev (the banana, the can, each soon moved on) and sent the search elsewhere.
+        # a real desk's clutter shows slanted patches: tried at every polish, leaning starts win early on clutter and
+        # send the search elsewhere.
         stuck = filt.estimate_loglik - self.polished_at < STUCK
         self.polished_at = filt.estimate_loglik
         parts = [polish.variants(estimate, self.library, g, self.unexplained, hiding.hider(self.problem, g),
