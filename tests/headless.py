@@ -60,6 +60,33 @@ def chromium() -> Iterator[object]:
             browser.close()
 
 
+@contextmanager
+def served(config, *frame, **serve_args) -> Iterator[object]:
+    """``app.ui.server.serve(*frame, **serve_args)`` with ``config`` (an EstimatorConfig) on a free port, not
+    blocking, with one evaluation worker (the machine running the tests also runs Chromium's software WebGL) -> its
+    handle once the frame loaded, stopped on exit. A frame that fails to load fails the test, and so does a display
+    error while it served."""
+    from workbench.app.ui.server import serve
+
+    handle = serve(*frame, block=False, port=free_port(), workers=1, config=config, **serve_args)
+    try:
+        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the frame did not load"
+        assert handle.app.state.view is not None, handle.app.state.failures
+        yield handle
+        assert not handle.app.state.display_errors
+    finally:
+        handle.stop()
+
+
+@contextmanager
+def workbench_page(url: str, timeout_ms: float, viewport: dict, init_script: str | None = None) -> Iterator[object]:
+    """A page of the workbench at ``url`` in a Chromium of its own (``open_workbench``), closed on exit."""
+    with chromium() as browser:
+        page = open_workbench(browser, url, timeout_ms, viewport, init_script=init_script)
+        yield page
+        page.close()
+
+
 def open_workbench(browser, url: str, timeout_ms: float = 60_000, viewport: dict | None = None,
                    init_script: str | None = None):
     """A new page on ``url``, once the panel is up; viser's "software WebGL" notice is closed so that it does not

@@ -10,7 +10,7 @@ import shutil
 
 import numpy as np
 import pytest
-from headless import chromium_path, free_port, gui_input, open_workbench
+from headless import chromium_path, gui_input, served, workbench_page
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -32,28 +32,16 @@ def dataset(touching_dataset, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def workbench(dataset):
-    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
-    handle = serve(dataset, 0, 0, block=False, port=free_port(), workers=1,
-                   config=EstimatorConfig(particles=16, iterations=2))
-    try:
-        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the frame did not load"
-        assert handle.app.state.view is not None, handle.app.state.failures
+    with served(EstimatorConfig(particles=16, iterations=2), dataset, 0, 0) as handle:
         yield handle
-        assert not handle.app.state.display_errors
-    finally:
-        handle.stop()
 
 
 @pytest.fixture(scope="module")
 def page(workbench):
-    from headless import chromium
-
-    with chromium() as browser:
-        p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT)
+    with workbench_page(workbench.url, TIMEOUT_MS, VIEWPORT) as p:
         yield p
-        p.close()
 
 
 def scores(rows: list[dict]) -> list[tuple]:

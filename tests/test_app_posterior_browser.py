@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from headless import FRAME_PROBE_JS, canvas_png, chromium_path, free_port, open_workbench
+from headless import FRAME_PROBE_JS, canvas_png, chromium_path, served, workbench_page
 
 from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option
 
@@ -26,30 +26,18 @@ VIEWPORT = {"width": 1000, "height": 700}
 
 @pytest.fixture(scope="module")
 def workbench(tmp_path_factory, hidden_handle_dataset):
-    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
     # Three steps finish the run; the mug's hidden handle then leaves its heading open: several modes.
-    handle = serve(hidden_handle_dataset, block=False, port=free_port(), workers=1,
-                   config=EstimatorConfig(particles=16, iterations=2),
-                   sessions_dir=tmp_path_factory.mktemp("sessions"))
-    try:
-        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the frame did not load"
-        assert handle.app.state.view is not None, handle.app.state.failures
+    with served(EstimatorConfig(particles=16, iterations=2), hidden_handle_dataset,
+                sessions_dir=tmp_path_factory.mktemp("sessions")) as handle:
         yield handle
-        assert not handle.app.state.display_errors
-    finally:
-        handle.stop()
 
 
 @pytest.fixture(scope="module")
 def page(workbench):
-    from headless import chromium
-
-    with chromium() as browser:
-        p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT, init_script=FRAME_PROBE_JS)
+    with workbench_page(workbench.url, TIMEOUT_MS, VIEWPORT, init_script=FRAME_PROBE_JS) as p:
         yield p
-        p.close()
 
 
 def canvas(page) -> np.ndarray:

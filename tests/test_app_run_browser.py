@@ -15,10 +15,10 @@ from headless import (
     chromium_path,
     color_extent,
     frame_counts,
-    free_port,
     gui_input,
     image_stats,
     open_workbench,
+    served,
 )
 
 from workbench.app.engine.snapshot import DEFAULT_DISPLAY
@@ -46,19 +46,10 @@ def sessions_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def workbench(sessions_dir):
-    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
 
-    # One worker: the machine running the tests also runs Chromium's software WebGL.
-    handle = serve(demo=True, block=False, port=free_port(), workers=1,
-                   config=EstimatorConfig(particles=48, iterations=500), sessions_dir=sessions_dir)
-    try:
-        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the demo did not load"
-        assert handle.app.state.view is not None, handle.app.state.failures
+    with served(EstimatorConfig(particles=48, iterations=500), demo=True, sessions_dir=sessions_dir) as handle:
         yield handle
-        assert not handle.app.state.display_errors
-    finally:
-        handle.stop()
 
 
 @pytest.fixture(scope="module")

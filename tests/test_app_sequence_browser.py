@@ -9,7 +9,7 @@ import re
 
 import numpy as np
 import pytest
-from headless import chromium_path, color_extent, free_port, gui_input, open_workbench
+from headless import chromium_path, color_extent, gui_input, served, workbench_page
 
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
@@ -24,33 +24,21 @@ FIRST_OBJECT = (66, 135, 245)  # colors.OBJECT_COLORS[0]: the first object's lin
 
 @pytest.fixture(scope="module")
 def workbench(tmp_path_factory):
-    from workbench.app.ui.server import serve
     from workbench.inference.config import EstimatorConfig
     from workbench.synth.sequence import make_sequences
 
     # As `workbench make-scenes OUT --categories touching --sequence 3 --arc 5`, at 320x240 to stay quick.
     data = tmp_path_factory.mktemp("seq")
     make_sequences(data, ["touching"], 1, 3, seed=0, width=320, height=240, arc_deg=5.0)
-    handle = serve(data, 0, 0, block=False, port=free_port(), workers=1,
-                   config=EstimatorConfig(particles=16, iterations=2),
-                   sessions_dir=tmp_path_factory.mktemp("sessions"))
-    try:
-        assert handle.app.wait_for(lambda s: s.view is not None or s.failures, 180), "the sequence did not load"
-        assert handle.app.state.view is not None, handle.app.state.failures
+    with served(EstimatorConfig(particles=16, iterations=2), data, 0, 0,
+                sessions_dir=tmp_path_factory.mktemp("sessions")) as handle:
         yield handle
-        assert not handle.app.state.display_errors
-    finally:
-        handle.stop()
 
 
 @pytest.fixture(scope="module")
 def page(workbench):
-    from headless import chromium
-
-    with chromium() as browser:
-        p = open_workbench(browser, workbench.url, TIMEOUT_MS, VIEWPORT)
+    with workbench_page(workbench.url, TIMEOUT_MS, VIEWPORT) as p:
         yield p
-        p.close()
 
 
 def frame_row(im_id: int, status: str, on_show: bool = False) -> re.Pattern:

@@ -22,8 +22,8 @@ FENCE = re.compile(r"^\s*(`{3,}|~{3,})")
 HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
 
 
-def prose_lines(text: str):
-    """The lines outside fenced code blocks, with their inline code spans blanked."""
+def outside_fences(text: str):
+    """The lines outside fenced code blocks."""
     fence = None
     for line in text.splitlines():
         match = FENCE.match(line)
@@ -35,7 +35,13 @@ def prose_lines(text: str):
                 fence = None
             continue
         if fence is None:
-            yield re.sub(r"(`+)(.+?)\1", lambda m: " " * len(m.group(0)), line)
+            yield line
+
+
+def prose_lines(text: str):
+    """The lines outside fenced code blocks, with their inline code spans blanked."""
+    for line in outside_fences(text):
+        yield re.sub(r"(`+)(.+?)\1", lambda m: " " * len(m.group(0)), line)
 
 
 def slug(heading: str) -> str:
@@ -50,17 +56,8 @@ def anchors(page: Path) -> set[str]:
     """Every heading anchor of a Markdown page, repeated headings numbered as GitHub numbers them (-1, -2, ...)."""
     seen: Counter[str] = Counter()
     found = set()
-    fence = None
-    for line in page.read_text(encoding="utf-8").splitlines():
-        match = FENCE.match(line)
-        if match:
-            mark = match.group(1)
-            if fence is None:
-                fence = mark[0] * len(mark)
-            elif line.strip().startswith(fence):
-                fence = None
-            continue
-        heading = HEADING.match(line) if fence is None else None
+    for line in outside_fences(page.read_text(encoding="utf-8")):
+        heading = HEADING.match(line)
         if heading:
             base = slug(heading.group(2))
             found.add(base if not seen[base] else f"{base}-{seen[base]}")
