@@ -171,6 +171,8 @@ def save_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarra
         entries.append({"cam_R_m2c": T_cam_obj[:3, :3].ravel().tolist(), "cam_t_m2c": (T_cam_obj[:3, 3] / MM).tolist(),
                         "obj_id": int(obj_id)})
     old_entries = _image_entries(target, im_id)
+    if not all(isinstance(e, dict) for e in old_entries):  # merged into, so every entry must be an object
+        raise InputError(target, f"image {im_id}: expected a list of objects")
     if overwrite_original and original.exists():
         _backup(original)
     bop._merge_json(target, im_id, merge_entries(old_entries, list(obj_ids), entries))
@@ -179,14 +181,14 @@ def save_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarra
 
 def _image_entries(path: Path, im_id: int) -> list:
     """The entry of image ``im_id`` in the scene_gt-form file ``path`` (none if the file or image is missing);
-    InputError naming the file where the entry is not a list of objects (nothing is then written)."""
+    InputError naming the file where the file is not keyed by image or the entry is not a list."""
     if not path.is_file():
         return []
     content = readers.read_json(path)
     if not isinstance(content, dict):
         raise InputError(path, "expected a JSON object keyed by image id")
     entries = content.get(str(im_id), [])
-    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+    if not isinstance(entries, list):
         raise InputError(path, f"image {im_id}: expected a list of objects")
     return entries
 
@@ -271,14 +273,7 @@ def load_labels(dataset: Path, scene_id: int, im_id: int, T_cam_world: np.ndarra
     one object take that object's entries in file order (an unlabelled first instance lets the second's label move
     up). Raises InputError for a malformed file."""
     path = labels_path(dataset, scene_id, split) if path is None else Path(path)
-    if not path.is_file():
-        return [None] * len(obj_ids)
-    content = readers.read_json(path)
-    if not isinstance(content, dict):
-        raise InputError(path, "expected a JSON object keyed by image id")
-    entries = content.get(str(im_id), [])
-    if not isinstance(entries, list):
-        raise InputError(path, f"image {im_id}: expected a list of objects")
+    entries = _image_entries(path, im_id)
     T_world_cam = invert_pose(np.asarray(T_cam_world, dtype=np.float64))
     used = [False] * len(entries)
     out: list[np.ndarray | None] = []
