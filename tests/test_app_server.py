@@ -204,6 +204,32 @@ def test_a_running_engine_starts_an_iteration_only_once_the_server_shows_the_las
         engine.close()
 
 
+def test_a_run_with_a_budget_stops_by_it_answers_and_says_what_it_cut():
+    """A Run whose budget (0.01 s: shorter than any iteration, on any machine) is spent stops after one iteration
+    with the answer it has, its posterior and the status saying what was cut; a Step after it is a run of its own."""
+    from workbench.app.engine.engine import Engine
+    from workbench.app.ui.run.status import RunView, status_markdown
+    from workbench.inference.config import EstimatorConfig
+
+    engine = Engine(Inbox(), workers=1)
+    config = EstimatorConfig(particles=12, iterations=50, budget_s=0.01)
+    try:
+        engine.handle(p.Load(p.Source(demo=True), config, "robust"))
+        engine.handle(p.Run(stop_on_convergence=False))
+        engine.step()
+        assert not engine.running and engine.estimator.iteration == 0
+        assert engine.results.of(p.RunState)[-1].reason == "budget spent"
+        snapshot = engine.results.of(p.Snapshot)[-1]
+        assert snapshot.report["cut_short"] == "iterations, settle" and snapshot.report["budget_left_s"] == 0.0
+        assert snapshot.posterior is not None and snapshot.posterior.cut_short == "iterations, settle"
+        status = status_markdown(RunView(iteration=0, reports=[snapshot.report]), config)
+        assert "the budget cut short iterations, settle" in status
+        engine.handle(p.Step())  # with the same budget, spent before its polish: its own cut, not the Run's
+        assert engine.estimator.iteration == 1 and engine.estimator.cut_short == "polish"
+    finally:
+        engine.close()
+
+
 def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message(tmp_path, capsys):
     from workbench.app.engine.engine import Engine
     from workbench.app.ui.server import serve

@@ -23,6 +23,7 @@ from workbench.problem.build import load_bop_problem
 from workbench.problem.problem import ProblemConfig
 from workbench.render.depth import RenderConfig
 from workbench.render.likelihood import LikelihoodConfig
+from workbench.sessions.document import FORMAT_VERSION
 from workbench.sessions.store import (
     check_dataset,
     check_name,
@@ -253,7 +254,7 @@ def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 7 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == FORMAT_VERSION and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
@@ -335,7 +336,7 @@ def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded,
         assert ok.any() and np.allclose(restored.particles.loglik[ok], again)
     finally:
         evaluator.close()
-    json_path.write_text(json.dumps({**doc, "format_version": 7}))  # today's format: as saved
+    json_path.write_text(json.dumps({**doc, "format_version": FORMAT_VERSION}))  # today's format: as saved
     assert load_session(json_path).estimator["search"]["floor_in"] is True
 
 

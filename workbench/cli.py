@@ -48,6 +48,7 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="evaluation worker processes (default 2)")
     p.add_argument("--max-render-pixels", type=int, default=160 * 120, help="pixels per rendered hypothesis")
     p.add_argument("--no-early-stop", action="store_true", help="run all iterations even after convergence")
+    _add_budget_arg(p, "each frame")
     p.add_argument("--leaning", action=argparse.BooleanOptionalAction, default=True,
                    help="polish also tries objects laid along slanted flat patches, as an object leaning on another "
                         "shows (default on; see docs/design.md, The search)")
@@ -68,8 +69,15 @@ def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
         proposals=args.proposals,
         floor_from=args.floor_from,
         leaning=args.leaning,
+        budget_s=args.budget,
         **({"settle_shift": 0.0} if args.no_settle else {}),
     )
+
+
+def _add_budget_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--budget", type=float, default=None, metavar="SECONDS",
+                   help=f"anytime: {what} stops searching by this wall time and answers with its best scene so far, "
+                        "its posterior saying what was cut short (default: until converged; see docs/guide.md)")
 
 
 def _add_engine_args(p: argparse.ArgumentParser, what: str) -> None:
@@ -297,7 +305,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     check_count(args.port, "--port", low=1, high=65535)
     ray = ray_config(args)
     run = {k: v for k, v in (("method", args.method), ("particles", args.particles),
-                             ("iterations", args.iterations)) if v is not None}
+                             ("iterations", args.iterations), ("budget_s", args.budget)) if v is not None}
     if args.session is not None:
         from workbench.sessions.store import load_session
 
@@ -307,7 +315,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
         if run:
             raise InputError("--session", "a session brings its own run settings: give no "
-                             + ", ".join(f"--{k}" for k in run) + " with it")
+                             + ", ".join(f"--{k.removesuffix('_s')}" for k in run) + " with it")
     elif dataset != DEMO_DATASET:
         _check_frame_exists(dataset, args.scene, args.frame)
     if args.sessions_dir is not None:
@@ -413,6 +421,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats,
                             dataset=args.dataset)
         return 0
+    if args.profile:
+        return _bench_profile(args)
     from workbench.bench.tables import run_benchmark
 
     ray = ray_config(args)
@@ -424,6 +434,35 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
                   categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop,
                   proposals=args.proposals, ray=ray, max_retries=args.max_retries)
+    return 0
+
+
+def _bench_profile(args: argparse.Namespace) -> int:
+    """``bench --profile``: one frame estimated as `estimate` would (its defaults, or --particles, --iterations,
+    --budget), its time by stage printed and, with --png, drawn."""
+    from workbench.bench.profile import machine_line, profile_frame, profile_png, profile_table
+    from workbench.io.outputs import check_output_file
+
+    if args.engine != "local":
+        raise InputError("--engine", "--profile times this machine: it runs locally only")
+    if args.dataset is None or not args.dataset.is_dir():
+        raise InputError(args.dataset, "--profile needs a BOP dataset folder")
+    if args.scene is None or args.frame is None:
+        raise InputError("--profile", "name the frame: --scene S --frame F")
+    if args.png is not None:
+        check_output_file(args.png, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", force=args.force,
+                          what="a profile PNG", flag="--png")
+    overrides = {k: v for k, v in (("particles", args.particles), ("iterations", args.iterations),
+                                   ("budget_s", args.budget)) if v is not None}
+    config = EstimatorConfig(**overrides)
+    config.validate("")
+    _check_frame_exists(args.dataset, args.scene, args.frame)
+    profile = profile_frame(args.dataset, args.scene, args.frame, config, args.workers)
+    print(f"# workbench bench --profile {args.dataset} --scene {args.scene} --frame {args.frame}: {machine_line()}")
+    print("\n".join(profile_table(profile)))
+    if args.png is not None:
+        profile_png([profile], args.png, f"{args.dataset.name} frame {profile.frame}")
+        print(f"wrote {args.png}", file=sys.stderr)
     return 0
 
 
@@ -526,6 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("pipf", "mcpf"), default=None, help="estimator of the initial run (pipf)")
     p.add_argument("--particles", type=int, default=None, help="particles of the initial run (128)")
     p.add_argument("--iterations", type=int, default=None, help="iteration budget Run stops at (60)")
+    _add_budget_arg(p, "a Run")
     _add_engine_args(p, "particle batches on 2 worker processes")
     p.set_defaults(func=_cmd_serve)
 
@@ -590,6 +630,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "--engine ray, per frame (default 3)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("bench-out"))
+    p.add_argument("--profile", action="store_true",
+                   help="where one frame's time goes (--scene S --frame F of DATASET): wall seconds and evaluations "
+                        "per stage of the search, the workers' physics, rendering and likelihood")
+    p.add_argument("--scene", type=int, default=None, help="with --profile: the frame's scene id")
+    p.add_argument("--frame", type=int, default=None, help="with --profile: the frame's image id")
+    p.add_argument("--png", type=Path, default=None, help="with --profile: also draw it as a stacked bar (PNG)")
+    p.add_argument("--force", action="store_true", help="with --png: replace a file that is not a PNG")
+    _add_budget_arg(p, "with --profile: the frame")
     p.set_defaults(func=_cmd_bench)
     return parser
 

@@ -33,16 +33,17 @@ from workbench.io import readers as read
 from workbench.problem.problem import ProblemConfig
 from workbench.problem.scene import Table
 
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 # Settings a format lacked, with the values its sessions ran with (not today's defaults), so that a restored session
 # steps as it did when saved: the physics' since format 2, the likelihood's since format 4, the estimator's since 5
 # (a session with the clutter floor weighed it in from the start). Format 6 changed how the floor scores a reading an
 # object claims on unclaimed clutter (``render.likelihood._over_clutter``): older sessions' scores are redone. Format 7
-# added the estimator's leaning starts, which older sessions ran without.
+# added the estimator's leaning starts, which older sessions ran without; format 8 its budget, which they ran without.
 FORMAT_1_PHYSICS = {"sleep_calm": False}
 FORMAT_3_LIKELIHOOD = {"clutter_floor": None}
 FORMAT_4_ESTIMATOR = {"floor_from": 0.0}
 FORMAT_6_ESTIMATOR = {"leaning": False}
+FORMAT_7_ESTIMATOR = {"budget_s": None}
 KIND = "workbench-session"
 
 
@@ -173,6 +174,9 @@ def read_document(path: Path) -> dict:
     if version <= 6:
         for at in (("estimator_config",), ("sequence", "config")):
             _fill_settings(document, at, FORMAT_6_ESTIMATOR)
+    if version <= 7:
+        for at in (("estimator_config",), ("sequence", "config")):
+            _fill_settings(document, at, FORMAT_7_ESTIMATOR)
     return document
 
 

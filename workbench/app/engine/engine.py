@@ -270,6 +270,7 @@ class Engine:
         if self.finished():
             self.results.put(nothing_to_run(self.estimator))
             return
+        self.estimator.start_clock()  # each Run has the whole budget (EstimatorConfig.budget_s) to itself
         self.running = True
         self.send_state("running")
 
@@ -293,14 +294,17 @@ class Engine:
 
         if self.estimator is None:
             raise InputError(None, "nothing is loaded: load a dataset or the demo first")
+        if not self.running:  # a Step is a run of its own: the cuts of the Run before it no longer stand
+            self.estimator.start_clock()
         try:
             report = self.estimator.step()
         except (WorkerCrashed, *CRASH_ERRORS) as err:
             self.estimator.evaluator = self.evaluators.restart(err)
             report = self.estimator.step()  # a second crash in a row is a Failure for the user
-        if self.running and self.finished():
+        out_of_time = self.running and self.estimator.out_of_budget()
+        if self.running and (self.finished() or out_of_time):
             self.running = False
-        if self.finished():
+        if self.finished() or out_of_time:
             # The run's answer, as `workbench estimate` gives it: the estimate settled, with its posterior, which
             # the snapshot carries. Computed once per estimate (a Step past the end settles only a new one).
             self.estimator.settle()
@@ -308,7 +312,8 @@ class Engine:
         if self.finished():
             self.sequence.finished()
         if not self.running:
-            self.send_state("converged" if report.converged else "done" if self.finished() else "paused")
+            self.send_state("converged" if report.converged else "done" if self.finished()
+                            else "budget spent" if out_of_time else "paused")
 
     def publish(self, report=None) -> None:
         est = self.estimator

@@ -45,8 +45,11 @@ def status_markdown(s: RunView, cfg) -> str:
         return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."
     r = s.reports[-1]
     it = r["iteration"]
+    left = r.get("budget_left_s")
     if s.running:
-        state = "running"
+        state = "running" if left is None else f"running, {left:.0f} s of the budget left"
+    elif r.get("cut_short"):
+        state = f"**finished**: the budget cut short {r['cut_short']}"
     elif r["converged"]:
         state = "**finished**: converged"
     elif it >= cfg.iterations:
