@@ -253,7 +253,7 @@ def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 7 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == 8 and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
@@ -312,6 +312,25 @@ def test_format_6_session_loads_without_leaning_starts(saved, tmp_path):
     assert load_session(json_path).estimator_config.leaning is False
     json_path.write_text(json.dumps(doc))  # a format-7 file must carry the setting
     with pytest.raises(InputError, match="leaning"):
+        load_session(json_path)
+
+
+def test_format_7_session_loads_with_bullet_and_a_bad_backend_is_refused(saved, tmp_path):
+    # Format 7 predates PhysicsConfig.backend: its sessions projected in Bullet.
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    doc["problem_config"]["physics"]["backend"] = "mujoco"
+    json_path.write_text(json.dumps(doc))
+    assert load_session(json_path).problem_config.physics.backend == "mujoco"
+    del doc["problem_config"]["physics"]["backend"]
+    json_path.write_text(json.dumps({**doc, "format_version": 7}))
+    assert load_session(json_path).problem_config.physics.backend == "pybullet"
+    json_path.write_text(json.dumps(doc))  # a format-8 file must carry the setting
+    with pytest.raises(InputError, match="backend"):
+        load_session(json_path)
+    json_path.write_text(json.dumps({**doc, "problem_config": {**doc["problem_config"], "physics": {
+        **doc["problem_config"]["physics"], "backend": "havok"}}}))
+    with pytest.raises(InputError, match="backend.*pybullet, mujoco"):
         load_session(json_path)
 
 
