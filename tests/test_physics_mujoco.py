@@ -148,6 +148,40 @@ def test_cup_collides_as_its_convex_parts(tmp_path):
     assert out[1, 2, 3] < 0.005 + 0.01 + 3 * MM  # on the 5 mm floor, half its 2 cm up
 
 
+def test_a_sleeping_body_is_woken_when_something_falls_on_it():
+    # As Bullet's (tests/test_physics.py): a 3 cm cube at rest from the start falls asleep; a 20 cm board standing on
+    # its edge, tilted towards it, topples onto it later and shoves it, as if the cube had never slept.
+    models = [box([0.03, 0.03, 0.03], 1), box([0.06, 0.06, 0.2], 2)]
+    lean = 0.4
+    start = poses([0, 0, 0.015, 0, 0, 0], [-0.12, 0, 0.1 * np.cos(lean) + 0.03 * np.sin(lean) + 0.002, 0, lean, 0])
+    with MujocoProjector(models, TABLE) as projector:
+        out, status, _ = projector.project(start)
+    with MujocoProjector(models, TABLE, PhysicsConfig(sleep_calm=False)) as projector:
+        awake, _, _ = projector.project(start)
+    assert status == STATUS_REST
+    assert np.linalg.norm(out[0, :3, 3] - start[0, :3, 3]) > 1 * MM  # a cube left asleep would not move at all
+    assert tilt(out[1]) < np.radians(85)  # the board rests propped on it
+    assert np.max(np.linalg.norm(out[:, :3, 3] - awake[:, :3, 3], axis=1)) < 1 * MM
+
+
+def test_calm_bodies_sleep_as_in_bullet():
+    # A cube balanced on one edge, 1 degree off its tipping point, is calm at first and starts tipping slowly, while
+    # a second cube dropped from 30 cm keeps the simulation going: Bullet's projector freezes the calm one, and so
+    # does MuJoCo's sleeping; awake in MuJoCo, it falls onto a face.
+    models = [box([0.05, 0.05, 0.05], 1), box([0.05, 0.05, 0.05], 2)]
+    start = poses([0, 0, 0.025 * np.sqrt(2), np.radians(44), 0, 0], [0.15, 0, 0.3, 0, 0, 0])
+    with PhysicsProjector(models, TABLE) as bullet:
+        expected, expected_status, _ = bullet.project(start)
+    with MujocoProjector(models, TABLE) as projector:
+        out, status, _ = projector.project(start)
+    with MujocoProjector(models, TABLE, PhysicsConfig(sleep_calm=False)) as awake:
+        fallen, fallen_status, _ = awake.project(start)
+    assert expected_status == status == fallen_status == STATUS_REST
+    assert tilt(expected[0]) > np.radians(40) and tilt(out[0]) > np.radians(40)  # frozen on its edge
+    assert np.linalg.norm(out[0, :3, 3] - expected[0, :3, 3]) < 1 * MM
+    assert abs(fallen[0, 2, 3] - 0.025) < 1 * MM  # awake: lying on a face
+
+
 def test_a_sunk_table_rests_objects_that_far_down():
     models = [box([0.06, 0.06, 0.06], 1)]
     scene = poses([0, 0, 0.04, 0, 0, 0])

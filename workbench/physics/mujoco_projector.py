@@ -7,8 +7,8 @@ contact), simulated from rest, and judged at rest, off the table, blown up or at
 the same checks. Determinism needs no parking here: every particle starts from ``mj_resetData``, which clears all
 state (warm starts included), so a result depends only on its own input.
 
-``PhysicsConfig.sleep_calm`` is Bullet's saving and is not mirrored: MuJoCo simulates every body to the end.
-``solver_residual`` is Bullet's too: MuJoCo's Newton solver stops at its own tolerance.
+``PhysicsConfig.sleep_calm`` is mirrored by MuJoCo's own sleeping (``mujoco_model``); ``solver_residual`` is
+Bullet's alone: MuJoCo's Newton solver stops at its own tolerance.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from workbench.geometry import invert_pose, make_pose, matrix_to_quat_wxyz, quat
 from workbench.physics.bodies import body_frame, body_rotations
 from workbench.physics.collision import CollisionShape
 from workbench.physics.config import PhysicsConfig
-from workbench.physics.mujoco_model import TABLE_GEOM, build_mjcf, damping
+from workbench.physics.mujoco_model import TABLE_GEOM, build_mjcf, damping, dof_lengths
 from workbench.physics.projector import (
     STATUS_OFF_TABLE,
     STATUS_REST,
@@ -87,6 +87,7 @@ class MujocoProjector(Projector):
         except ValueError as err:
             raise InputError("collision shapes", f"MuJoCo rejected the model: {err}") from None
         self._model.dof_damping[:] = damping(self.frames, masses, config)
+        self._model.dof_length[:] = dof_lengths(len(models), config)
         self._data = mujoco.MjData(self._model)
         self._table_geom = mujoco.mj_name2id(self._model, mujoco.mjtObj.mjOBJ_GEOM, TABLE_GEOM)
         self._table_z = float(self._model.geom_pos[self._table_geom, 2])
