@@ -1,5 +1,5 @@
 """The MuJoCo physics projector with real MuJoCo and pybullet: resting poses against Bullet's on replayed hypotheses,
-statuses, determinism, compound bodies and the backend setting."""
+statuses, determinism, compound bodies, the backend setting and ``--physics`` on the command line."""
 
 from __future__ import annotations
 
@@ -221,3 +221,62 @@ def test_make_projector_builds_the_backend_the_config_names():
         assert isinstance(projector, PhysicsProjector)
     with pytest.raises(InputError, match="backend"):
         PhysicsConfig(backend="havok")
+
+
+def test_estimate_runs_on_the_demo_with_mujoco(tmp_path):
+    from workbench.cli import DEMO_DATASET, build_parser, main, problem_config
+
+    out = tmp_path / "results.csv"
+    argv = ["estimate", str(DEMO_DATASET), "--physics", "mujoco", "--particles", "8", "--iterations", "2",
+            "--workers", "1", "--max-render-pixels", "2000", "--no-settle", "--out", str(out)]
+    assert problem_config(build_parser().parse_args(argv)).physics.backend == "mujoco"  # what the workers get
+    assert main(argv) == 0
+    rows = out.read_text().strip().splitlines()[1:]
+    assert len(rows) == 2  # the demo's two objects
+
+
+def test_a_bad_physics_backend_is_refused(capsys):
+    from workbench.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["estimate", "assets/demo", "--physics", "havok"])
+    assert exit_.value.code == 2
+    assert "--physics" in capsys.readouterr().err
+
+
+def test_the_workbench_engine_simulates_in_mujoco_and_its_sessions_say_so(tmp_path):
+    import json
+    import shutil
+
+    from workbench.app import protocol as p
+    from workbench.app.engine.engine import DEMO_DIR, Engine
+    from workbench.inference.config import EstimatorConfig
+
+    class Inbox(list):
+        put = list.append
+
+    dataset = tmp_path / "demo"
+    shutil.copytree(DEMO_DIR, dataset)
+    inbox = Inbox()
+    engine = Engine(inbox, workers=1, physics=PhysicsConfig(backend="mujoco"))  # as `serve --physics mujoco`
+    try:
+        engine.handle(p.Load(p.Source(dataset=dataset, scene_id=0, im_id=0), EstimatorConfig(particles=8), "robust"))
+        engine.step()
+        engine.handle(p.SaveSession(tmp_path / "sessions", "s"))
+    finally:
+        engine.close()
+    assert not [m for m in inbox if isinstance(m, p.Failure)]
+    assert engine.problem.config.physics.backend == "mujoco"
+    saved = json.loads((tmp_path / "sessions" / "s.json").read_text())
+    assert saved["problem_config"]["physics"]["backend"] == "mujoco"
+
+
+def test_bench_speed_measures_mujoco(touching_dataset, capsys):
+    from workbench.cli import main
+
+    assert main(["bench", "--speed", str(touching_dataset), "--particles", "16", "--repeats", "1", "--workers", "1",
+                 "--physics", "mujoco"]) == 0
+    out = capsys.readouterr().out
+    assert "physics mujoco" in out
+    rows = [line for line in out.splitlines() if line.startswith("| ") and "frame" not in line]
+    assert len(rows) == 1 and float(rows[0].split("|")[5]) > 0  # evaluations/s measured
