@@ -334,6 +334,21 @@ def test_format_7_session_loads_with_bullet_and_a_bad_backend_is_refused(saved, 
         load_session(json_path)
 
 
+def test_serve_refuses_a_mujoco_session_without_mujoco_and_physics_beside_a_session(saved, tmp_path, monkeypatch,
+                                                                                    capsys):
+    from workbench.cli import main
+
+    json_path = _copied(saved, tmp_path)
+    assert main(["serve", "--session", str(json_path), "--physics", "mujoco", "--port", "1"]) == 2
+    assert "--session: a session brings its own run settings: give no --physics" in capsys.readouterr().err
+    doc = json.loads(json_path.read_text())
+    doc["problem_config"]["physics"]["backend"] = "mujoco"
+    json_path.write_text(json.dumps(doc))
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # `import mujoco` now fails as where it is not installed
+    assert main(["serve", "--session", str(json_path), "--port", "1"]) == 2
+    assert "--physics: mujoco is not installed" in capsys.readouterr().err
+
+
 def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded, tmp_path):
     # Format 5 scored a reading an object claims on unclaimed clutter by an older rule: restored, the particles and
     # the estimate are scored again before they compete with new hypotheses.

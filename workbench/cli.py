@@ -318,6 +318,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
         state = load_session(args.session)  # a bad session file is an input error here, before any server starts
         _check_session_frame(args.session, state)
+        check_backend(state.problem_config.physics)  # a session settled in MuJoCo needs it here too
         if args.dataset is not None or args.demo:
             raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
         given = [f"--{k}" for k in run] + (["--physics"] if args.physics is not None else [])
