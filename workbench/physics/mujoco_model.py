@@ -28,7 +28,7 @@ import numpy as np
 
 from workbench.geometry import invert_pose, matrix_to_quat_wxyz
 from workbench.physics.bodies import BodyFrame
-from workbench.physics.collision import BOX, CYLINDER, CollisionShape
+from workbench.physics.collision import BOX, COMPOUND, CYLINDER, CollisionShape
 from workbench.physics.config import PhysicsConfig
 from workbench.problem.scene import ObjectModel, Table
 
@@ -39,6 +39,10 @@ TABLE_GEOM = "table"
 # 0.78 mm) and rests as soon or sooner; 2 is no closer. MuJoCo waits 10 calm steps and tests each speed component,
 # where Bullet's projector waits 2 checks of 4 steps and tests the norms.
 SLEEP_SCALE = 1.5
+# Bullet's world sets its bodies' collision margin to 0, but a compound's pieces (read from an OBJ file) keep
+# pybullet's default 1 mm: a compound rests 1 mm up in Bullet (a cup: 1.03 mm above its support points; a banana
+# lying down, 1.8 mm). MuJoCo pads them as much, so that both rest such objects alike.
+BULLET_COMPOUND_MARGIN = 1e-3
 
 
 def _floats(values) -> str:
@@ -70,17 +74,25 @@ def body_geoms(k: int, shape: CollisionShape, frame: BodyFrame) -> tuple[list[st
 
 
 def contact_pair(geom1: str, geom2: str, friction1: float, friction2: float, config: PhysicsConfig,
-                 table: bool) -> str:
+                 table: bool, margin: float = 0.0) -> str:
     """An MJCF ``<pair>`` of two geoms with Bullet's combined frictions: sliding f1 * f2, rolling and spinning
     r * f2 + r * f1 (m), where the table (``table``: geom1 is the table) has no rolling or spinning friction of its
     own (as in ``world.World``): only the object's r times the table's f.
-    Condim 6 (sliding, spinning, rolling) where either of the last two is on, else 3."""
+    Condim 6 (sliding, spinning, rolling) where either of the last two is on, else 3. ``margin`` (m): the two rest
+    this far apart (MuJoCo's contact holds them at that distance), as Bullet's margins pad its shapes."""
     # geom1 is the table (friction1) or an object; geom2 always an object.
     weight = friction1 if table else friction1 + friction2
     spin, roll = config.spinning_friction * weight, config.rolling_friction * weight
     condim = 6 if spin > 0 or roll > 0 else 3
     friction = _floats([friction1 * friction2] * 2 + [spin, roll, roll])
-    return f'<pair geom1="{geom1}" geom2="{geom2}" condim="{condim}" friction="{friction}"/>'
+    return (f'<pair geom1="{geom1}" geom2="{geom2}" condim="{condim}" friction="{friction}" '
+            f'margin="{margin:.17g}"/>')
+
+
+def _pad(shape: CollisionShape) -> float:
+    """How far (m) Bullet's world pads ``shape``: the pieces of a compound by ``BULLET_COMPOUND_MARGIN``, nothing
+    else."""
+    return BULLET_COMPOUND_MARGIN if shape.kind == COMPOUND else 0.0
 
 
 def build_mjcf(models: list[ObjectModel], table: Table, config: PhysicsConfig, shapes: list[CollisionShape],
@@ -100,9 +112,11 @@ def build_mjcf(models: list[ObjectModel], table: Table, config: PhysicsConfig, s
         bodies.append(f'<body name="b{k}"><freejoint name="b{k}"/>'
                       f'<inertial pos="0 0 0" mass="{mass:.17g}" diaginertia="{_floats(frame.inertia)}"/>'
                       + "".join(geoms) + "</body>")
-        pairs += [contact_pair(TABLE_GEOM, g, cfg.table_friction, model.friction, cfg, table=True) for g in names[k]]
+        pairs += [contact_pair(TABLE_GEOM, g, cfg.table_friction, model.friction, cfg, table=True,
+                               margin=_pad(shape)) for g in names[k]]
         for j in range(k):
-            pairs += [contact_pair(ga, gb, models[j].friction, model.friction, cfg, table=False)
+            pairs += [contact_pair(ga, gb, models[j].friction, model.friction, cfg, table=False,
+                                   margin=_pad(shapes[j]) + _pad(shape))
                       for ga in names[j] for gb in names[k]]
     cone = "elliptic" if cfg.cone_friction else "pyramidal"
     sleep = "enable" if cfg.sleep_calm else "disable"
