@@ -5,13 +5,16 @@ same mass distribution."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import trimesh
 
+from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose
 from workbench.physics.collision import BOX, CYLINDER, CollisionShape
+from workbench.problem.scene import ObjectModel, Table
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,21 @@ def body_frame(mesh: trimesh.Trimesh, shape: CollisionShape, mass: float) -> Bod
     T_body_obj = invert_pose(T_obj_body)
     support = shape.support_points() @ T_body_obj[:3, :3].T + T_body_obj[:3, 3]
     return BodyFrame(T_obj_body, np.maximum(inertia, 1e-12), support)
+
+
+def checked_masses(models: list[ObjectModel], table: Table, shapes: list[CollisionShape]) -> list[float]:
+    """The models' masses (kg), once the models, their collision shapes and the table make a world to simulate:
+    InputError for a shape count that is not the model count, an empty table rectangle or a mass that is not
+    positive."""
+    if len(shapes) != len(models):
+        raise InputError("shapes", f"{len(shapes)} collision shapes for {len(models)} models")
+    if not (table.x_min < table.x_max and table.y_min < table.y_max):
+        raise InputError("table", f"empty table rectangle {table}")
+    masses = [m.mass for m in models]
+    for model, mass in zip(models, masses):
+        if not (math.isfinite(mass) and mass > 0):
+            raise InputError(model.source or f"model {model.obj_id}", f"mass must be positive, got {mass}")
+    return masses
 
 
 def body_rotations(T_world_obj: np.ndarray, T_obj_body: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

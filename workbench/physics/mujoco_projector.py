@@ -20,7 +20,7 @@ import numpy as np
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
-from workbench.physics.bodies import body_frame, body_rotations
+from workbench.physics.bodies import body_frame, body_rotations, checked_masses
 from workbench.physics.collision import CollisionShape
 from workbench.physics.config import PhysicsConfig
 from workbench.physics.mujoco_model import TABLE_GEOM, build_mjcf, damping, dof_lengths
@@ -66,14 +66,7 @@ class MujocoProjector(Projector):
         mujoco = require_mujoco()
         if shapes is None:
             shapes = collision_shapes(models, config, cache_dir)
-        if len(shapes) != len(models):
-            raise InputError("shapes", f"{len(shapes)} collision shapes for {len(models)} models")
-        if not (table.x_min < table.x_max and table.y_min < table.y_max):
-            raise InputError("table", f"empty table rectangle {table}")
-        masses = [m.mass for m in models]
-        for model, mass in zip(models, masses):
-            if not (math.isfinite(mass) and mass > 0):
-                raise InputError(model.source or f"model {model.obj_id}", f"mass must be positive, got {mass}")
+        masses = checked_masses(models, table, shapes)
         self.config = config
         self._mj = mujoco
         self._table = table

@@ -16,7 +16,6 @@ pybullet's quaternion order (x, y, z, w) appears only in this module (the projec
 
 from __future__ import annotations
 
-import math
 import os
 import shutil
 import tempfile
@@ -26,7 +25,7 @@ import trimesh
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, matrix_to_quat_wxyz, wxyz_to_xyzw
-from workbench.physics.bodies import BodyFrame, body_frame, body_rotations, parking
+from workbench.physics.bodies import BodyFrame, body_frame, body_rotations, checked_masses, parking
 from workbench.physics.bullet import pybullet
 from workbench.physics.collision import BOX, COMPOUND, CYLINDER, CollisionShape
 from workbench.physics.config import PhysicsConfig
@@ -44,14 +43,7 @@ class World:
 
     def __init__(self, models: list[ObjectModel], table: Table, config: PhysicsConfig,
                  shapes: list[CollisionShape]):
-        if len(shapes) != len(models):
-            raise InputError("shapes", f"{len(shapes)} collision shapes for {len(models)} models")
-        if not (table.x_min < table.x_max and table.y_min < table.y_max):
-            raise InputError("table", f"empty table rectangle {table}")
-        masses = [m.mass for m in models]
-        for model, mass in zip(models, masses):
-            if not (math.isfinite(mass) and mass > 0):
-                raise InputError(model.source or f"model {model.obj_id}", f"mass must be positive, got {mass}")
+        masses = checked_masses(models, table, shapes)
         self.config = config
         self.shapes = list(shapes)
         self._models = list(models)
