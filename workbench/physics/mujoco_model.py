@@ -11,11 +11,12 @@ What differs from Bullet, and why:
 - Bullet's damping removes a fraction of the speed per second; MuJoCo's joint damping is a force per speed. The
   free joints' damping is set per degree of freedom to mass (or principal moment) times the same rate
   (``dof_damping``), which removes the same fraction.
-- Meshes (a convex hull, or each convex part of a compound) collide as their convex hulls in both.
+- Meshes (a convex hull, or each convex part of a compound) collide as their convex hulls in both; a compound's
+  parts are padded as Bullet's are (``BULLET_COMPOUND_MARGIN``).
 - ``sleep_calm``: Bullet's projector puts a calm body to sleep until a moving body touches it; MuJoCo's own sleeping
-  does the same for a calm island of bodies (``sleep_settings``). Without it a body balanced on a point (a bottle on
-  its cap: MuJoCo gives a convex mesh one contact there) topples in MuJoCo while Bullet freezes it, and resting
-  scenes part by centimetres.
+  does the same for a calm island of bodies (``dof_lengths``, ``SLEEP_SCALE``). Without it a body balanced on a
+  point (a bottle on its cap: MuJoCo gives a convex mesh one contact there) topples in MuJoCo while Bullet freezes
+  it, and resting scenes part by centimetres.
 
 MuJoCo's quaternion order (w, x, y, z) is the project's own (``geometry``).
 """
