@@ -16,6 +16,7 @@ from workbench.evaluation.pool import check_workers
 from workbench.inference.config import METHODS, EstimatorConfig, check_seed
 from workbench.inference.search.moves.registry import PROPOSALS
 from workbench.inference.smc.particles import STATES, Sigma
+from workbench.physics import BACKENDS, PhysicsConfig, check_backend
 from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
 from workbench.track.config import TrackConfig
@@ -55,6 +56,20 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-settle", action="store_true",
                    help="return the search's estimate as physics put it, not fitted to the depth at the end "
                         "(within 1.5 cm and 12 degrees; see docs/design.md, Settling)")
+    _add_physics_arg(p)
+
+
+def _add_physics_arg(p: argparse.ArgumentParser, default: str | None = PhysicsConfig.backend) -> None:
+    p.add_argument("--physics", choices=BACKENDS, default=default,
+                   help=f"the simulator hypotheses are settled in (default {PhysicsConfig.backend}; mujoco needs the "
+                        "extra: pip install 'workbench[mujoco]')")
+
+
+def physics_config(args: argparse.Namespace) -> PhysicsConfig:
+    """``--physics`` -> the PhysicsConfig; InputError, before any work, when its simulator is not installed."""
+    physics = PhysicsConfig(backend=args.physics or PhysicsConfig.backend)
+    check_backend(physics)
+    return physics
 
 
 def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
@@ -116,7 +131,7 @@ def clutter_floor_arg(text: str) -> float | None:
 
 def problem_config(args: argparse.Namespace) -> ProblemConfig:
     likelihood = LikelihoodConfig(model=args.likelihood, clutter_floor=args.clutter_floor)
-    return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=likelihood)
+    return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=likelihood, physics=physics_config(args))
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
@@ -311,11 +326,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
         state = load_session(args.session)  # a bad session file is an input error here, before any server starts
         _check_session_frame(args.session, state)
+        check_backend(state.problem_config.physics)  # a session settled in MuJoCo needs it here too
         if args.dataset is not None or args.demo:
             raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
-        if run:
+        given = [f"--{k.removesuffix('_s')}" for k in run] + (["--physics"] if args.physics is not None else [])
+        if given:
             raise InputError("--session", "a session brings its own run settings: give no "
-                             + ", ".join(f"--{k.removesuffix('_s')}" for k in run) + " with it")
+                             + ", ".join(given) + " with it")
     elif dataset != DEMO_DATASET:
         _check_frame_exists(dataset, args.scene, args.frame)
     if args.sessions_dir is not None:
@@ -324,8 +341,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
     config.validate("")  # before any server starts
+    physics = physics_config(args)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
-          session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
+          session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray, physics=physics)
     return 0
 
 
@@ -411,6 +429,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     for name in ("particles", "iterations", "per_category"):
         if getattr(args, name) is not None:
             check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1)
+    physics = physics_config(args).backend
     if args.speed:
         from workbench.bench.speed import run_speed_benchmark
 
@@ -419,7 +438,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.dataset is not None and not args.dataset.is_dir():
             raise InputError(args.dataset, "no such dataset folder")
         run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats,
-                            dataset=args.dataset)
+                            dataset=args.dataset, physics=physics)
         return 0
     if args.profile:
         return _bench_profile(args)
@@ -433,7 +452,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
                   categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop,
-                  proposals=args.proposals, ray=ray, max_retries=args.max_retries)
+                  proposals=args.proposals, ray=ray, max_retries=args.max_retries, physics=physics)
     return 0
 
 
@@ -566,6 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--particles", type=int, default=None, help="particles of the initial run (128)")
     p.add_argument("--iterations", type=int, default=None, help="iteration budget Run stops at (60)")
     _add_budget_arg(p, "a Run")
+    _add_physics_arg(p, default=None)  # None: not given, so that a session's own is not silently overridden
     _add_engine_args(p, "particle batches on 2 worker processes")
     p.set_defaults(func=_cmd_serve)
 
@@ -638,6 +658,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--png", type=Path, default=None, help="with --profile: also draw it as a stacked bar (PNG)")
     p.add_argument("--force", action="store_true", help="with --png: replace a file that is not a PNG")
     _add_budget_arg(p, "with --profile: the frame")
+    _add_physics_arg(p)
     p.set_defaults(func=_cmd_bench)
     return parser
 

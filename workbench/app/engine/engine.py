@@ -33,6 +33,7 @@ from workbench.app.engine.sequence import EngineSequence, HeldRun
 from workbench.app.engine.sessions import OpenedSession, open_session, save_session
 from workbench.app.engine.snapshot import ParticleDisplay
 from workbench.errors import InputError
+from workbench.physics.config import PhysicsConfig
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +82,7 @@ def demo_dataset() -> Path:
     return out
 
 
-def load(source: p.Source, likelihood: str):
+def load(source: p.Source, likelihood: str, physics: PhysicsConfig = PhysicsConfig()):
     """-> (dataset folder, frame, problem, the frame's view) for ``source``; raises ``InputError`` naming the file at
     fault."""
     from workbench.app.engine.observation import build_view
@@ -102,7 +103,7 @@ def load(source: p.Source, likelihood: str):
         if not frames:
             raise InputError(dataset, f"no frames{'' if scene_id is None else f' in scene {scene_id}'}")
         scene_id, im_id = frames[0] if im_id is None else (frames[0][0], im_id)
-    config = ProblemConfig(likelihood=LikelihoodConfig(model=likelihood))
+    config = ProblemConfig(likelihood=LikelihoodConfig(model=likelihood), physics=physics)
     frame, problem = load_bop_problem(dataset, scene_id, im_id, config=config)
     return dataset, frame, problem, build_view(frame, problem, source.title(frame.scene_id, frame.im_id), dataset)
 
@@ -151,9 +152,10 @@ class Engine:
     (the frame's labels) and ``sequence`` (the frames of its scene). These get only what they use (``on_show``: the
     run on show, read-only) and change none of the engine's fields: it applies what they return (``put_on_show``)."""
 
-    def __init__(self, results, workers: int, ray=None):
+    def __init__(self, results, workers: int, ray=None, physics: PhysicsConfig = PhysicsConfig()):
         # results: what the engine tells the server, anything with a put (engine_process.Outbox, a test's list)
         self.results = results
+        self.physics = physics  # how the frames it loads are simulated (a session brings its own)
         self.evaluators = Evaluators(results, workers, ray)
         self.display = ParticleDisplay()
         self.labels = FrameLabels(results, self.evaluators, self.on_show)
@@ -221,7 +223,7 @@ class Engine:
 
     def load(self, cmd: p.Load) -> None:
         cmd.config.validate()
-        dataset, frame, problem, view = load(cmd.source, cmd.likelihood)  # on failure the old run stays
+        dataset, frame, problem, view = load(cmd.source, cmd.likelihood, self.physics)  # on failure the old run stays
         self.replace_frame(cmd.source, view, frame, problem, cmd.config)
         self.new_estimator()
         self.labels.adopt_frame(dataset)
