@@ -71,10 +71,10 @@ class App:
         tab = {name: tabs.add_tab(name, icon) for name, icon in TABS}
         self.settings = SettingsForm(gui, tab["Estimator"], self.ui, self.quiet, self.reporter, self.send, config,
                                      likelihood)
-        self.labelling = Labelling(server, tab["Label"], self.send, self.ui, self.quiet,
+        self.labelling = Labelling(server, tab["Label"], self.send, self.ui, self.quiet, self.reporter,
                                    on_heatmap_mode=lambda: self.display.label_heatmap_mode_changed())
-        self.display = RunDisplay(server, tab["Inspect"], self.ui, self.view_box, self.labelling, config.particles,
-                                  self.send, on_error=self.reporter.drawing_failed)
+        self.display = RunDisplay(server, tab["Inspect"], self.ui, self.quiet, self.reporter, self.view_box,
+                                  self.labelling, config.particles, self.send)
         self.plots = Plots(gui, tab["Plots"], self.ui)
         self.data = DataTab(gui, tab["Data"])
         with tab["Data"]:

@@ -49,6 +49,7 @@ class Labelling:
     send: Callable[[object], None]
     ui: UiThread
     quiet: Quiet
+    reporter: object  # shows a refused typed pose value (``Reporter.field_errors``)
     on_heatmap_mode: Callable[[], None] = lambda: None
     tab: LabelTab = field(init=False)
     editor: LabelEditor = field(init=False)
@@ -62,7 +63,7 @@ class Labelling:
             with self.tab.backups:
                 self.backups = Backups(self.server.gui, self.send, self.ui)
         self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
-        self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet,
+        self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet, self.reporter,
                                   on_unlabelled=self.clear_heatmap)
         self.modes = ModeChoice(self.server.gui, self.tab.modes)
         t, on_ui = self.tab, self.ui.callback

@@ -12,6 +12,9 @@ import viser
 from workbench.app.engine.snapshot import DEFAULT_DISPLAY
 from workbench.app.ui.run.modes import NO_POSTERIOR
 from workbench.app.ui.run.views import HEATMAP_MODES, SCENE_MODES
+from workbench.app.ui.widgets.numeric import NumberRule
+
+DRAWN = NumberRule("Particles drawn", 1, 20_000, whole=True)
 
 
 @dataclass
@@ -24,7 +27,7 @@ class InspectTab:
     heatmap_mode: viser.GuiDropdownHandle
     legend: viser.GuiHtmlHandle
     heat_image: viser.GuiImageHandle
-    max_particles: viser.GuiNumberHandle
+    max_particles: viser.GuiTextHandle  # read by DRAWN (``widgets.numeric``)
 
 
 def build_inspect_tab(gui: viser.GuiApi, particles: int) -> InspectTab:
@@ -41,8 +44,8 @@ def build_inspect_tab(gui: viser.GuiApi, particles: int) -> InspectTab:
     legend = gui.add_html("")
     heat_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="chosen particle, problem grid",
                                format="png", visible=False)
-    max_particles = gui.add_number("Particles drawn", DEFAULT_DISPLAY, min=1, max=20_000, step=1,
-                                   hint="the most likely first; fewer are clearer and cheaper to draw")
+    max_particles = gui.add_text(DRAWN.label, DRAWN.show(DEFAULT_DISPLAY),
+                                 hint=f"the most likely first; fewer are clearer and cheaper to draw; {DRAWN.span}")
     return InspectTab(posterior=posterior, rank=rank, best=best, scene_mode=scene_mode,
                       physics_change=physics_change, heatmap_mode=heatmap_mode, legend=legend, heat_image=heat_image,
                       max_particles=max_particles)
