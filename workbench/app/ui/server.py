@@ -103,7 +103,8 @@ class App:
         """The controls whose actions reach beyond their own part of the panel."""
         on_ui, V, D = self.ui.callback, self.view_box, self.data
         V.visibility.on_click(on_ui(lambda event: self.toggle(event.target.value)))
-        V.camera.on_click(on_ui(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client)))
+        V.camera.on_click(on_ui(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client,
+                                                                  self.labelling.editor.estimate)))
         self.server.on_client_connect(on_ui(self.cameras.client_connected))
         D.load.on_click(on_ui(lambda _: self.load_typed()))
         D.demo.on_click(on_ui(lambda _: self.load(p.Source(demo=True))))

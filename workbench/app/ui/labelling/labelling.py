@@ -19,13 +19,15 @@ from workbench.app.ui.labelling.editor import LabelEditor
 from workbench.app.ui.labelling.mode_choice import ModeChoice
 from workbench.app.ui.run.views import HeatmapLayer
 from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.colors import named
 from workbench.app.ui.widgets.quiet import Quiet
 
 
 def errors_markdown(msg: p.LabelErrors, names: list[str]) -> str:
     """The estimate's errors against the labels, one row per object (``names``: the objects' display names)."""
     rows = []
-    for name, e in zip(names, msg.errors):
+    for k, e in enumerate(msg.errors[:len(names)]):
+        name = named(k, names[k])
         if e["position_error_m"] is None:
             rows.append(f"| {name} | — | — | — |")
         else:

@@ -153,4 +153,4 @@ def pending_markdown(in_use: tuple[str, int], shown: tuple[str, int]) -> str:
                                                        ("seed", in_use[1], shown[1])) if old != new]
     if not waiting:
         return RESET_NOTE
-    return f"**⏳ {' and '.join(waiting)}: waiting for Reset** (the run uses {in_use[0]}, seed {in_use[1]})."
+    return f"**{' and '.join(waiting)}: waiting for Reset** (the run uses {in_use[0]}, seed {in_use[1]})."
