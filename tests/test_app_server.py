@@ -592,3 +592,21 @@ def test_every_table_names_its_objects_beside_their_colour():
     table = truth_markdown(4, [row], ["wood_block", "foam_brick"])
     assert f"| {named(1, 'foam_brick')} | 2.70 |" in table
     assert "background:rgb({},{},{})".format(*object_color(1)) in named(1, "foam_brick")
+
+
+def test_a_demo_copied_before_its_models_were_named_gets_their_names(tmp_path):
+    import json
+    import shutil
+
+    from workbench.app.engine.engine import DEMO_DIR, name_like_bundled
+
+    shutil.copytree(DEMO_DIR, tmp_path / "demo")
+    path = tmp_path / "demo" / "models" / "models_info.json"
+    bundled = json.loads(path.read_text())
+    old = {k: {f: v for f, v in entry.items() if f != "name"} for k, entry in bundled.items()}
+    path.write_text(json.dumps(old))
+    name_like_bundled(tmp_path / "demo")
+    assert json.loads(path.read_text()) == bundled
+    path.write_text("{")  # damaged: left to the load to report
+    name_like_bundled(tmp_path / "demo")
+    assert path.read_text() == "{"
