@@ -89,3 +89,18 @@ def test_an_estimator_field_reads_numbers_as_python_and_refuses_the_rest(page, w
     type_into(particles, "2.5e-1")
     assert_refused(page, particles, "Particles", "2.5e-1", "whole number from 1 to 100000", shown="20")
     assert app.config.particles == 20
+
+
+def test_inspect_reads_particles_drawn_by_the_rule_and_its_slider_has_no_number_box(page, workbench):
+    """The Particle rank slider's number box read "1e1" as rank 11: it is hidden, the slider stays."""
+    app = workbench.app
+    page.get_by_role("tab", name="Inspect").click()
+    drawn = gui_input(page, "Particles drawn")
+    type_into(drawn, "1e1")
+    assert app.wait_for(lambda s: app.display.drawn.value == 10, 30)
+    type_into(drawn, "12,5")
+    assert_refused(page, drawn, "Particles drawn", "12,5", "not a comma", shown="10")
+    assert app.display.drawn.value == 10
+    rank = app.display.inspect.rank._impl.uuid
+    expect(page.locator(f'div[id="{rank}"]')).to_be_visible(timeout=TIMEOUT_MS)
+    expect(page.locator(f'div[id="{rank}"] + .mantine-NumberInput-root')).to_be_hidden(timeout=TIMEOUT_MS)

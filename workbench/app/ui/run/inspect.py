@@ -12,6 +12,7 @@ import viser
 from workbench.app.engine.snapshot import DEFAULT_DISPLAY
 from workbench.app.ui.run.modes import NO_POSTERIOR
 from workbench.app.ui.run.views import HEATMAP_MODES, SCENE_MODES
+from workbench.app.ui.widgets.layout import without_number_box
 from workbench.app.ui.widgets.numeric import NumberRule
 
 DRAWN = NumberRule("Particles drawn", 1, 20_000, whole=True)
@@ -34,7 +35,8 @@ def build_inspect_tab(gui: viser.GuiApi, particles: int) -> InspectTab:
     """The tab's controls, for a run of ``particles`` (call inside the tab)."""
     posterior = gui.add_markdown(NO_POSTERIOR)
     rank = gui.add_slider("Particle rank", 0, max(1, particles - 1), 1, 0,
-                          hint="0 = most likely; or click a particle in the 3D view")
+                          hint="0 = most likely; or click a particle in the 3D view; the arrow keys step it")
+    without_number_box(gui, rank)  # the rank chosen is shown under Physics
     best = gui.add_button("Most likely", icon=viser.Icon.STAR)
     scene_mode = gui.add_dropdown("Physics", SCENE_MODES, initial_value="before + after",
                                   hint="the chosen particle before and after physics projection")

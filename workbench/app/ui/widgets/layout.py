@@ -15,6 +15,13 @@ TABLE_CSS = ("<style>table:not(.u-legend){display:block;max-width:100%;overflow-
              "table:not(.u-legend) :is(th, td):first-child{padding-left:0}</style>")
 
 
+def without_number_box(gui, slider) -> None:
+    """Hide the number box viser draws beside ``slider`` (the box follows the slider in its row): the browser reads
+    what is typed there its own way (``1e1`` as 11, ``12,5`` as 125) and says nothing, against the panel's one rule
+    for typed numbers (``numeric``). The slider is still dragged, or moved with the arrow keys."""
+    gui.add_html(f'<style>div[id="{slider._impl.uuid}"] + .mantine-NumberInput-root{{display:none}}</style>')
+
+
 def button_row_css(uuids: list[str]) -> str:
     """A <style> putting the blocks of the buttons ``uuids`` side by side, equal widths, on one row."""
     share = 100.0 / max(1, len(uuids))
