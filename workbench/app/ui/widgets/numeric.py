@@ -4,8 +4,9 @@ NaN, infinity and values out of the field's range with a message naming the fiel
 
 The fields are viser *text* inputs, not number inputs: the browser's number input reads what is typed its own way
 (``12,5`` became 125, ``1e1`` 11, ``2.5e-1`` -2.51) and sends nothing for what it cannot read, so the server never
-hears of the mistake. ``Refusals`` shows a refused value in red (``Reporter.field_errors``) and puts the value in
-use back once the typing pauses.
+hears of the mistake (the sliders' own number boxes are hidden for the same reason: ``layout.without_number_box``).
+``Refusals`` shows a refused value in red (``Reporter.field_errors``) and puts the value in use back once the
+typing pauses.
 """
 
 from __future__ import annotations
@@ -49,11 +50,8 @@ class NumberRule:
             value = float(typed)
         except ValueError:
             value = math.nan
-        if not math.isfinite(value):  # text, NaN and infinity alike
-            raise InputError(self.label, f"must be {self.span}, got {typed!r}")
-        if self.whole and value != int(value):
-            raise InputError(self.label, f"must be {self.span}, got {typed!r}")
-        if not self.lo <= value <= self.hi:
+        # Text, NaN and infinity alike; then a fraction where a count is wanted, and a value out of range.
+        if not math.isfinite(value) or (self.whole and value != int(value)) or not self.lo <= value <= self.hi:
             raise InputError(self.label, f"must be {self.span}, got {typed!r}")
         return int(value) if self.whole else value
 
@@ -61,8 +59,8 @@ class NumberRule:
         return str(int(value)) if self.whole else f"{value:.{self.decimals}f}"
 
     def shows(self, text: object, value: float) -> bool:
-        """Whether ``text`` already reads as ``value`` (to rounding): a field the user typed it into is left as typed,
-        not rewritten under the cursor."""
+        """Whether ``text`` already reads as ``value`` (to its last bits: cm to m and back is not exact): a field the
+        user typed it into is left as typed, not rewritten under the cursor."""
         try:
             typed = self.parse(text)
         except InputError:
