@@ -113,3 +113,39 @@ def test_each_group_of_fields_keeps_its_own_refusals_in_the_banner():
         assert "Particles" in reporter.error.content and "x (cm)" not in reporter.error.content
     finally:
         server.stop()
+
+
+def test_label_pose_fields_pass_on_what_reads_well_and_leave_a_field_being_typed_alone():
+    import numpy as np
+    import viser
+
+    from workbench.app.ui.labelling.controls import build_label_tab
+    from workbench.app.ui.labelling.pose_fields import PoseFields
+    from workbench.app.ui.ui_thread import UiThread
+    from workbench.geometry import make_pose
+
+    server, ui, quiet, reporter, typed = viser.ViserServer(port=0, verbose=False), UiThread(), Quiet(), \
+        FakeReporter(), []
+    try:
+        tab = build_label_tab(server.gui)
+        fields = ui.call(PoseFields, tab, ui, quiet, reporter, lambda i, v: typed.append((i, v)))
+
+        def show(xyz):  # as the editor shows a pose: on the UI thread, quietly
+            def quietly():
+                with quiet:
+                    fields.show(make_pose(np.eye(3), xyz))
+            ui.call(quietly)
+
+        show([0.01, 0.02, 0.03])
+        assert [h.value for h in tab.position] == ["1.00", "2.00", "3.00"] and tab.angles[2].value == "0.00"
+        tab.position[0].value = "-"  # as the browser sends a keystroke: on its way to "-3", refused until then
+        assert typed == [] and "x (cm)" in reporter.shown[-1]
+        show([0.05, 0.02, 0.03])  # the run's estimate moves the object: the field being typed into keeps its text
+        assert tab.position[0].value == "-" and fields.values[0] == 5.0
+        tab.position[0].value = "-3"
+        tab.angles[2].value = "1e1"
+        assert typed == [(0, -3.0), (5, 10.0)] and reporter.shown[-1] == {}
+        assert list(fields.angles_with(5, 10.0)) == [0.0, 0.0, 10.0]
+    finally:
+        ui.stop()
+        server.stop()

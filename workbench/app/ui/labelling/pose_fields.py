@@ -38,10 +38,12 @@ class PoseFields:
 
     def show(self, T: np.ndarray) -> None:
         """Show pose ``T`` (4, 4; table frame) in the fields (call inside ``Quiet``). A field that already reads as
-        its value keeps its text: rewriting "1." as "1.00" would fight the user typing "1.5"."""
+        its value keeps its text: rewriting "1." as "1.00" would fight the user typing "1.5"; so does one being
+        typed into ("-" on its way to "-3", refused until then: ``Refusals`` puts the value back once the typing
+        pauses), though the run's estimate moves an unlabelled object's fields every iteration."""
         self.values = np.concatenate([T[:3, 3] * 100.0, np.degrees(matrix_to_euler(T[:3, :3]))])
         for rule, h, v in zip(RULES, self.handles, self.values):
-            if not rule.shows(h.value, v):
+            if rule.label not in self.refusals.refused and not rule.shows(h.value, v):
                 h.value = rule.show(v)
 
     def angles_with(self, i: int, value: float) -> np.ndarray:
