@@ -15,6 +15,7 @@ retried once, and the user is told (``evaluators``). If this whole process dies,
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -53,12 +54,28 @@ def user_data_dir() -> Path:
     return Path(base).expanduser() / "workbench"
 
 
+def name_like_bundled(demo: Path) -> None:
+    """Give a demo copied before the bundled models were named (``obj_000006``) their names; nothing else of the
+    copy changes. A copy that cannot be read is left to the load, which says what is wrong with it."""
+    bundled, copied = DEMO_DIR / "models" / "models_info.json", demo / "models" / "models_info.json"
+    try:
+        names = {k: v["name"] for k, v in json.loads(bundled.read_text()).items() if "name" in v}
+        info = json.loads(copied.read_text())
+    except (OSError, ValueError, AttributeError, TypeError):
+        return
+    missing = {k: n for k, n in names.items() if isinstance(info.get(k), dict) and "name" not in info[k]}
+    if missing:
+        info.update({k: {"name": n, **info[k]} for k, n in missing.items()})
+        copied.write_text(json.dumps(info, indent=2) + "\n")
+
+
 def demo_dataset() -> Path:
     """The demo the app shows, and saves labels into: ``user_data_dir()/demo``, copied once from the bundled
     ``assets/demo`` (or written by ``synth.make_demo`` when the checkout has none), so that nothing is ever saved
     into the installed package. An existing copy is used as it is: it may hold the user's labels."""
     out = user_data_dir() / "demo"
     if (out / "models" / "models_info.json").is_file():
+        name_like_bundled(out)
         return out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(out, "the demo's copy is incomplete (no models/models_info.json): move it away and the "

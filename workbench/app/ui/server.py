@@ -73,10 +73,10 @@ class App:
         tab = {name: tabs.add_tab(name, icon) for name, icon in TABS}
         self.settings = SettingsForm(gui, tab["Estimator"], self.ui, self.quiet, self.reporter, self.send, config,
                                      likelihood)
-        self.labelling = Labelling(server, tab["Label"], self.send, self.ui, self.quiet,
+        self.labelling = Labelling(server, tab["Label"], self.send, self.ui, self.quiet, self.reporter,
                                    on_heatmap_mode=lambda: self.display.label_heatmap_mode_changed())
-        self.display = RunDisplay(server, tab["Inspect"], self.ui, self.view_box, self.labelling, config.particles,
-                                  self.send, on_error=self.reporter.drawing_failed)
+        self.display = RunDisplay(server, tab["Inspect"], self.ui, self.quiet, self.reporter, self.view_box,
+                                  self.labelling, config.particles, self.send)
         self.plots = Plots(gui, tab["Plots"], self.ui)
         self.data = DataTab(gui, tab["Data"])
         with tab["Data"]:
@@ -106,7 +106,8 @@ class App:
         """The controls whose actions reach beyond their own part of the panel."""
         on_ui, V, D = self.ui.callback, self.view_box, self.data
         V.visibility.on_click(on_ui(lambda event: self.toggle(event.target.value)))
-        V.camera.on_click(on_ui(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client)))
+        V.camera.on_click(on_ui(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client,
+                                                                  self.labelling.editor.estimate)))
         self.server.on_client_connect(on_ui(self.cameras.client_connected))
         D.load.on_click(on_ui(lambda _: self.load_typed()))
         D.demo.on_click(on_ui(lambda _: self.load(p.Source(demo=True))))

@@ -8,13 +8,22 @@ from dataclasses import dataclass, replace
 import numpy as np
 import viser
 
+from workbench.app.ui.widgets.numeric import NumberRule, parse_list
 from workbench.errors import InputError
-from workbench.inference.config import EstimatorConfig
+from workbench.inference.config import MAX_SIGMA_M, EstimatorConfig
 from workbench.inference.smc.particles import Sigma
 
 METHOD_LABELS = {"PI-PF": "pipf", "PI-MCPF": "mcpf"}
 LIKELIHOODS = ("robust", "ssd")
 SIGMA_XY, SIGMA_Z, SIGMA_ANGLES = "σ x, y (cm)", "σ elevation (cm)", "σ roll, pitch, yaw (°)"
+# Every typed number is read by the one rule (``numeric``); a diffusion beyond these leaves any table scene
+# (EstimatorConfig's MAX_SIGMA_M, MAX_SIGMA_RAD).
+PARTICLES = NumberRule("Particles", 1, 100_000, whole=True)
+ITERATIONS = NumberRule("Iterations", 0, 100_000, whole=True)
+SEED = NumberRule("Seed", 0, 2**32 - 1, whole=True)
+SIGMA_XY_RULES = (NumberRule("x", 0, MAX_SIGMA_M * 100, "cm"), NumberRule("y", 0, MAX_SIGMA_M * 100, "cm"))
+SIGMA_Z_RULE = NumberRule(SIGMA_Z, 0, MAX_SIGMA_M * 100, "cm")
+SIGMA_ANGLE_RULES = tuple(NumberRule(a, 0, 360, "°") for a in ("roll", "pitch", "yaw"))
 RESET_NOTE = ("<small>Method, particles, iterations and σ apply at the next step; **likelihood and seed apply at "
               "Reset**.</small>")
 
@@ -66,18 +75,18 @@ class EstimatorTab:
         def exact(shown, value, scale):
             return value if abs(shown - value * scale) <= 1e-6 * abs(value * scale) + 1e-12 else shown / scale
 
-        sx, sy = read(self.sigma_xy, lambda t: numbers(t, SIGMA_XY, 2, "cm"), (s.x * 100, s.y * 100))
-        (sz,) = read(self.sigma_z, lambda t: numbers(t, SIGMA_Z, 1, "cm"), (s.z * 100,))
-        roll, pitch, yaw = read(self.sigma_angles, lambda t: numbers(t, SIGMA_ANGLES, 3, "°"),
+        sx, sy = read(self.sigma_xy, lambda t: parse_list(t, SIGMA_XY_RULES, SIGMA_XY), (s.x * 100, s.y * 100))
+        sz = read(self.sigma_z, SIGMA_Z_RULE.parse, s.z * 100)
+        roll, pitch, yaw = read(self.sigma_angles, lambda t: parse_list(t, SIGMA_ANGLE_RULES, SIGMA_ANGLES),
                                 (s.roll * deg, s.pitch * deg, s.yaw * deg))
         config = replace(
             base,
             method=METHOD_LABELS[self.method.value],
-            particles=read(self.particles, lambda t: whole_number(t, "Particles", 1, 100_000), base.particles),
-            iterations=read(self.iterations, lambda t: whole_number(t, "Iterations", 0, 100_000), base.iterations),
+            particles=read(self.particles, PARTICLES.parse, base.particles),
+            iterations=read(self.iterations, ITERATIONS.parse, base.iterations),
             sigma=Sigma(x=exact(sx, s.x, 100.0), y=exact(sy, s.y, 100.0), z=exact(sz, s.z, 100.0),
                         roll=exact(roll, s.roll, deg), pitch=exact(pitch, s.pitch, deg), yaw=exact(yaw, s.yaw, deg)),
-            seed=read(self.seed, lambda t: whole_number(t, "Seed", 0, 2**32 - 1), base.seed),
+            seed=read(self.seed, SEED.parse, base.seed),
         )
         config.validate()
         return config, errors
@@ -110,35 +119,9 @@ class EstimatorTab:
         self.likelihood.value = likelihood
 
 
-def whole_number(text: str, field: str, lo: int, hi: int) -> int:
-    """A typed whole number in [lo, hi]; InputError naming the field otherwise."""
-    try:
-        value = int(str(text).strip())
-    except ValueError:
-        raise InputError(field, f"must be a whole number from {lo} to {hi}, got {str(text)!r}") from None
-    if not lo <= value <= hi:
-        raise InputError(field, f"must be a whole number from {lo} to {hi}, got {value}")
-    return value
-
-
-def numbers(text: str, field: str, n: int, unit: str) -> tuple[float, ...]:
-    """``n`` comma-separated numbers, each finite and >= 0, in the field's unit; InputError naming the field."""
-    parts = [t.strip() for t in str(text).replace(";", ",").split(",")]
-    try:
-        values = tuple(float(t) for t in parts)
-    except ValueError:
-        values = ()
-    if len(values) != n or not all(np.isfinite(v) and v >= 0 for v in values):
-        what = "a number" if n == 1 else f"{n} numbers separated by commas, each"
-        raise InputError(field, f"must be {what} >= 0 {unit}, got {str(text).strip()!r}")
-    return values
-
-
 def shown_numbers(*values: float) -> str:
     return ", ".join(f"{v:.6g}" for v in values)
 
-
-SIGMA_XY, SIGMA_Z, SIGMA_ANGLES = "σ x, y (cm)", "σ elevation (cm)", "σ roll, pitch, yaw (°)"
 
 
 def build_estimator_tab(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> EstimatorTab:
@@ -170,4 +153,4 @@ def pending_markdown(in_use: tuple[str, int], shown: tuple[str, int]) -> str:
                                                        ("seed", in_use[1], shown[1])) if old != new]
     if not waiting:
         return RESET_NOTE
-    return f"**⏳ {' and '.join(waiting)}: waiting for Reset** (the run uses {in_use[0]}, seed {in_use[1]})."
+    return f"**{' and '.join(waiting)}: waiting for Reset** (the run uses {in_use[0]}, seed {in_use[1]})."
