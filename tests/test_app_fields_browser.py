@@ -104,3 +104,20 @@ def test_inspect_reads_particles_drawn_by_the_rule_and_its_slider_has_no_number_
     rank = app.display.inspect.rank._impl.uuid
     expect(page.locator(f'div[id="{rank}"]')).to_be_visible(timeout=TIMEOUT_MS)
     expect(page.locator(f'div[id="{rank}"] + .mantine-NumberInput-root')).to_be_hidden(timeout=TIMEOUT_MS)
+
+
+def test_a_run_with_a_budget_stops_by_it_and_the_status_says_what_was_cut(page, workbench):
+    """The Budget field (seconds; empty: until converged) by the same rule, and a Run held to it: 0.1 s is spent
+    by the end of any first iteration, so the Run stops there with its answer and the status names the cut."""
+    app = workbench.app
+    page.get_by_role("tab", name="Estimator").click()
+    budget = gui_input(page, "Budget (s)")
+    expect(budget).to_have_value("")  # no budget: until converged
+    type_into(budget, "-1")
+    assert_refused(page, budget, "Budget (s)", "-1", "from 0.1 to 86400", shown="")
+    type_into(budget, "1e-1")
+    assert app.wait_for(lambda s: app.config.budget_s == 0.1, 30), app.config
+    page.get_by_role("button", name="Reset").click()
+    page.get_by_role("button", name="Run").click()
+    expect(page.get_by_text(re.compile(r"the budget cut short iterations")).first).to_be_visible(timeout=TIMEOUT_MS)
+    assert app.wait_for(lambda s: not s.running and s.iteration == 0, 60)

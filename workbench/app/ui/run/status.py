@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workbench.app import protocol as p
+from workbench.app.ui.widgets.colors import named
 from workbench.geometry import rotation_angle
 from workbench.inference.config import EstimatorConfig
 from workbench.physics import STATUS_NAMES
@@ -96,7 +97,8 @@ def physics_markdown(c: p.Chosen, names: list[str]) -> str:
     """How far physics moved each object of the chosen particle (``names``: the objects' display names)."""
     moved = np.linalg.norm(c.after[:, :3, 3] - c.before[:, :3, 3], axis=-1)
     turned = np.degrees(rotation_angle(np.swapaxes(c.before[:, :3, :3], -1, -2) @ c.after[:, :3, :3]))
-    rows = "\n".join(f"| {name} | {m * 100:.1f} | {a:.1f} |" for name, m, a in zip(names, moved, turned))
+    rows = "\n".join(f"| {named(k, name)} | {m * 100:.1f} | {a:.1f} |"
+                     for k, (name, m, a) in enumerate(zip(names, moved, turned)))
     return (
         f"Rank **{c.rank}** (particle {c.index}) · log-lik {c.loglik:.1f} · weight {c.weight:.3g} · "
         f"proposed by: {c.move} move · physics: {STATUS_NAMES.get(c.status, c.status)}\n\n"
