@@ -224,6 +224,12 @@ def test_a_run_with_a_budget_stops_by_it_answers_and_says_what_it_cut():
         assert snapshot.posterior is not None and snapshot.posterior.cut_short == "iterations, settle"
         status = status_markdown(RunView(iteration=0, reports=[snapshot.report]), config)
         assert "the budget cut short iterations, settle" in status
+        # While it ran, the server heard of each stage it entered, in order, with the run's seconds so far.
+        stages = engine.results.of(p.Stage)
+        assert [m.name for m in stages][:3] == ["filter", "start", "library"] and "settle" not in {m.name for m in stages}
+        assert all(a.seconds <= b.seconds for a, b in zip(stages, stages[1:]))
+        running = status_markdown(RunView(running=True, stage=p.Stage("library", 3.2)), config)
+        assert running.endswith("running: fitting candidates to the points (3 s into the run)")
         engine.handle(p.Step())  # with the same budget, spent before its polish: its own cut, not the Run's
         assert engine.estimator.iteration == 1 and engine.estimator.cut_short == "polish"
     finally:

@@ -327,6 +327,15 @@ class RunState:
 
 
 @dataclass
+class Stage:
+    """Sent while the run works, whenever it enters another stage (``inference.clock.ORDER``): ``name``, and the
+    run's ``seconds`` so far, so that a long stage (settling the answer, the posterior) is not a silent wait."""
+
+    name: str
+    seconds: float
+
+
+@dataclass
 class Failure:
     """Something the user must hear about. ``path``/``problem`` mirror ``InputError``."""
 

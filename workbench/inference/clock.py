@@ -25,6 +25,14 @@ ITERATE_SHARE = 0.75
 # The stages in the order a run meets them (the profile's rows and bars); a stage not listed goes last.
 ORDER = ("load", "start", "library", "proposals", "filter", "sink", "polish", "assemblies", "near misses", "floor",
          "settle", "turns", "posterior", "other")
+# What each stage is doing, in words (the workbench's status while it runs).
+DOING = {"load": "loading the frame", "start": "starting: candidates and the first particles",
+         "library": "fitting candidates to the points", "proposals": "moving the particles",
+         "filter": "stepping the filter", "sink": "fitting how deep the objects sit",
+         "polish": "polishing the estimate", "assemblies": "assembling whole scenes from the candidates",
+         "near misses": "fitting the scenes that nearly won", "floor": "weighing the clutter floor in",
+         "settle": "settling the answer on the depth", "turns": "trying each object's turns",
+         "posterior": "computing the posterior", "other": "between stages"}
 
 
 @dataclass
@@ -48,11 +56,13 @@ class StageTotals:
 class StageClock:
     """Wall time per named stage of one run, and the run's budget (``budget_s`` seconds, None: none).
     ``started``: the ``now()`` the run's time counts from, if earlier than the clock (a frame's loading and its
-    workers' start: the stage "load"). ``now``: the clock read (seconds, monotonic), replaceable in tests."""
+    workers' start: the stage "load"). ``on_stage(name)``: told whenever the innermost open stage changes (the
+    workbench's status). ``now``: the clock read (seconds, monotonic), replaceable in tests."""
 
     def __init__(self, budget_s: float | None = None, started: float | None = None,
-                 now: Callable[[], float] = time.perf_counter):
+                 on_stage: Callable[[str], None] | None = None, now: Callable[[], float] = time.perf_counter):
         self.budget_s = budget_s
+        self.on_stage = on_stage
         self._now = now
         self.stages: dict[str, StageTotals] = {}
         self._open = ["load"]
@@ -83,11 +93,17 @@ class StageClock:
         """The time until the block ends is ``name``'s, less the stages opened inside it."""
         self._charge()
         self._open.append(name)
+        self._tell()
         try:
             yield
         finally:
             self._charge()
             self._open.pop()
+            self._tell()
+
+    def _tell(self) -> None:
+        if self.on_stage is not None and self._open[-1] != "other":
+            self.on_stage(self._open[-1])
 
     @contextmanager
     def waiting(self) -> Iterator[None]:

@@ -138,10 +138,10 @@ class Estimator:
         clock.cut("iterations")
         return True
 
-    def start_clock(self, started: float | None = None) -> None:
+    def start_clock(self, started: float | None = None, on_stage=None) -> None:
         """A new ``clock`` with the config's budget, counting from ``started`` (a ``time.perf_counter()``; default
-        now): a run's time and its cuts are its own."""
-        self.filter.clock = StageClock(self.config.budget_s, started)
+        now): a run's time and its cuts are its own. ``on_stage(name)``: told of each stage the run enters."""
+        self.filter.clock = StageClock(self.config.budget_s, started, on_stage)
 
     def settle(self) -> np.ndarray:
         """The search's answer from the estimate (``Search.finish``; the default search fits it to the observed

@@ -152,6 +152,11 @@ def prepare_session(cmd: p.LoadSession) -> tuple[OpenedSession, p.Source, p.Obse
     return opened, source, build_view(opened.frame, opened.problem, opened.title(), opened.dataset)
 
 
+def stage_reporter(results, estimator) -> Callable[[str], None]:
+    """``StageClock.on_stage`` for a run in the workbench: each stage the run enters, told to the server."""
+    return lambda name: results.put(p.Stage(name, estimator.clock.elapsed()))
+
+
 def nothing_to_run(est) -> p.Failure:
     """What a Run on the finished run ``est`` is told."""
     return p.Failure("Nothing to run", f"the run is at iteration {est.iteration} of {est.config.iterations}"
@@ -289,7 +294,8 @@ class Engine:
         if self.finished():
             self.results.put(nothing_to_run(self.estimator))
             return
-        self.estimator.start_clock()  # each Run has the whole budget (EstimatorConfig.budget_s) to itself
+        # Each Run has the whole budget (EstimatorConfig.budget_s) to itself, and says which stage it is in.
+        self.estimator.start_clock(on_stage=stage_reporter(self.results, self.estimator))
         self.running = True
         self.send_state("running")
 
@@ -314,7 +320,7 @@ class Engine:
         if self.estimator is None:
             raise InputError(None, "nothing is loaded: load a dataset or the demo first")
         if not self.running:  # a Step is a run of its own: the cuts of the Run before it no longer stand
-            self.estimator.start_clock()
+            self.estimator.start_clock(on_stage=stage_reporter(self.results, self.estimator))
         try:
             report = self.estimator.step()
         except (WorkerCrashed, *CRASH_ERRORS) as err:

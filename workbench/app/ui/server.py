@@ -182,6 +182,7 @@ class App:
             p.Snapshot: self.on_snapshot,
             p.Chosen: self.on_chosen,
             p.RunState: self.on_run_state,
+            p.Stage: self.on_stage,
             p.Failure: self.on_failure,
             p.Workers: self.on_workers,
             p.Labels: self.labelling.show_labels, p.LabelHeatmap: self.labelling.show_heatmap,
@@ -240,6 +241,10 @@ class App:
         self.settings.tab.timings.content = timings_markdown(msg.report)
         self.buttons.status.content = status_markdown(self.state, self.config)
 
+    def on_stage(self, msg: p.Stage) -> None:
+        self.state.stage = msg
+        self.buttons.status.content = status_markdown(self.state, self.config)
+
     def on_chosen(self, msg: p.Chosen) -> None:
         self.state.chosen = msg
         self.display.show_chosen(msg, defer=self.state.running)
@@ -247,6 +252,7 @@ class App:
     def on_run_state(self, msg: p.RunState) -> None:
         s = self.state
         s.last_state, s.running = msg, msg.running
+        s.stage = None  # a stage is what a run is doing; it starts, stops or is reset here
         self.buttons.done()
         if msg.reason == "reset":
             s.reports, s.cloud, s.chosen, s.iteration, s.truth, s.run_config = [], None, None, -1, None, None

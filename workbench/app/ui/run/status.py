@@ -10,6 +10,7 @@ import numpy as np
 from workbench.app import protocol as p
 from workbench.app.ui.widgets.colors import named
 from workbench.geometry import rotation_angle
+from workbench.inference.clock import DOING
 from workbench.inference.config import EstimatorConfig
 from workbench.physics import STATUS_NAMES
 
@@ -34,6 +35,7 @@ class RunView:
     truth: p.TruthErrors | None = None  # the estimate against the dataset's ground truth, latest iteration
     # The run's own settings where they are not the panel's (a sequence's tracked frame): its budget is its own.
     run_config: EstimatorConfig | None = None
+    stage: p.Stage | None = None  # what the run is doing now (while it runs)
 
 
 def status_markdown(s: RunView, cfg) -> str:
@@ -41,14 +43,17 @@ def status_markdown(s: RunView, cfg) -> str:
     they sit in the panel's fixed top (the iteration's numbers are in the Estimator tab, ``timings_markdown``). A run
     with settings of its own (``s.run_config``) is counted against its own budget."""
     cfg = s.run_config or cfg
+    doing = ("" if s.stage is None
+             else f": {DOING.get(s.stage.name, s.stage.name)} ({s.stage.seconds:.0f} s into the run)")
     if not s.reports:
-        state = "running" if s.running else "paused"
-        return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."
+        if s.running:
+            return f"No iterations yet ({cfg.iterations} planned) · running{doing}"
+        return f"No iterations yet ({cfg.iterations} planned) · paused. Press **Step** or **Run**."
     r = s.reports[-1]
     it = r["iteration"]
     left = r.get("budget_left_s")
     if s.running:
-        state = "running" if left is None else f"running, {left:.0f} s of the budget left"
+        state = ("running" if left is None else f"running, {left:.0f} s of the budget left") + doing
     elif r.get("cut_short"):
         state = f"**finished**: the budget cut short {r['cut_short']}"
     elif r["converged"]:
