@@ -226,10 +226,18 @@ def test_a_run_with_a_budget_stops_by_it_answers_and_says_what_it_cut():
         assert "the budget cut short iterations, settle" in status
         # While it ran, the server heard of each stage it entered, in order, with the run's seconds so far.
         stages = engine.results.of(p.Stage)
-        assert [m.name for m in stages][:3] == ["filter", "start", "library"] and "settle" not in {m.name for m in stages}
+        assert [m.name for m in stages][:3] == ["filter", "start", "library"]
+        assert "settle" not in {m.name for m in stages}
         assert all(a.seconds <= b.seconds for a, b in zip(stages, stages[1:]))
         running = status_markdown(RunView(running=True, stage=p.Stage("library", 3.2)), config)
         assert running.endswith("running: fitting candidates to the points (3 s into the run)")
+        # The calm count is the filter's own, and says when the clutter floor still has to come in.
+        assert snapshot.report["calm"] == engine.estimator.filter.calm
+        assert snapshot.report["floor_in"] is True  # the answer is weighed with the floor in
+        moved = {**snapshot.report, "best_move_m": 0.0, "best_move_deg": 0.0, "calm": 3, "converged": False,
+                 "floor_in": False, "cut_short": None}
+        calm = status_markdown(RunView(running=True, reports=[moved]), config)
+        assert "calm 3/10" in calm and "once the clutter floor is weighed in" in calm
         engine.handle(p.Step())  # with the same budget, spent before its polish: its own cut, not the Run's
         assert engine.estimator.iteration == 1 and engine.estimator.cut_short == "polish"
     finally:

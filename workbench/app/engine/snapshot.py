@@ -66,6 +66,8 @@ class ParticleDisplay:
         clock = est.clock
         row["budget_left_s"] = None if clock.budget_s is None else max(0.0, clock.budget_s - clock.elapsed())
         row["cut_short"] = est.cut_short
+        # The convergence count the run stops on (it restarts when the clutter floor is weighed in).
+        row["calm"], row["floor_in"] = est.filter.calm, est.filter.floor_in
         row.update(reference)
         return p.Snapshot(row, cloud, running, particles, est.current_posterior)
 

@@ -68,15 +68,18 @@ def status_markdown(s: RunView, cfg) -> str:
     if r["converged"]:
         conv = f"**converged**: the best scene moved {rule} for {cfg.converge_patience} iterations"
     else:
-        calm = 0
-        for row in reversed(s.reports):
-            if row["best_move_m"] < cfg.converge_position and row["best_move_deg"] < cfg.converge_degrees:
-                calm += 1
-            else:
-                break
+        calm = r.get("calm")
+        if calm is None:  # a report from before the filter's count was sent (a restored session's history)
+            calm = 0
+            for row in reversed(s.reports):
+                if row["best_move_m"] < cfg.converge_position and row["best_move_deg"] < cfg.converge_degrees:
+                    calm += 1
+                else:
+                    break
         last = "" if not np.isfinite(r["best_move_m"]) else \
             f" · last move {r['best_move_m'] * 100:.1f} cm, {r['best_move_deg']:.1f}°"
-        conv = f"calm {min(calm, cfg.converge_patience)}/{cfg.converge_patience} ({rule}){last}"
+        floor = "" if r.get("floor_in", True) else " · the run stops only once the clutter floor is weighed in"
+        conv = f"calm {min(calm, cfg.converge_patience)}/{cfg.converge_patience} ({rule}){last}{floor}"
     return f"**{counter}** · {state}  \n{conv}"
 
 
