@@ -713,3 +713,37 @@ def test_processes_preparing_the_same_mesh_take_turns(tmp_path):
     lines = [line for line in log.read_text().split("\n") if line and line != "first trying"]
     assert lines.index("first in") < lines.index("second trying") < lines.index("first out") < \
         lines.index("second in"), lines  # the second tried while the first held it, and waited its turn
+
+
+@pytest.mark.slow
+def test_a_runs_frames_share_one_pool_and_a_frame_evaluates_as_on_a_fresh_one(tmp_path):
+    """``estimate`` over several frames starts its workers once (``run.runner.FramePool``): each later frame
+    retargets them, and what a frame's hypotheses evaluate to does not depend on the frames before."""
+    from workbench.evaluation import make_evaluator
+    from workbench.problem.build import load_bop_problem
+    from workbench.run.runner import FramePool
+    from workbench.synth import make_scenes
+
+    make_scenes(tmp_path / "ds", ["touching", "three"], 1, seed=2, width=320, height=240)
+    (_, first), (_, second) = (load_bop_problem(tmp_path / "ds", s, 0) for s in (0, 1))
+    rng = np.random.default_rng(0)
+    scenes = np.repeat(np.eye(4)[None, None], 6, axis=0).repeat(second.n_objects, axis=1)
+    scenes[:, :, :2, 3] = rng.uniform(-0.1, 0.1, (6, second.n_objects, 2))
+    scenes[:, :, 2, 3] = 0.05 * np.arange(1, second.n_objects + 1)
+    pool = FramePool(workers=2, max_retries=0)
+    try:
+        lent = pool(first)
+        lent.evaluate(scenes[:, :first.n_objects])
+        lent.close()  # the frame is done: the workers stay
+        pids = pool.evaluator.pids
+        again = pool(second)
+        assert pool.evaluator.pids == pids
+        shared = again.evaluate(scenes)
+    finally:
+        pool.close()
+    fresh = make_evaluator(second, 2)
+    try:
+        alone = fresh.evaluate(scenes)
+    finally:
+        fresh.close()
+    assert np.array_equal(shared.projected, alone.projected) and np.array_equal(shared.loglik, alone.loglik)

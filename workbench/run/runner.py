@@ -35,6 +35,43 @@ from workbench.run.frames import FrameFailure, FrameKey, run_frames
 LOG_EVERY_S = 10.0
 
 
+class FramePool:
+    """One evaluator for a run's frames, one after another (``evaluator_for`` of ``estimate_frame``): the first
+    frame starts it, each later frame retargets it (``PoolEvaluator.retarget``: each worker builds its renderer and
+    physics for the new frame in the process it already runs), which saves starting the worker processes and
+    importing their libraries again for every frame. A frame's results do not depend on the frames its workers
+    evaluated before (physics and rendering are built anew per problem, as in ``track``)."""
+
+    def __init__(self, workers: int, max_retries: int):
+        self.workers, self.max_retries = workers, max_retries
+        self.evaluator: Evaluator | None = None
+
+    def __call__(self, problem: Problem) -> Evaluator:
+        if self.evaluator is None:
+            self.evaluator = make_evaluator(problem, self.workers, max_retries=self.max_retries)
+        else:
+            self.evaluator.retarget(problem)
+        return Lent(self.evaluator)
+
+    def close(self) -> None:
+        if self.evaluator is not None:
+            self.evaluator.close()
+            self.evaluator = None
+
+
+class Lent:
+    """An evaluator lent to one frame: closing it leaves it running for the next (``FramePool``)."""
+
+    def __init__(self, evaluator: Evaluator):
+        self._evaluator = evaluator
+
+    def __getattr__(self, name):
+        return getattr(self._evaluator, name)
+
+    def close(self) -> None:
+        pass
+
+
 def estimate_frame(
     dataset: Path,
     scene_id: int,
@@ -159,18 +196,22 @@ def estimate_frames(
             on_frame(frame_rows)
         rows.extend(frame_rows)
 
+    pool = FramePool(workers, max_retries)
+
     def here(scene_id: int, im_id: int) -> list[ResultRow]:
         try:
-            return estimate_frame(dataset, scene_id, im_id, config, problem_config,
-                                  lambda problem: make_evaluator(problem, workers, max_retries=max_retries), split,
-                                  object_ids, early_stop, show_progress=True)
+            return estimate_frame(dataset, scene_id, im_id, config, problem_config, pool, split, object_ids,
+                                  early_stop, show_progress=True)
         except WorkerCrashed as err:
             raise InputError(f"scene {scene_id} frame {im_id}",
                              f"{err}; the frames before it are kept (run again with --resume)") from None
 
-    run_frames(frames, here, estimate_frame_task,
-               (Path(dataset).resolve(), config, problem_config, workers, split, object_ids, early_stop),
-               ray, done, on_failure or failures.append)
+    try:
+        run_frames(frames, here, estimate_frame_task,
+                   (Path(dataset).resolve(), config, problem_config, workers, split, object_ids, early_stop),
+                   ray, done, on_failure or failures.append)
+    finally:
+        pool.close()
     if failures:
         raise InputError(dataset, "; ".join(f"scene {f.frame[0]} frame {f.frame[1]}: {f.problem}"
                                             for f in failures))
