@@ -281,9 +281,9 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
 def _is_score_json(path: Path) -> bool:
     """A file `workbench score --json` wrote."""
-    import json
+    from workbench.io.readers import read_json
 
-    document = json.loads(path.read_text())
+    document = read_json(path)
     # "summary" came with VSD: a score JSON written before it is ours too
     return isinstance(document, dict) and set(document) - {"summary"} == {"dataset", "results", "objects"}
 

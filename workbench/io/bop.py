@@ -23,8 +23,10 @@ from __future__ import annotations
 import io
 import json
 import logging
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import trimesh
@@ -58,6 +60,10 @@ PLAUSIBLE_MEDIAN_DEPTH = (0.15, 6.0)
 CONTINUOUS_SYMMETRY_STEPS = 36
 MAX_FOCAL_IN_IMAGES = 100
 MAX_DEPTH_SCALE = 1e4  # millimetres per PNG unit; beyond it 16-bit depth holds nothing but astronomy
+# The largest depth sensors give 12 million pixels; at 25 million a frame's depth alone takes 200 MB as float64 (a
+# 13000 x 13000 PNG took 4 GB before it was refused), so a larger image is a mistake, refused from its header.
+MAX_IMAGE_PIXELS = 25_000_000
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -82,31 +88,68 @@ def _png_bytes(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def read_depth_png(path: Path) -> np.ndarray:
-    """A 16-bit single-channel PNG -> (H, W) float64 raw sensor units."""
+def image_size(path: Path, what: str = "image") -> tuple[int, int]:
+    """(width, height) of an image from its header alone (a PNG's first 24 bytes, else PIL's lazy open), checked
+    against MAX_IMAGE_PIXELS; InputError naming the file otherwise. Cheap enough to check every frame of a sequence
+    before the first one runs."""
     if not path.is_file():
-        raise InputError(path, "depth image not found")
+        raise InputError(path, f"{what} not found")
     try:
-        with Image.open(path) as im:
-            im.load()
-            mode = im.mode
-            raw = np.asarray(im)
+        with open(path, "rb") as f:
+            head = f.read(24)
+        if head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
+            size = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        else:
+            with _opened(path) as im:
+                size = im.size
+    except OSError as e:
+        raise InputError(path, f"cannot be read ({e.strerror or e})") from e
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise InputError(path, f"is {size[0]} x {size[1]} pixels, more than any depth sensor gives "
+                               f"({MAX_IMAGE_PIXELS // 10**6} million pixels at most)")
+    return size
+
+
+@contextmanager
+def _opened(path: Path) -> Iterator[Image.Image]:
+    """PIL's image, opened lazily, its own size limit (a warning, then an error, far above ours) and decoding
+    errors turned into InputError naming the file."""
+    try:
+        with warnings.catch_warnings():
+            # A size PIL warns about is refused by image_size anyway: the warning would only repeat it, raw.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(path)
+        with im:
+            yield im
+    except Image.DecompressionBombError as e:
+        raise InputError(path, f"has too many pixels ({e})") from e
     except (UnidentifiedImageError, OSError, SyntaxError) as e:
         raise InputError(path, f"corrupt or unreadable image ({e})") from e
-    if mode not in ("I;16", "I;16B", "I;16L", "I"):
+
+
+def read_image(path: Path, what: str = "image") -> Image.Image:
+    """The one image reader every input goes through: the decoded PIL image, its size checked from the header
+    before any pixel is decoded (``image_size``), or InputError naming the file."""
+    image_size(path, what)
+    with _opened(path) as im:
+        im.load()
+        return im
+
+
+def read_depth_png(path: Path) -> np.ndarray:
+    """A 16-bit single-channel PNG -> (H, W) float64 raw sensor units."""
+    im = read_image(path, "depth image")
+    if im.mode not in ("I;16", "I;16B", "I;16L", "I"):
         raise InputError(
-            path, f"depth must be a 16-bit single-channel PNG, this one is mode {mode!r} (an 8-bit or colour image?)"
+            path, f"depth must be a 16-bit single-channel PNG, this one is mode {im.mode!r} (an 8-bit or colour "
+                  "image?)"
         )
-    return raw.astype(np.float64)
+    return np.asarray(im).astype(np.float64)
 
 
 def read_rgb(path: Path) -> np.ndarray:
     """(H, W, 3) uint8."""
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:
-        raise InputError(path, f"corrupt or unreadable image ({e})") from e
+    return np.asarray(read_image(path, "colour image").convert("RGB"))
 
 
 def image_ids(content, path: Path) -> list[int]:

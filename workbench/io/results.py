@@ -22,7 +22,7 @@ from workbench.errors import InputError
 from workbench.inference.answer.posterior import Posterior
 from workbench.io import bop
 from workbench.io.outputs import OutputLock, check_output_file, replace_file, write_file
-from workbench.io.readers import parse_pose
+from workbench.io.readers import parse_pose, read_json
 from workbench.problem.problem import Problem
 from workbench.problem.scene import Frame
 
@@ -293,7 +293,7 @@ class PosteriorFile:
         if not _is_posterior_file(Path(path)):
             raise InputError(path, "is not a posterior JSON written by `workbench estimate`: there is nothing to "
                                    "resume; choose another --posterior")
-        document = json.loads(Path(path).read_text(encoding="utf-8"))
+        document = read_json(Path(path))
         return {(f["scene_id"], f["im_id"]): f for f in document["frames"]}
 
     def close(self) -> None:
@@ -318,7 +318,7 @@ class PosteriorFile:
 
 def _is_posterior_file(path: Path) -> bool:
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
+        document = read_json(path)
         return document.get("kind") == POSTERIOR_KIND and isinstance(document.get("frames"), list)
     except (OSError, UnicodeDecodeError, ValueError, AttributeError):
         return False
