@@ -179,8 +179,9 @@ NO_BYTES = ("import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.
 
 def test_a_lock_that_cannot_be_written_is_an_error_and_leaves_no_lock_file(demo, tmp_path):
     out = tmp_path / "r.csv"
+    root = Path(__file__).resolve().parent.parent
     done = subprocess.run([sys.executable, "-c", NO_BYTES, "estimate", str(demo), "--out", str(out)],
-                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)})
+                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(root)})
     assert done.returncode == 2 and done.stderr.startswith("workbench: error: ") and "Traceback" not in done.stderr
     assert f"{out}: cannot write the lock file" in done.stderr, done.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["demo"]

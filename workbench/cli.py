@@ -6,6 +6,7 @@ import argparse
 import logging
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -137,6 +138,8 @@ def _open_outputs(args: argparse.Namespace):
     from workbench.io.results import PosteriorFile, ResultsFile
 
     check_distinct({"--out": args.out, "--posterior": args.posterior})
+    if args.posterior is not None:
+        check_posterior_made(args)
     posterior = (None if args.posterior is None else
                  PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
     try:
@@ -145,6 +148,16 @@ def _open_outputs(args: argparse.Namespace):
         if posterior is not None:
             posterior.close()
         raise
+
+
+def check_posterior_made(args: argparse.Namespace) -> None:
+    """InputError when ``--posterior`` is asked of a search that makes none: the posterior comes from settling the
+    estimate (``DefaultSearch.finish``), which --no-settle and the paper's search leave out; the file would never
+    be written."""
+    for given, why in ((args.no_settle, "--no-settle"), (args.proposals == "paper", "--proposals paper")):
+        if given:
+            raise InputError("--posterior", f"the posterior is made while the estimate is settled, which {why} "
+                                            f"leaves out: no file would be written; drop --posterior or {why}")
 
 
 def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, problem: ProblemConfig, ray,
@@ -258,9 +271,12 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
         check_output_file(args.reliability, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n",
                           force=args.force, what="a reliability diagram", flag="--reliability")
+    from workbench.meshes.heavy import announced
+
     vsd = VSDConfig()  # BOP's: tau 20 mm, theta 0.3, delta 15 mm; AR_VSD's grid
-    frames = score_results(args.dataset, read_results_csv(args.results), split=args.split,
-                           results_path=args.results, vsd=vsd)
+    with announced(f"scoring {args.results}", cached=False):  # a million rows take minutes: never silent for long
+        frames = score_results(args.dataset, read_results_csv(args.results), split=args.split,
+                               results_path=args.results, vsd=vsd)
     print("\n".join(report(frames, vsd)))
     if args.reliability is not None:
         from workbench.score.calibration import reliability_png
@@ -316,9 +332,25 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
     config.validate("")  # before any server starts
+    if not _is_loopback(args.host):
+        print(f"WARNING: serving on {args.host}, not this machine alone: anyone who can reach port {args.port} can "
+              "run estimates here, and write labels (scene_gt.json) into the dataset and sessions into the "
+              "sessions folder; serve on 127.0.0.1 unless that is meant", file=sys.stderr, flush=True)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
           session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
     return 0
+
+
+def _is_loopback(host: str) -> bool:
+    """Whether ``host`` is this machine alone (127.0.0.0/8, ::1, localhost): the server is open to no one else."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
 
 
 def _check_session_frame(session: Path, state) -> None:
@@ -340,7 +372,8 @@ def _check_frame_exists(dataset: Path, scene_id: int | None, im_id: int | None) 
     scenes = sorted({s for s, _ in frames})
     if scene_id is not None and scene_id not in scenes:
         raise InputError(dataset, f"no scene {scene_id} (scenes: {scenes[:20]})")
-    in_scene = [i for s, i in frames if s == (scenes[0] if scene_id is None else scene_id)]
+    scene_id = scenes[0] if scene_id is None else scene_id
+    in_scene = [i for s, i in frames if s == scene_id]
     if im_id is not None and im_id not in in_scene:
         raise InputError(dataset, f"no frame {im_id} in scene {scene_id} (frames: {in_scene[:20]})")
 
@@ -598,8 +631,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
     previous = _stop_on_sigterm()
+    _TERMINATED.clear()
     try:
-        return args.func(args)
+        code = args.func(args)
+        if _TERMINATED.is_set():  # a command that stops on Ctrl-C as its way to end (serve) was stopped by SIGTERM
+            raise _Terminated()
+        return code
     except InputError as err:
         print(f"workbench: error: {err}", file=sys.stderr)
         return 2
@@ -614,6 +651,9 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
+_TERMINATED = threading.Event()  # set by SIGTERM: the exit code is 143 even where a command took it as Ctrl-C
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, raised where the main process is, so that it stops as on Ctrl-C: workers told to stop, files whole."""
 
@@ -622,6 +662,7 @@ def _stop_on_sigterm():
     """SIGTERM -> ``_Terminated`` in the main thread -> the previous handler (None when this is not the main
     thread, where no handler can be set)."""
     def stop(signum, frame):
+        _TERMINATED.set()
         raise _Terminated()
 
     try:

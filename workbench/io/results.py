@@ -134,14 +134,16 @@ def write_results_lines(path: Path, lines: list[str]) -> None:
 
 
 def read_results_csv(path: Path) -> list[ResultRow]:
-    """Inverse of ``write_results_csv``."""
+    """Inverse of ``write_results_csv``. A score or time that is not a finite number, and a line that repeats an
+    earlier one, are refused naming the line: a score decides which row is an object's estimate, and NaN would make
+    that depend on the rows' order; a repeated row would count one estimate twice."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "results file not found")
     lines = list(csv.reader(path.read_text().splitlines()))
     if not lines or [c.strip() for c in lines[0]] != RESULTS_HEADER:
         raise InputError(path, f"first line must be the header {','.join(RESULTS_HEADER)}")
-    rows = []
+    rows, first_seen = [], {}
     for n, cells in enumerate(lines[1:], start=2):
         if not cells:
             continue
@@ -152,6 +154,14 @@ def read_results_csv(path: Path) -> list[ResultRow]:
             score, time = float(score), float(time)
         except ValueError as e:
             raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: {cells}") from e
+        if not (np.isfinite(score) and np.isfinite(time)):
+            raise InputError(path, f"line {n}: score and time must be finite numbers, got score {cells[3]!r}, time "
+                                   f"{cells[6]!r} ({','.join(cells)[:120]})")
+        key = tuple(c.strip() for c in cells)
+        if key in first_seen:
+            raise InputError(path, f"line {n} repeats line {first_seen[key]} ({','.join(cells)[:120]}): one "
+                                   "estimate would count twice; remove the copy")
+        first_seen[key] = n
         rows.append(ResultRow(*ids, score, parse_pose(R, t, path, f"line {n}"), time))
     return rows
 
