@@ -125,3 +125,17 @@ def test_an_image_that_is_no_png_is_still_read_through_pil(tmp_path):
     path.write_bytes(b"not an image")
     with pytest.raises(InputError, match="corrupt or unreadable"):
         bop.read_rgb(path)
+
+
+def test_a_mesh_wound_inside_out_is_turned_right_side_out_and_named_once(tmp_path, caplog):
+    import trimesh
+
+    box = trimesh.creation.box((50.0, 60.0, 70.0))  # mm, as BOP's models
+    box.invert()
+    path = tmp_path / "obj_000001.ply"
+    box.export(path)
+    with caplog.at_level("WARNING"):
+        first, again = bop.read_mesh(path, 1e-3), bop.read_mesh(path, 1e-3)
+    assert first.volume == pytest.approx(50 * 60 * 70 * 1e-9) and again.volume > 0
+    warned = [r.getMessage() for r in caplog.records if "inside out" in r.getMessage()]
+    assert len(warned) == 1 and str(path) in warned[0], warned

@@ -50,7 +50,7 @@ from workbench.meshes.heavy import loading
 from workbench.problem.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
-_WARNED_OPEN: set[tuple[str, int, int]] = set()  # open meshes already warned about (read_mesh)
+_WARNED_MESHES: set[tuple[str, int, int, str]] = set()  # meshes already warned about, and why (read_mesh)
 
 # Folders that hold the meshes, in order of preference (T-LESS ships models_cad/models_reconst, no models/).
 MODEL_DIRS = ("models", "models_cad", "models_eval", "models_reconst")
@@ -268,13 +268,23 @@ def _read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
         extents = np.round(mesh.extents / scale, 6).tolist()
         raise InputError(path, f"mesh is degenerate (extents {extents} in file units)")
     if not mesh.is_watertight:
-        stat = path.stat()
-        # Once per file (as it is now) and process: estimating many frames of one dataset reloads its models.
-        seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
-        if seen not in _WARNED_OPEN:
-            _WARNED_OPEN.add(seen)
-            log.warning("%s: mesh is not watertight; its mass is taken from its convex hull", path)
+        _warn_once(path, "mesh is not watertight; its mass is taken from its convex hull")
+    elif mesh.volume < 0:
+        # Faces wound inside out (normals inward): rendering would cull the wrong side and physics would take a
+        # negative volume. A closed mesh has one outside: turned right side out, and said.
+        mesh.invert()
+        _warn_once(path, "mesh is wound inside out (its faces point inward); it is used turned right side out")
     return mesh
+
+
+def _warn_once(path: Path, problem: str) -> None:
+    """A WARNING naming the mesh file, once per file (as it is now), problem and process: estimating many frames of
+    one dataset reloads its models."""
+    stat = path.stat()
+    seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, problem)
+    if seen not in _WARNED_MESHES:
+        _WARNED_MESHES.add(seen)
+        log.warning("%s: %s", path, problem)
 
 
 # ----------------------------------------------------------------------------------------------------------------

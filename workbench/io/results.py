@@ -140,7 +140,12 @@ def read_results_csv(path: Path) -> list[ResultRow]:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "results file not found")
-    lines = list(csv.reader(path.read_text().splitlines()))
+    try:
+        lines = list(csv.reader(path.read_bytes().decode("utf-8").splitlines()))
+    except UnicodeDecodeError as e:
+        raise InputError(path, f"is not UTF-8 text ({e.reason} at byte {e.start}): not a results CSV") from None
+    except csv.Error as e:
+        raise InputError(path, f"is not a CSV ({e})") from None
     if not lines or [c.strip() for c in lines[0]] != RESULTS_HEADER:
         raise InputError(path, f"first line must be the header {','.join(RESULTS_HEADER)}")
     rows, first_seen = [], {}
@@ -153,7 +158,8 @@ def read_results_csv(path: Path) -> list[ResultRow]:
             R, t = [float(v) for v in R.split()], [float(v) for v in t.split()]
             score, time = float(score), float(time)
         except ValueError as e:
-            raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: {cells}") from e
+            raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: "
+                                   f"{','.join(cells)[:120]!r}") from e
         if not (np.isfinite(score) and np.isfinite(time)):
             raise InputError(path, f"line {n}: score and time must be finite numbers, got score {cells[3]!r}, time "
                                    f"{cells[6]!r} ({','.join(cells)[:120]})")
