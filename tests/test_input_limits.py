@@ -139,3 +139,58 @@ def test_a_mesh_wound_inside_out_is_turned_right_side_out_and_named_once(tmp_pat
     assert first.volume == pytest.approx(50 * 60 * 70 * 1e-9) and again.volume > 0
     warned = [r.getMessage() for r in caplog.records if "inside out" in r.getMessage()]
     assert len(warned) == 1 and str(path) in warned[0], warned
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--iterations", "100000"], "--iterations: must be a whole number from 0 to 10000"),
+    (["--max-retries", "1000"], "--max-retries: must be a whole number from 0 to 100"),
+    (["--max-render-pixels", "100000000"], "--max-render-pixels: must be a whole number from 64 to 25000000"),
+    # ~1.3 TB by the measured ~14 bytes per particle and pixel: more than any machine here has free
+    (["--particles", "100000", "--max-render-pixels", "1000000"], "would need about"),
+    (["--posterior", "p.json", "--no-settle"], "--posterior: the posterior is made while the estimate is settled"),
+    (["--posterior", "p.json", "--proposals", "paper"], "which --proposals paper leaves out"),
+])
+def test_counts_beyond_their_bounds_and_outputs_never_made_are_refused_before_any_work(demo, tmp_path, capsys,
+                                                                                     monkeypatch, argv, words):
+    monkeypatch.chdir(tmp_path)
+    _refused(capsys, ["estimate", demo, "--out", tmp_path / "r.csv", *argv], words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo"]
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--track-particles", "10000000"], "--track-particles: must be a whole number from 1 to 100000"),
+    (["--track-iterations", "100000"], "--track-iterations: must be a whole number from 1 to 1000"),
+    (["--track-particles", "100000", "--max-render-pixels", "1000000"], "--track-particles: 100000 particles"),
+])
+def test_track_counts_are_bounded_before_the_first_frame(demo, tmp_path, capsys, argv, words):
+    _refused(capsys, ["track", demo, "--scene", "0", "--out", tmp_path / "r.csv", *argv], words)
+    assert not (tmp_path / "r.csv").exists()
+
+
+def test_serve_names_the_scene_of_a_frame_it_lacks(demo, capsys):
+    _refused(capsys, ["serve", demo, "--frame", "99"], "no frame 99 in scene 0")
+
+
+@pytest.mark.slow  # starts the browser workbench
+def test_serve_on_the_network_warns_what_a_visitor_can_do_and_sigterm_ends_it_with_143(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    server = subprocess.Popen([sys.executable, "-m", "workbench.cli", "serve", "--demo", "--host", "0.0.0.0",
+                               "--port", "18397", "--sessions-dir", str(tmp_path / "s")],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                              env={**os.environ, "PYTHONPATH": str(root), "WORKBENCH_HOME": str(tmp_path / "home")})
+    try:
+        for line in server.stdout:
+            if "serving" in line:
+                break
+        server.send_signal(signal.SIGTERM)
+        _, err = server.communicate(timeout=120)
+    finally:
+        server.kill()
+    assert server.returncode == 143, err
+    assert "WARNING: serving on 0.0.0.0" in err and "labels" in err and "sessions" in err, err
+    assert "Traceback" not in err

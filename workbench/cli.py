@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from workbench.errors import InputError, check_count
-from workbench.evaluation.pool import check_workers
-from workbench.inference.config import METHODS, EstimatorConfig, check_seed
+from workbench.evaluation.pool import check_run_memory, check_workers
+from workbench.inference.config import MAX_ITERATIONS, MAX_PARTICLES, METHODS, EstimatorConfig, check_seed
 from workbench.inference.search.moves.registry import PROPOSALS
 from workbench.inference.smc.particles import STATES, Sigma
 from workbench.problem.problem import ProblemConfig
@@ -23,6 +23,11 @@ from workbench.track.config import TrackConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
 TRACK_DEFAULTS = TrackConfig()
+# Upper bounds of the other counts, each with its reason (the estimator's own: inference.config).
+MAX_RETRIES = 100  # a worker that died 100 times will die again: out of memory, or a broken install
+MAX_TRACK_ITERATIONS = 1000  # a tracked frame runs 2 (6 with an object lost); 1000 take many minutes per frame
+MAX_REPEATS = 1000  # bench --speed: the median of 1000 repeats is as steady as it gets
+MAX_SCENES = 100_000  # make-scenes, bench: scenes per category, and frames per sequence (an hour of video at 30 fps)
 
 
 def _add_estimator_args(p: argparse.ArgumentParser) -> None:
@@ -93,7 +98,7 @@ def ray_config(args: argparse.Namespace):
     check_reachable(args.ray_address)  # a malformed address first: it is wrong with or without Ray
     require_ray()
     retries = getattr(args, "max_retries", RayConfig.max_retries)
-    check_count(retries, "--max-retries", low=0)
+    check_count(retries, "--max-retries", low=0, high=MAX_RETRIES)
     return RayConfig(address=args.ray_address, max_retries=retries)
 
 
@@ -120,7 +125,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     config.validate("")
     problem.validate()
     check_workers(args.workers)
-    check_count(args.max_retries, "--max-retries", low=0)
+    check_count(args.max_retries, "--max-retries", low=0, high=MAX_RETRIES)
+    check_run_memory(config.particles, problem.max_render_pixels)
     ray = ray_config(args)
     posterior, results = _open_outputs(args)
     try:
@@ -205,9 +211,11 @@ def _cmd_track(args: argparse.Namespace) -> int:
     config.validate("")
     problem.validate()
     check_workers(args.workers)
-    check_count(args.max_retries, "--max-retries", low=0)
-    check_count(args.track_particles, "--track-particles", low=1)
-    check_count(args.track_iterations, "--track-iterations", low=1)
+    check_count(args.max_retries, "--max-retries", low=0, high=MAX_RETRIES)
+    check_count(args.track_particles, "--track-particles", low=1, high=MAX_PARTICLES)
+    check_count(args.track_iterations, "--track-iterations", low=1, high=MAX_TRACK_ITERATIONS)
+    check_run_memory(config.particles, problem.max_render_pixels)
+    check_run_memory(args.track_particles, problem.max_render_pixels, "--track-particles")
     track = TrackConfig(particles=args.track_particles, iterations=args.track_iterations, motion=args.motion)
     track.validate()
     ray = ray_config(args)
@@ -332,6 +340,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
     config.validate("")  # before any server starts
+    check_run_memory(config.particles, ProblemConfig().max_render_pixels)
     if not _is_loopback(args.host):
         print(f"WARNING: serving on {args.host}, not this machine alone: anyone who can reach port {args.port} can "
               "run estimates here, and write labels (scene_gt.json) into the dataset and sessions into the "
@@ -382,7 +391,7 @@ def _cmd_make_scenes(args: argparse.Namespace) -> int:
     from workbench.synth import make_demo, make_scenes
 
     check_seed(args.seed)
-    check_count(args.per_category, "--per-category", low=1)
+    check_count(args.per_category, "--per-category", low=1, high=MAX_SCENES)
     t0 = time.perf_counter()
     if args.demo:
         make_demo(args.out, seed=args.seed, force=args.force)
@@ -406,7 +415,7 @@ def _make_sequences(args: argparse.Namespace, t0: float) -> int:
     """``make-scenes --sequence N``: each scene as a sequence of N frames on an arc (``synth.sequence``)."""
     from workbench.synth.sequence import Push, TakeOut, make_sequences
 
-    check_count(args.sequence, "--sequence", low=1)
+    check_count(args.sequence, "--sequence", low=1, high=MAX_SCENES)
     if not (np.isfinite(args.arc) and 0.0 <= args.arc <= 180.0):
         raise InputError("--arc", f"must be degrees in [0, 180], got {args.arc}")
     if args.models is not None or args.distractors is not None or args.table_pose is not None:
@@ -432,10 +441,11 @@ def _make_sequences(args: argparse.Namespace, t0: float) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     check_workers(args.workers)
-    check_count(args.repeats, "--repeats", low=1)
-    for name in ("particles", "iterations", "per_category"):
+    check_count(args.repeats, "--repeats", low=1, high=MAX_REPEATS)
+    for name, high in (("particles", MAX_PARTICLES), ("iterations", MAX_ITERATIONS), ("per_category", MAX_SCENES)):
         if getattr(args, name) is not None:
-            check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1)
+            check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1,
+                        high=high)
     if args.speed:
         from workbench.bench.speed import run_speed_benchmark
 

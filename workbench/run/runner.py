@@ -78,7 +78,9 @@ def estimate_frame(
 def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show_progress: bool = False
                   ) -> tuple[Estimator, np.ndarray]:
     """Run ``estimator`` to its iteration budget (or convergence, ``early_stop``) -> (it, its settled estimate
-    (K, 4, 4) table frame). ``show_progress``: a progress bar named ``desc`` on stderr when stderr is a terminal."""
+    (K, 4, 4) table frame). ``show_progress``: a progress bar named ``desc`` on stderr when stderr is a terminal.
+    Without a bar, a plain line says how far the run is every LOG_EVERY_S seconds: a tracked frame asked for
+    100,000 iterations ran minutes without one."""
     # On a terminal only (disable=None): in a log file the bar's carriage returns would share lines with the
     # messages after it, so there a plain line says how far the frame is, at most every LOG_EVERY_S seconds.
     t0 = last = time.perf_counter()
@@ -91,7 +93,7 @@ def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show
             bar.update(1)
             bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
             now = time.perf_counter()
-            if show_progress and bar.disable and now - last >= LOG_EVERY_S:
+            if bar.disable and now - last >= LOG_EVERY_S:
                 last = now
                 print(f"{desc}: step {done} of at most {bar.total} after {now - t0:.0f} s "
                       f"(best {report.best_loglik:.0f})", file=sys.stderr, flush=True)
