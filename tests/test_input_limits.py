@@ -194,3 +194,12 @@ def test_serve_on_the_network_warns_what_a_visitor_can_do_and_sigterm_ends_it_wi
     assert server.returncode == 143, err
     assert "WARNING: serving on 0.0.0.0" in err and "labels" in err and "sessions" in err, err
     assert "Traceback" not in err
+
+
+def test_a_plain_frames_npy_depth_of_too_many_numbers_is_refused_from_its_header(tmp_path):
+    from workbench.io.plainframe import _read_depth
+
+    path = tmp_path / "d.npy"
+    np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(6000, 6000)).flush()  # sparse on disk
+    with pytest.raises(InputError, match="6000 x 6000"):
+        _read_depth(path, 1.0)
