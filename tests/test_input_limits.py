@@ -171,6 +171,30 @@ def test_serve_names_the_scene_of_a_frame_it_lacks(demo, capsys):
     _refused(capsys, ["serve", demo, "--frame", "99"], "no frame 99 in scene 0")
 
 
+def _workers_started(pid: int, settle_s: float = 3.0, timeout_s: float = 120.0) -> None:
+    """Wait until ``pid`` has its evaluation workers (spawned processes) and their number held for ``settle_s``: a
+    worker killed while Python's spawn still reads its start-up data prints that module's traceback, which is no
+    part of what this test checks."""
+    import time
+
+    def workers() -> int:
+        try:
+            kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        except OSError:
+            return 0
+        return sum(b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes() for k in kids
+                   if Path(f"/proc/{k}/cmdline").exists())
+
+    end, last, since = time.monotonic() + timeout_s, -1, time.monotonic()
+    while time.monotonic() < end:
+        now = workers()
+        if now != last:
+            last, since = now, time.monotonic()
+        elif now > 0 and time.monotonic() - since >= settle_s:
+            return
+        time.sleep(0.2)
+
+
 @pytest.mark.slow  # starts the browser workbench
 def test_serve_on_the_network_warns_what_a_visitor_can_do_and_sigterm_ends_it_with_143(tmp_path):
     import os
@@ -187,6 +211,7 @@ def test_serve_on_the_network_warns_what_a_visitor_can_do_and_sigterm_ends_it_wi
         for line in server.stdout:
             if "serving" in line:
                 break
+        _workers_started(server.pid)
         server.send_signal(signal.SIGTERM)
         _, err = server.communicate(timeout=120)
     finally:

@@ -79,8 +79,8 @@ class EstimatorConfig:
         if self.state not in STATES:
             raise InputError("state", f"unknown state {self.state!r}; use one of {', '.join(STATES)}")
         if not 1 <= self.particles <= MAX_PARTICLES:
-            raise InputError("particles", f"particle count must be between 1 and {MAX_PARTICLES}, got "
-                                          f"{self.particles}")
+            named = "particles" if where is None else f"{where}particles" if where else "--particles"
+            raise InputError(named, f"particle count must be between 1 and {MAX_PARTICLES}, got {self.particles}")
         if self.iterations < 0:
             raise InputError("iterations", f"iterations must be >= 0, got {self.iterations}")
         if self.proposals not in PROPOSALS:

@@ -50,6 +50,9 @@ from workbench.meshes.heavy import loading
 from workbench.problem.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
+# The warning that an open mesh's mass comes from its hull concerns physics only: a logger of its own, which the
+# commands that simulate nothing (score) silence.
+hull_log = logging.getLogger(f"{__name__}.hull")
 _WARNED_MESHES: set[tuple[str, int, int, str]] = set()  # meshes already warned about, and why (read_mesh)
 
 # Folders that hold the meshes, in order of preference (T-LESS ships models_cad/models_reconst, no models/).
@@ -268,7 +271,7 @@ def _read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
         extents = np.round(mesh.extents / scale, 6).tolist()
         raise InputError(path, f"mesh is degenerate (extents {extents} in file units)")
     if not mesh.is_watertight:
-        _warn_once(path, "mesh is not watertight; its mass is taken from its convex hull")
+        _warn_once(path, "mesh is not watertight; its mass is taken from its convex hull", hull_log)
     elif mesh.volume < 0:
         # Faces wound inside out (normals inward): rendering would cull the wrong side and physics would take a
         # negative volume. A closed mesh has one outside: turned right side out, and said.
@@ -277,14 +280,14 @@ def _read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
     return mesh
 
 
-def _warn_once(path: Path, problem: str) -> None:
+def _warn_once(path: Path, problem: str, logger: logging.Logger = log) -> None:
     """A WARNING naming the mesh file, once per file (as it is now), problem and process: estimating many frames of
     one dataset reloads its models."""
     stat = path.stat()
     seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, problem)
     if seen not in _WARNED_MESHES:
         _WARNED_MESHES.add(seen)
-        log.warning("%s: %s", path, problem)
+        logger.warning("%s: %s", path, problem)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -99,13 +99,13 @@ class FrameScore:
 
 def _load_shapes(dataset: Path, obj_ids: list[int]) -> dict:
     """The models, for their shapes and symmetries only: the loader's warning that an open mesh's mass comes from
-    its convex hull concerns physics, not scoring, so it is not shown here."""
-    level = bop.log.level
-    bop.log.setLevel(logging.ERROR)
+    its convex hull concerns physics, not scoring, so it is not shown here (a mesh wound inside out is)."""
+    level = bop.hull_log.level
+    bop.hull_log.setLevel(logging.ERROR)
     try:
         return bop.load_models(dataset, obj_ids)
     finally:
-        bop.log.setLevel(level)
+        bop.hull_log.setLevel(level)
 
 
 def match(gt: np.ndarray, est: np.ndarray, symmetries: np.ndarray) -> list[tuple[int, int]]:
