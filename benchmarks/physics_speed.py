@@ -1,10 +1,12 @@
-"""How fast (and how well) the physics projection settles particles.
+"""How fast (and how well) the physics projection settles particles, in Bullet and in MuJoCo.
 
 Scenes of 2 and 4 boxes (4-12 cm) on a table, started the way a particle filter would: upright or tumbled, some
-dropped from a few cm, some sunk into the table or into each other, some stacked. Prints milliseconds per particle
-(wall clock and this process's CPU time, which is steadier on a shared machine), steps, and the statuses.
+dropped from a few cm, some sunk into the table or into each other, some stacked. Prints, per backend, milliseconds
+per particle (wall clock and this process's CPU time, which is steadier on a shared machine), steps, and the
+statuses; with both backends, how far MuJoCo's resting poses are from Bullet's on the same starts.
 
-    PYTHONPATH=. python benchmarks/physics_speed.py                      # 2 and 4 boxes, 200 particles each
+    PYTHONPATH=. python benchmarks/physics_speed.py                      # 2 and 4 boxes, 200 particles, both backends
+    PYTHONPATH=. python benchmarks/physics_speed.py --backends pybullet  # Bullet only (MuJoCo not installed)
     PYTHONPATH=. python benchmarks/physics_speed.py --timestep 0.001333  # the paper's 750 steps/s
     PYTHONPATH=. python benchmarks/physics_speed.py --accuracy           # also: distance to a stricter settle
 """
@@ -19,7 +21,7 @@ import numpy as np
 import trimesh
 
 from workbench.geometry import pose_from_xyz_rpy, rotation_angle
-from workbench.physics import STATUS_NAMES, PhysicsConfig, PhysicsProjector
+from workbench.physics import BACKENDS, STATUS_NAMES, STATUS_REST, PhysicsConfig, make_projector
 from workbench.problem.scene import ObjectModel, Table
 
 
@@ -47,31 +49,50 @@ def random_starts(rng: np.random.Generator, models: list[ObjectModel], n: int) -
     return out
 
 
-def run(k: int, n: int, config: PhysicsConfig, accuracy: bool, seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    models = box_models(rng, k)
-    table = Table(-0.4, 0.4, -0.4, 0.4)
-    starts = random_starts(rng, models, n)
-    with PhysicsProjector(models, table, config) as projector:
-        projector.project_batch(starts[:5])  # warm-up
+def settle(models, table, config: PhysicsConfig, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Settle ``starts`` (n, K, 4, 4) in ``config.backend`` -> (resting poses, statuses, ms per particle wall, CPU).
+    The first 5 are settled once before timing (warm-up)."""
+    with make_projector(models, table, config) as projector:
+        projector.project_batch(starts[:5])
         wall, cpu = time.perf_counter(), time.process_time()
         poses, status, steps = projector.project_batch(starts)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     counts = ", ".join(f"{STATUS_NAMES[s]} {np.sum(status == s)}" for s in STATUS_NAMES if np.any(status == s))
-    print(f"{k} boxes, dt 1/{1 / config.timestep:.0f}: {1e3 * wall / n:.2f} ms/particle wall, "
-          f"{1e3 * cpu / n:.2f} ms CPU; steps median {np.median(steps):.0f}, p90 {np.percentile(steps, 90):.0f}; "
-          f"{counts}")
-    if accuracy:
-        strict = dataclasses.replace(config, max_steps=4 * config.max_steps, rest_linear=config.rest_linear / 10,
-                                     rest_angular=config.rest_angular / 10, rest_checks=4 * config.rest_checks)
-        with PhysicsProjector(models, table, strict) as projector:
-            ref, ref_status, _ = projector.project_batch(starts)
-        both = (status == 0) & (ref_status == 0)
-        dt = np.linalg.norm(poses[both, :, :3, 3] - ref[both, :, :3, 3], axis=-1) * 1e3
-        dr = np.degrees(rotation_angle(np.swapaxes(poses[both, :, :3, :3], -1, -2) @ ref[both, :, :3, :3]))
-        print(f"  vs a stricter settle ({both.sum()} particles at rest in both): position median {np.median(dt):.2f} "
-              f"mm, p95 {np.percentile(dt, 95):.2f} mm; rotation median {np.median(dr):.3f} deg, "
-              f"p95 {np.percentile(dr, 95):.3f} deg")
+    print(f"  {config.backend}: {1e3 * wall / len(starts):.2f} ms/particle wall, {1e3 * cpu / len(starts):.2f} ms CPU; "
+          f"steps median {np.median(steps):.0f}, p90 {np.percentile(steps, 90):.0f}; {counts}")
+    return poses, status, 1e3 * wall / len(starts), 1e3 * cpu / len(starts)
+
+
+def apart(a: np.ndarray, a_status: np.ndarray, b: np.ndarray, b_status: np.ndarray) -> str:
+    """How far two sets of resting scenes (n, K, 4, 4) are, over the particles at rest in both: object positions
+    (mm) and rotations (degrees), median and p90."""
+    both = (a_status == STATUS_REST) & (b_status == STATUS_REST)
+    dt = np.linalg.norm(a[both, :, :3, 3] - b[both, :, :3, 3], axis=-1) * 1e3
+    dr = np.degrees(rotation_angle(np.swapaxes(a[both, :, :3, :3], -1, -2) @ b[both, :, :3, :3]))
+    return (f"{both.sum()} particles at rest in both: position median {np.median(dt):.2f} mm, p90 "
+            f"{np.percentile(dt, 90):.2f} mm; rotation median {np.median(dr):.3f} deg, "
+            f"p90 {np.percentile(dr, 90):.3f} deg")
+
+
+def run(k: int, n: int, config: PhysicsConfig, backends: list[str], accuracy: bool, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    models = box_models(rng, k)
+    table = Table(-0.4, 0.4, -0.4, 0.4)
+    starts = random_starts(rng, models, n)
+    print(f"{k} boxes, {n} particles, dt 1/{1 / config.timestep:.0f}:")
+    settled = {}
+    for backend in backends:
+        cfg = dataclasses.replace(config, backend=backend)
+        poses, status, _, _ = settle(models, table, cfg, starts)
+        settled[backend] = poses, status
+        if accuracy:
+            strict = dataclasses.replace(cfg, max_steps=4 * cfg.max_steps, rest_linear=cfg.rest_linear / 10,
+                                         rest_angular=cfg.rest_angular / 10, rest_checks=4 * cfg.rest_checks)
+            with make_projector(models, table, strict) as projector:
+                ref, ref_status, _ = projector.project_batch(starts)
+            print(f"    vs a stricter settle in {backend}: {apart(poses, status, ref, ref_status)}")
+    if len(settled) == 2:
+        print(f"  mujoco vs pybullet: {apart(*settled['mujoco'], *settled['pybullet'])}")
 
 
 def main() -> None:
@@ -80,13 +101,14 @@ def main() -> None:
     parser.add_argument("--particles", type=int, default=200)
     parser.add_argument("--timestep", type=float, default=PhysicsConfig.timestep)
     parser.add_argument("--max-steps", type=int, default=None)
+    parser.add_argument("--backends", nargs="+", choices=BACKENDS, default=list(BACKENDS))
     parser.add_argument("--accuracy", action="store_true")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     max_steps = args.max_steps or round(PhysicsConfig.max_steps * PhysicsConfig.timestep / args.timestep)
     config = PhysicsConfig(timestep=args.timestep, max_steps=max_steps)
     for k in args.objects:
-        run(k, args.particles, config, args.accuracy, args.seed)
+        run(k, args.particles, config, args.backends, args.accuracy, args.seed)
 
 
 if __name__ == "__main__":

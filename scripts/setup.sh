@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs everything workbench needs on a fresh Debian 12 machine, skipping what is already there:
 # the Debian packages (OSMesa for offscreen depth, libusb for open3d, Chromium for the browser tests) and a
-# Python 3.11 virtual environment in .venv (with the optional Ray engine, so that CI tests it). Sourced by scripts/demo.sh and scripts/test.sh.
+# Python 3.11 virtual environment in .venv (with the optional Ray engine and MuJoCo physics, so that CI tests them). Sourced by scripts/demo.sh and scripts/test.sh.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -28,7 +28,7 @@ stamp=".venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
   echo "setup: creating .venv and installing workbench (about a minute)" >&2
   "$python_bin" -m venv .venv
-  .venv/bin/pip install -q --disable-pip-version-check -e '.[test,ray]'
+  .venv/bin/pip install -q --disable-pip-version-check -e '.[test,ray,mujoco]'
   # Second call on purpose: pyrender pins PyOpenGL 3.1.0, whose OSMesa binding is broken.
   .venv/bin/pip install -q --disable-pip-version-check 'PyOpenGL==3.1.10' 2>&1 | grep -v "dependency conflicts\|requires PyOpenGL" >&2 || true
   rm -f .venv/.installed-*

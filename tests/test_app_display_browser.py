@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 from headless import chromium_path, served, workbench_page
 
+from workbench.app.ui.run.modes import chance
+
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
 
@@ -121,10 +123,11 @@ def test_the_truth_table_shows_each_objects_confidence_once_the_run_has_a_poster
     assert app.wait_for(lambda s: s.truth is not None and s.truth.iteration == ITERATIONS
                         and app.display.posterior is not None, 120)
     posterior, truth = app.display.posterior, app.state.truth
-    # The table scores the settled answer, the estimate drawn, and gives each object's top mode's probability.
+    # The table scores the settled answer, the estimate drawn, and gives each object's top mode's probability, of
+    # all its chances (elsewhere included, as every probability the panel shows).
     settled = np.stack([o.modes[0].T for o in posterior.objects])
     assert np.allclose(truth.estimate, settled)
-    confidence = {o.obj: o.confidence for o in posterior.objects}
+    confidence = {o.obj: chance(o, o.modes[0]) for o in posterior.objects}
     for row in truth.rows:
         assert row["confidence"] == pytest.approx(confidence[row["index"]])
         page.get_by_role("cell", name=f"{row['confidence']:.2f}", exact=True).first.wait_for(timeout=TIMEOUT_MS)

@@ -11,7 +11,7 @@ from headless import free_port
 
 from workbench.app import protocol as p
 from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
-from workbench.app.ui.widgets.colors import view_legend_html
+from workbench.app.ui.widgets.colors import named, view_legend_html
 from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
 from workbench.inference.config import EstimatorConfig
 
@@ -43,13 +43,15 @@ def posterior_by_hand() -> Posterior:
 def test_the_posterior_in_words():
     post = posterior_by_hand()
     a, b = post.objects
-    assert mode_label(a.modes[1]) == "p = 0.38 turned over its x axis"
+    assert mode_label(a, a.modes[1]) == "p = 0.38 turned over its x axis"
     assert confidence_text(a) == "p = 0.62"
-    assert confidence_text(b) == "p = 1.00, heading open −60° … +90°, elsewhere 0.62"
-    assert mode_option(1, a.modes[1]) == "mode 2 · p = 0.38 · turned over its x axis"
+    # An object's probabilities add up as shown: the mug's one mode and elsewhere.
+    assert confidence_text(b) == "p = 0.38, heading open −60° … +90°, elsewhere 0.62"
+    assert mode_option(1, a, a.modes[1]) == "mode 2 · p = 0.38 · turned over its x axis"
     table = posterior_markdown(post, ["can", "mug"], 7)
-    assert "iteration 7" in table and "| can | 0.62 | 0.00 (0 %) | 4.0 | — | p = 0.38 turned over its x axis |" in table
-    assert "| mug | 1.00 | 0.62 (17 %) | 1.0 | −60° … +90° | — |" in table
+    assert "iteration 7" in table
+    assert f"| {named(0, 'can')} | 0.62 | p = 0.38 turned over its x axis | 0.00 (0 %) | 4.0 | — |" in table
+    assert f"| {named(1, 'mug')} | 0.38 | — | 0.62 (17 %) | 1.0 | −60° … +90° |" in table
     legend = view_legend_html(["can", "mug"], "height", confidences=[confidence_text(a), ""])
     assert '<span data-confidence="0">(p = 0.62)</span>' in legend and 'data-confidence="1"' not in legend
     scene = np.stack([np.eye(4), np.eye(4)])
@@ -138,16 +140,16 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
         assert several
         app.ui.call(d.throttle.flush)
         assert sorted(d.modes.ghosts) == [o.obj for o in several]
+        names = d.names
         for o in several:
             ghost = d.modes.ghosts[o.obj]
             assert len(ghost.batched_positions) == len(o.modes) - 1
             assert np.allclose(ghost.batched_positions, [m.T[:3, 3] for m in o.modes[1:]])
-        assert d.modes.texts == [mode_label(m) for o in several for m in o.modes[1:]]
+        assert d.modes.texts == [f"{names[o.obj]} · {mode_label(o, m)}" for o in several for m in o.modes[1:]]
         # The solid estimate is the run's settled answer (each object's top mode), not the most likely particle.
         for o, best in zip(post.objects, d.particles.best):
             assert np.allclose(best.position, o.modes[0].T[:3, 3], atol=1e-6)
         assert len(d.modes.labels) == len(d.modes.texts) and all(h.visible for h in d.modes.labels)
-        names = d.names
         for o in post.objects:
             assert f'<span data-confidence="{o.obj}">({confidence_text(o)})</span>' in app.view_box.legend.content
         assert app.display.inspect.posterior.content == posterior_markdown(post, names, 2)
@@ -156,7 +158,7 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
             modes = post.objects[k].modes
             assert dropdown.visible == (len(modes) > 1)
             if len(modes) > 1:
-                assert tuple(dropdown.options) == tuple(mode_option(j, m) for j, m in enumerate(modes))
+                assert tuple(dropdown.options) == tuple(mode_option(j, post.objects[k], m) for j, m in enumerate(modes))
                 dropdown.value = dropdown.options[1]
         assert app.labelling.tab.modes.visible
         assert choice.chosen() == (tuple(int(len(o.modes) > 1) for o in post.objects), 2)

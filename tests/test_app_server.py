@@ -204,6 +204,32 @@ def test_a_running_engine_starts_an_iteration_only_once_the_server_shows_the_las
         engine.close()
 
 
+def test_a_run_with_a_budget_stops_by_it_answers_and_says_what_it_cut():
+    """A Run whose budget (0.01 s: shorter than any iteration, on any machine) is spent stops after one iteration
+    with the answer it has, its posterior and the status saying what was cut; a Step after it is a run of its own."""
+    from workbench.app.engine.engine import Engine
+    from workbench.app.ui.run.status import RunView, status_markdown
+    from workbench.inference.config import EstimatorConfig
+
+    engine = Engine(Inbox(), workers=1)
+    config = EstimatorConfig(particles=12, iterations=50, budget_s=0.01)
+    try:
+        engine.handle(p.Load(p.Source(demo=True), config, "robust"))
+        engine.handle(p.Run(stop_on_convergence=False))
+        engine.step()
+        assert not engine.running and engine.estimator.iteration == 0
+        assert engine.results.of(p.RunState)[-1].reason == "budget spent"
+        snapshot = engine.results.of(p.Snapshot)[-1]
+        assert snapshot.report["cut_short"] == "iterations, settle" and snapshot.report["budget_left_s"] == 0.0
+        assert snapshot.posterior is not None and snapshot.posterior.cut_short == "iterations, settle"
+        status = status_markdown(RunView(iteration=0, reports=[snapshot.report]), config)
+        assert "the budget cut short iterations, settle" in status
+        engine.handle(p.Step())  # with the same budget, spent before its polish: its own cut, not the Run's
+        assert engine.estimator.iteration == 1 and engine.estimator.cut_short == "polish"
+    finally:
+        engine.close()
+
+
 def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message(tmp_path, capsys):
     from workbench.app.engine.engine import Engine
     from workbench.app.ui.server import serve
@@ -356,7 +382,9 @@ def test_object_names_come_from_models_info_with_the_bop_default(tmp_path):
     info_path = data / "models" / "models_info.json"
     info = json.loads(info_path.read_text())
     first, second = sorted(info, key=int)[:2]
+    assert info[first]["name"] == "wood_block"  # the demo's models are named
     info[first]["name"] = "  cracker box "
+    del info[second]["name"]
     info_path.write_text(json.dumps(info))
     models = bop.load_models(data)
     assert models[int(first)].name == "cracker box"
@@ -542,3 +570,69 @@ def test_panel_reads_every_field_and_reverts_the_refused_ones():
         assert panel.particles._impl.uuid in reporter.field_style.content
     finally:
         server.stop()
+
+
+def test_frame_objects_fits_the_objects_where_known_else_the_region():
+    """Bug: on real frames the objects filled a quarter of the view: *Frame objects* framed the whole object
+    region. It fits the objects' bounding box (the estimate's, else the ground truth's) and gets closer."""
+    from types import SimpleNamespace
+
+    from workbench.app.ui.run.camera import frame_objects
+    from workbench.geometry import make_pose
+
+    cube = SimpleNamespace(vertices=np.array([[x, y, z] for x in (-0.03, 0.03) for y in (-0.03, 0.03)
+                                              for z in (0.0, 0.06)]))
+    sensor = make_pose(np.eye(3), [0.0, -0.8, 0.6])
+    view = SimpleNamespace(region=(-0.3, 0.3, -0.3, 0.3), meshes=[cube], T_world_cam=sensor, gt_T_world_obj=None)
+    region = frame_objects(view)
+    placed = make_pose(np.eye(3), [0.1, 0.05, 0.0])[None]
+    fitted = frame_objects(view, placed)
+
+    def distance(pose):
+        return np.linalg.norm(np.subtract(pose.position, pose.look_at))
+
+    assert distance(fitted) < 0.5 * distance(region)
+    view.gt_T_world_obj = placed  # no estimate yet: the ground truth places the objects
+    assert frame_objects(view) == fitted
+    view.gt_T_world_obj = np.full((1, 4, 4), np.nan)  # unknown: the region again
+    assert frame_objects(view) == region
+
+
+def test_observed_points_are_sized_by_their_depth():
+    from workbench.app.protocol import PointSet
+    from workbench.app.ui.run.views import by_depth
+
+    points = np.random.default_rng(0).uniform([-1, -1, 0.5], [1, 1, 2.5], (400, 3)).astype(np.float32)
+    bands = by_depth(PointSet(points, np.zeros((400, 3), np.uint8), 0.01), np.eye(4))  # the sensor looks along z
+    sizes = [size for _, _, size in bands]
+    assert sum(len(p) for p, _, _ in bands) == 400 and sizes == sorted(sizes) and sizes[-1] > 2.5 * sizes[0]
+    assert all(np.median(p[:, 2]) * 0.01 / np.median(points[:, 2]) == pytest.approx(s) for p, _, s in bands)
+
+
+def test_every_table_names_its_objects_beside_their_colour():
+    from workbench.app.ui.run.truth import truth_markdown
+    from workbench.app.ui.widgets.colors import named, object_color
+
+    row = {"index": 1, "obj_id": 6, "position_cm": 2.7, "rotation_deg": 1.0, "add_s_mm": 3.0, "right": True,
+           "confidence": 1.0}
+    table = truth_markdown(4, [row], ["wood_block", "foam_brick"])
+    assert f"| {named(1, 'foam_brick')} | 2.70 |" in table
+    assert "background:rgb({},{},{})".format(*object_color(1)) in named(1, "foam_brick")
+
+
+def test_a_demo_copied_before_its_models_were_named_gets_their_names(tmp_path):
+    import json
+    import shutil
+
+    from workbench.app.engine.engine import DEMO_DIR, name_like_bundled
+
+    shutil.copytree(DEMO_DIR, tmp_path / "demo")
+    path = tmp_path / "demo" / "models" / "models_info.json"
+    bundled = json.loads(path.read_text())
+    old = {k: {f: v for f, v in entry.items() if f != "name"} for k, entry in bundled.items()}
+    path.write_text(json.dumps(old))
+    name_like_bundled(tmp_path / "demo")
+    assert json.loads(path.read_text()) == bundled
+    path.write_text("{")  # damaged: left to the load to report
+    name_like_bundled(tmp_path / "demo")
+    assert path.read_text() == "{"

@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -102,3 +103,17 @@ def test_no_settle_keeps_the_estimate_as_physics_put_it():
     assert estimator_config(parser.parse_args(["estimate", "ds", "--no-settle"])).settle_shift == 0
     assert estimator_config(parser.parse_args(["estimate", "ds"])).leaning
     assert not estimator_config(parser.parse_args(["track", "ds", "--scene", "1", "--no-leaning"])).leaning
+
+
+@pytest.mark.parametrize("command", [["estimate", "assets/demo"], ["track", "assets/demo", "--scene", "0"],
+                                     ["serve", "--demo", "--port", "1"], ["bench", "--speed"]])
+def test_missing_mujoco_says_how_to_install_it_before_any_work(command, tmp_path, monkeypatch, capsys):
+    from workbench.cli import main
+
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # `import mujoco` now fails as where it is not installed
+    monkeypatch.chdir(tmp_path)  # nothing may be written: any file here would be work begun
+    demo = str(Path(__file__).resolve().parent.parent / "assets" / "demo")
+    assert main([demo if a == "assets/demo" else a for a in command] + ["--physics", "mujoco"]) == 2
+    err = capsys.readouterr().err
+    assert "workbench: error: --physics: mujoco is not installed" in err and "pip install 'workbench[mujoco]'" in err
+    assert list(tmp_path.iterdir()) == []

@@ -23,6 +23,7 @@ from workbench.problem.build import load_bop_problem
 from workbench.problem.problem import ProblemConfig
 from workbench.render.depth import RenderConfig
 from workbench.render.likelihood import LikelihoodConfig
+from workbench.sessions.document import FORMAT_VERSION
 from workbench.sessions.store import (
     check_dataset,
     check_name,
@@ -253,7 +254,7 @@ def test_format_1_session_loads_with_the_physics_it_ran_with(saved, tmp_path):
     # Format 1 predates PhysicsConfig.sleep_calm: its sessions projected with calm bodies awake.
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["format_version"] == 7 and doc["problem_config"]["physics"]["sleep_calm"] is True
+    assert doc["format_version"] == FORMAT_VERSION and doc["problem_config"]["physics"]["sleep_calm"] is True
     del doc["problem_config"]["physics"]["sleep_calm"]
     json_path.write_text(json.dumps({**doc, "format_version": 1}))
     assert load_session(json_path).problem_config.physics.sleep_calm is False
@@ -315,6 +316,40 @@ def test_format_6_session_loads_without_leaning_starts(saved, tmp_path):
         load_session(json_path)
 
 
+def test_format_7_session_loads_with_bullet_and_a_bad_backend_is_refused(saved, tmp_path):
+    # Format 7 predates PhysicsConfig.backend: its sessions projected in Bullet.
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    doc["problem_config"]["physics"]["backend"] = "mujoco"
+    json_path.write_text(json.dumps(doc))
+    assert load_session(json_path).problem_config.physics.backend == "mujoco"
+    del doc["problem_config"]["physics"]["backend"]
+    json_path.write_text(json.dumps({**doc, "format_version": 7}))
+    assert load_session(json_path).problem_config.physics.backend == "pybullet"
+    json_path.write_text(json.dumps(doc))  # a format-8 file must carry the setting
+    with pytest.raises(InputError, match="backend"):
+        load_session(json_path)
+    json_path.write_text(json.dumps({**doc, "problem_config": {**doc["problem_config"], "physics": {
+        **doc["problem_config"]["physics"], "backend": "havok"}}}))
+    with pytest.raises(InputError, match="backend.*pybullet, mujoco"):
+        load_session(json_path)
+
+
+def test_serve_refuses_a_mujoco_session_without_mujoco_and_physics_beside_a_session(saved, tmp_path, monkeypatch,
+                                                                                    capsys):
+    from workbench.cli import main
+
+    json_path = _copied(saved, tmp_path)
+    assert main(["serve", "--session", str(json_path), "--physics", "mujoco", "--port", "1"]) == 2
+    assert "--session: a session brings its own run settings: give no --physics" in capsys.readouterr().err
+    doc = json.loads(json_path.read_text())
+    doc["problem_config"]["physics"]["backend"] = "mujoco"
+    json_path.write_text(json.dumps(doc))
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # `import mujoco` now fails as where it is not installed
+    assert main(["serve", "--session", str(json_path), "--port", "1"]) == 2
+    assert "--physics: mujoco is not installed" in capsys.readouterr().err
+
+
 def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded, tmp_path):
     # Format 5 scored a reading an object claims on unclaimed clutter by an older rule: restored, the particles and
     # the estimate are scored again before they compete with new hypotheses.
@@ -335,7 +370,7 @@ def test_format_5_session_is_scored_again_by_todays_clutter_floor(saved, loaded,
         assert ok.any() and np.allclose(restored.particles.loglik[ok], again)
     finally:
         evaluator.close()
-    json_path.write_text(json.dumps({**doc, "format_version": 7}))  # today's format: as saved
+    json_path.write_text(json.dumps({**doc, "format_version": FORMAT_VERSION}))  # today's format: as saved
     assert load_session(json_path).estimator["search"]["floor_in"] is True
 
 

@@ -17,6 +17,7 @@ from workbench.evaluation.pool import check_run_memory, check_workers
 from workbench.inference.config import MAX_ITERATIONS, MAX_PARTICLES, METHODS, EstimatorConfig, check_seed
 from workbench.inference.search.moves.registry import PROPOSALS
 from workbench.inference.smc.particles import STATES, Sigma
+from workbench.physics import BACKENDS, PhysicsConfig, check_backend
 from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
 from workbench.track.config import TrackConfig
@@ -54,12 +55,27 @@ def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="evaluation worker processes (default 2)")
     p.add_argument("--max-render-pixels", type=int, default=160 * 120, help="pixels per rendered hypothesis")
     p.add_argument("--no-early-stop", action="store_true", help="run all iterations even after convergence")
+    _add_budget_arg(p, "each frame")
     p.add_argument("--leaning", action=argparse.BooleanOptionalAction, default=True,
                    help="polish also tries objects laid along slanted flat patches, as an object leaning on another "
                         "shows (default on; see docs/design.md, The search)")
     p.add_argument("--no-settle", action="store_true",
                    help="return the search's estimate as physics put it, not fitted to the depth at the end "
                         "(within 1.5 cm and 12 degrees; see docs/design.md, Settling)")
+    _add_physics_arg(p)
+
+
+def _add_physics_arg(p: argparse.ArgumentParser, default: str | None = PhysicsConfig.backend) -> None:
+    p.add_argument("--physics", choices=BACKENDS, default=default,
+                   help=f"the simulator hypotheses are settled in (default {PhysicsConfig.backend}; mujoco needs the "
+                        "extra: pip install 'workbench[mujoco]')")
+
+
+def physics_config(args: argparse.Namespace) -> PhysicsConfig:
+    """``--physics`` -> the PhysicsConfig; InputError, before any work, when its simulator is not installed."""
+    physics = PhysicsConfig(backend=args.physics or PhysicsConfig.backend)
+    check_backend(physics)
+    return physics
 
 
 def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
@@ -74,8 +90,15 @@ def estimator_config(args: argparse.Namespace) -> EstimatorConfig:
         proposals=args.proposals,
         floor_from=args.floor_from,
         leaning=args.leaning,
+        budget_s=args.budget,
         **({"settle_shift": 0.0} if args.no_settle else {}),
     )
+
+
+def _add_budget_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--budget", type=float, default=None, metavar="SECONDS",
+                   help=f"anytime: {what} stops searching by this wall time and answers with its best scene so far, "
+                        "its posterior saying what was cut short (default: until converged; see docs/guide.md)")
 
 
 def _add_engine_args(p: argparse.ArgumentParser, what: str) -> None:
@@ -114,7 +137,7 @@ def clutter_floor_arg(text: str) -> float | None:
 
 def problem_config(args: argparse.Namespace) -> ProblemConfig:
     likelihood = LikelihoodConfig(model=args.likelihood, clutter_floor=args.clutter_floor)
-    return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=likelihood)
+    return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=likelihood, physics=physics_config(args))
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
@@ -321,17 +344,19 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     check_count(args.port, "--port", low=1, high=65535)
     ray = ray_config(args)
     run = {k: v for k, v in (("method", args.method), ("particles", args.particles),
-                             ("iterations", args.iterations)) if v is not None}
+                             ("iterations", args.iterations), ("budget_s", args.budget)) if v is not None}
     if args.session is not None:
         from workbench.sessions.store import load_session
 
         state = load_session(args.session)  # a bad session file is an input error here, before any server starts
         _check_session_frame(args.session, state)
+        check_backend(state.problem_config.physics)  # a session settled in MuJoCo needs it here too
         if args.dataset is not None or args.demo:
             raise InputError("--session", "a session names its own frame: give no dataset or --demo with it")
-        if run:
+        given = [f"--{k.removesuffix('_s')}" for k in run] + (["--physics"] if args.physics is not None else [])
+        if given:
             raise InputError("--session", "a session brings its own run settings: give no "
-                             + ", ".join(f"--{k}" for k in run) + " with it")
+                             + ", ".join(given) + " with it")
     elif dataset != DEMO_DATASET:
         _check_frame_exists(dataset, args.scene, args.frame)
     if args.sessions_dir is not None:
@@ -340,13 +365,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         check_sessions_dir(args.sessions_dir)
     config = replace(DEFAULT_CONFIG, **run)
     config.validate("")  # before any server starts
+    physics = physics_config(args)
     check_run_memory(config.particles, ProblemConfig().max_render_pixels)
     if not _is_loopback(args.host):
         print(f"WARNING: serving on {args.host}, not this machine alone: anyone who can reach port {args.port} can "
               "run estimates here, and write labels (scene_gt.json) into the dataset and sessions into the "
               "sessions folder; serve on 127.0.0.1 unless that is meant", file=sys.stderr, flush=True)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
-          session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray)
+          session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray, physics=physics)
     return 0
 
 
@@ -446,6 +472,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if getattr(args, name) is not None:
             check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1,
                         high=high)
+    physics = physics_config(args).backend
     if args.speed:
         from workbench.bench.speed import run_speed_benchmark
 
@@ -454,8 +481,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.dataset is not None and not args.dataset.is_dir():
             raise InputError(args.dataset, "no such dataset folder")
         run_speed_benchmark(particles=args.particles, workers=args.workers, repeats=args.repeats,
-                            dataset=args.dataset)
+                            dataset=args.dataset, physics=physics)
         return 0
+    if args.profile:
+        return _bench_profile(args)
     from workbench.bench.tables import run_benchmark
 
     ray = ray_config(args)
@@ -466,7 +495,36 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     run_benchmark(args.dataset, args.out, quick=args.quick, methods=[m.strip() for m in args.methods.split(",")],
                   particles=args.particles, iterations=args.iterations, workers=args.workers, state=args.state,
                   categories=categories, per_category=args.per_category, early_stop=not args.no_early_stop,
-                  proposals=args.proposals, ray=ray, max_retries=args.max_retries)
+                  proposals=args.proposals, ray=ray, max_retries=args.max_retries, physics=physics)
+    return 0
+
+
+def _bench_profile(args: argparse.Namespace) -> int:
+    """``bench --profile``: one frame estimated as `estimate` would (its defaults, or --particles, --iterations,
+    --budget), its time by stage printed and, with --png, drawn."""
+    from workbench.bench.profile import machine_line, profile_frame, profile_png, profile_table
+    from workbench.io.outputs import check_output_file
+
+    if args.engine != "local":
+        raise InputError("--engine", "--profile times this machine: it runs locally only")
+    if args.dataset is None or not args.dataset.is_dir():
+        raise InputError(args.dataset, "--profile needs a BOP dataset folder")
+    if args.scene is None or args.frame is None:
+        raise InputError("--profile", "name the frame: --scene S --frame F")
+    if args.png is not None:
+        check_output_file(args.png, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", force=args.force,
+                          what="a profile PNG", flag="--png")
+    overrides = {k: v for k, v in (("particles", args.particles), ("iterations", args.iterations),
+                                   ("budget_s", args.budget)) if v is not None}
+    config = EstimatorConfig(**overrides)
+    config.validate("")
+    _check_frame_exists(args.dataset, args.scene, args.frame)
+    profile = profile_frame(args.dataset, args.scene, args.frame, config, args.workers)
+    print(f"# workbench bench --profile {args.dataset} --scene {args.scene} --frame {args.frame}: {machine_line()}")
+    print("\n".join(profile_table(profile)))
+    if args.png is not None:
+        profile_png([profile], args.png, f"{args.dataset.name} frame {profile.frame}")
+        print(f"wrote {args.png}", file=sys.stderr)
     return 0
 
 
@@ -569,6 +627,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("pipf", "mcpf"), default=None, help="estimator of the initial run (pipf)")
     p.add_argument("--particles", type=int, default=None, help="particles of the initial run (128)")
     p.add_argument("--iterations", type=int, default=None, help="iteration budget Run stops at (60)")
+    _add_budget_arg(p, "a Run")
+    _add_physics_arg(p, default=None)  # None: not given, so that a session's own is not silently overridden
     _add_engine_args(p, "particle batches on 2 worker processes")
     p.set_defaults(func=_cmd_serve)
 
@@ -633,6 +693,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "--engine ray, per frame (default 3)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("bench-out"))
+    p.add_argument("--profile", action="store_true",
+                   help="where one frame's time goes (--scene S --frame F of DATASET): wall seconds and evaluations "
+                        "per stage of the search, the workers' physics, rendering and likelihood")
+    p.add_argument("--scene", type=int, default=None, help="with --profile: the frame's scene id")
+    p.add_argument("--frame", type=int, default=None, help="with --profile: the frame's image id")
+    p.add_argument("--png", type=Path, default=None, help="with --profile: also draw it as a stacked bar (PNG)")
+    p.add_argument("--force", action="store_true", help="with --png: replace a file that is not a PNG")
+    _add_budget_arg(p, "with --profile: the frame")
+    _add_physics_arg(p)
     p.set_defaults(func=_cmd_bench)
     return parser
 

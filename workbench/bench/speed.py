@@ -18,8 +18,9 @@ from workbench.evaluation import STAGES, make_evaluator
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator
 from workbench.io import bop
-from workbench.physics import collision_shapes
+from workbench.physics import PhysicsConfig, collision_shapes
 from workbench.problem.build import load_bop_problem
+from workbench.problem.problem import ProblemConfig
 from workbench.render.depth import render_mesh
 from workbench.synth import make_scenes
 
@@ -31,9 +32,11 @@ def _peak_rss_mb() -> tuple[float, float]:
     return own, children
 
 
-def measure(dataset: Path, scene_id: int, im_id: int, particles: int, workers: int, repeats: int) -> dict:
-    """Times ``repeats`` full estimator iterations (after the random start) on one frame -> figures."""
-    _, problem = load_bop_problem(dataset, scene_id, im_id)
+def measure(dataset: Path, scene_id: int, im_id: int, particles: int, workers: int, repeats: int,
+            physics: PhysicsConfig = PhysicsConfig()) -> dict:
+    """Times ``repeats`` full estimator iterations (after the random start) on one frame, simulated as ``physics``
+    says -> figures."""
+    _, problem = load_bop_problem(dataset, scene_id, im_id, config=ProblemConfig(physics=physics))
     # Chosen here once, so the workers find them in the cache; listed in the output.
     shapes = collision_shapes(problem.models, problem.config.physics)
     faces = [(len(m.mesh.faces), len(render_mesh(m.mesh, problem.config.render.max_depth_error).faces))
@@ -71,9 +74,9 @@ def measure(dataset: Path, scene_id: int, im_id: int, particles: int, workers: i
 
 
 def run_speed_benchmark(particles: int | None = None, workers: int = 2, repeats: int = 3,
-                        dataset: Path | None = None) -> list[dict]:
+                        dataset: Path | None = None, physics: str = PhysicsConfig.backend) -> list[dict]:
     """Measure the first frame of each scene of ``dataset`` (default: generated touching and four-box frames)
-    and print the table."""
+    with the simulator ``physics`` ("pybullet" or "mujoco") and print the table."""
     particles = particles or 1444
     results = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -84,10 +87,12 @@ def run_speed_benchmark(particles: int | None = None, workers: int = 2, repeats:
         for scene_id, im_id in bop.list_frames(dataset):
             firsts.setdefault(scene_id, im_id)
         for scene_id, im_id in firsts.items():
-            results.append(measure(dataset, scene_id, im_id, particles, workers, repeats))
+            results.append(measure(dataset, scene_id, im_id, particles, workers, repeats,
+                                   PhysicsConfig(backend=physics)))
     own, child = _peak_rss_mb()
     load = os.getloadavg()[0]
     print(f"# workbench bench --speed {dataset}: N={particles}, {workers} workers, {repeats} timed iterations, "
+          f"physics {physics}, "
           f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load {load:.1f} at the end")
     print("| frame | objects | render px | iteration s | evaluations/s | failed % | projection ms | render ms "
           "| likelihood ms | resampling ms |")

@@ -32,8 +32,9 @@ from workbench.io import bop
 from workbench.io.outputs import write_file
 from workbench.io.readers import read_json
 from workbench.io.results import RESULTS_HEADER, ResultRow, results_csv_lines
+from workbench.physics.config import PhysicsConfig
 from workbench.problem.build import load_bop_problem
-from workbench.problem.problem import Problem
+from workbench.problem.problem import Problem, ProblemConfig
 from workbench.problem.scene import Frame, ObjectModel
 from workbench.run.frames import FrameFailure, run_frames
 from workbench.score.gt_info import HIDDEN_VISIB, scene_categories, visib_fractions
@@ -308,6 +309,7 @@ def render_report(report: dict) -> str:
         f"# workbench bench: {report['dataset']}",
         "",
         f"{report['machine']}; engine {report.get('engine', 'local')}; {report['workers']} workers; "
+        f"physics {report.get('physics', 'pybullet')}; "
         f"mode: {'quick' if report['quick'] else 'full'}; "
         f"early stop: {'on' if report['early_stop'] else 'off'}; "
         f"budgets (particles x max iterations, state) by object count: "
@@ -475,7 +477,8 @@ def build_report(settings: dict, objects: list[ObjectResult], runs: list[RunResu
 class BenchSettings:
     """What every frame of a benchmark run shares: the methods, the budget overrides (None: ``budget_for``'s
     defaults), the filters' search, and ``workers``, the split of each batch (local worker processes, or its parts
-    evaluated in turn in a Ray task: the results are the same)."""
+    evaluated in turn in a Ray task: the results are the same), and ``physics``, the simulator
+    (``PhysicsConfig.backend``)."""
 
     quick: bool = False
     methods: tuple[str, ...] = METHODS
@@ -485,6 +488,7 @@ class BenchSettings:
     early_stop: bool = True
     proposals: str = "default"
     workers: int = 2
+    physics: str = PhysicsConfig.backend
 
 
 @dataclass
@@ -506,7 +510,8 @@ def bench_frame(dataset: Path, scene_id: int, im_id: int, category: str, setting
     """ICP and the filters on one frame, scored. ``on_run(description)`` after each method's run,
     ``progress(report)`` after each filter iteration (both for a progress bar)."""
     t0 = time.perf_counter()
-    frame, problem = load_bop_problem(dataset, scene_id, im_id)
+    frame, problem = load_bop_problem(dataset, scene_id, im_id,
+                                      config=ProblemConfig(physics=PhysicsConfig(backend=settings.physics)))
     models = problem.models
     visib = visib_fractions(frame)
     points = [model_points(m.mesh) for m in models]
@@ -558,11 +563,12 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
                   particles: int | None = None, iterations: int | None = None, workers: int = 2,
                   state: str = "auto", categories: list[str] | None = None,
                   per_category: int | None = None, early_stop: bool = True, proposals: str = "default",
-                  ray: RayConfig | None = None, max_retries: int = 3) -> dict:
+                  ray: RayConfig | None = None, max_retries: int = 3, physics: str = PhysicsConfig.backend) -> dict:
     """Run the methods on the dataset's frames, write OUT/report.md, OUT/report.json and OUT/results_<method>.csv,
     print the report -> report.json's content. ``proposals``: the filters' search ("default" or "paper").
     ``max_retries``: on the local engine, times a dead evaluation worker is started again per batch, its part
-    retried (``evaluation.pool.PoolEvaluator``), as `estimate` does.
+    retried (``evaluation.pool.PoolEvaluator``), as `estimate` does. ``physics``: the simulator ("pybullet" or
+    "mujoco").
     ``ray`` (a RayConfig): frames as Ray tasks (``bench_frame_task``); a frame that fails is reported, left out
     of the tables and listed in the report's ``failed_frames``, and the others go on."""
     dataset, out = Path(dataset), Path(out)
@@ -576,7 +582,7 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
     if not frames:
         raise InputError(dataset, "no frame of the wanted categories")
     settings = BenchSettings(quick=quick, methods=tuple(methods), particles=particles, iterations=iterations,
-                             state=state, early_stop=early_stop, proposals=proposals, workers=workers)
+                             state=state, early_stop=early_stop, proposals=proposals, workers=workers, physics=physics)
     t_start = time.perf_counter()
     results: dict[tuple[int, int], FrameBench] = {}
     failures: list[FrameFailure] = []
@@ -607,7 +613,7 @@ def run_benchmark(dataset: Path, out: Path, quick: bool = False, methods: tuple[
     settings_out = {
         "dataset": str(dataset), "quick": quick, "early_stop": early_stop, "machine": machine(),
         "workers": workers, "engine": "local" if ray is None else "ray", "methods": list(methods),
-        "proposals": proposals, "budgets": {str(k): asdict(b) for k, b in sorted(budgets.items())},
+        "proposals": proposals, "physics": physics, "budgets": {str(k): asdict(b) for k, b in sorted(budgets.items())},
         "frames": [list(f) for f in frames], "overhead_seconds": sum(r.overhead for r in done),
         "wall_seconds": time.perf_counter() - t_start,
         "failed_frames": [[*f.frame, f.problem] for f in failures],

@@ -10,7 +10,7 @@ import numpy as np
 
 from workbench.evaluation.base import Done, Evaluation, admissible, check_sink, run_here, split_batch
 from workbench.geometry import check_rigid
-from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, PhysicsProjector
+from workbench.physics import STATUS_AS_GIVEN, STATUS_OUTSIDE, STATUS_REST, STATUS_STEP_CAP, make_projector
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
 from workbench.render.likelihood import pixel_loglik
@@ -41,7 +41,7 @@ class LocalEvaluator:
     def __init__(self, problem: Problem):
         self.problem = problem
         prepare_meshes(problem)
-        self.projector = PhysicsProjector(problem.models, problem.table, problem.config.physics)
+        self.projector = make_projector(problem.models, problem.table, problem.config.physics)
         self.renderer = DepthRenderer(
             problem.render_camera, [m.mesh for m in problem.models], problem.config.render
         )

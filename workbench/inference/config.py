@@ -19,6 +19,7 @@ MAX_PARTICLES = 100_000  # the paper used 1444; a run's memory grows with them (
 MAX_ITERATIONS = 10_000  # the search converges within 100 on every frame measured; 10,000 take hours per frame
 MAX_SIGMA_M = 1.0  # a diffusion step of more than a metre leaves any table scene
 MAX_SIGMA_RAD = 2 * math.pi
+MAX_BUDGET_S = 86400.0
 
 
 def check_seed(seed, where: str = "--seed") -> int:
@@ -69,6 +70,11 @@ class EstimatorConfig:
     # desk's clutter shows slanted patches, and drawn into particles they send the search astray
     # (docs/journal/2026-11.md, "Leaning starts").
     leaning: bool = True
+    # Anytime: the run's wall seconds (None: until converged or the iterations end). The iterations stop at
+    # ``clock.ITERATE_SHARE`` of it, and the answer's stages that do not fit are skipped, which the posterior says
+    # (``Posterior.cut_short``). A run always makes its start and its answer from it, so a budget shorter than the
+    # start is overrun by it.
+    budget_s: float | None = None
 
     def validate(self, where: str | None = None) -> None:
         """InputError naming the first setting at fault. Settings a user gave (``where`` not None: "" on the command
@@ -97,6 +103,10 @@ class EstimatorConfig:
         if not 0.0 < self.target_ess <= 1.0:
             raise InputError("target_ess", f"must lie in (0, 1], got {self.target_ess}")
         self.sigma.validate()
+        if self.budget_s is not None and not (np.isfinite(self.budget_s) and 0 < self.budget_s <= MAX_BUDGET_S):
+            raise InputError("--budget" if where == "" else f"{where or ''}budget_s",
+                             f"the budget must be a number of seconds above 0 and at most {MAX_BUDGET_S:g} "
+                             f"(a day), got {self.budget_s}")
         if where is None:
             return
         check_seed(self.seed, f"{where}seed" if where else "--seed")

@@ -15,6 +15,7 @@ import numpy as np
 from workbench.evaluation import Evaluator
 from workbench.inference.answer.posterior import Posterior
 from workbench.inference.answer.settle import Tie
+from workbench.inference.clock import ITERATE_SHARE, StageClock
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search import datadriven
 from workbench.inference.search.default_search import DefaultSearch
@@ -98,16 +99,49 @@ class Estimator:
     def step(self) -> IterationReport:
         return self.filter.step()
 
-    def run(self, iterations: int | None = None, stop_on_convergence: bool = True, callback=None) -> np.ndarray:
-        """Step until ``iterations`` (default: the config's) or convergence -> the best scene (K, 4, 4), settled."""
+    def run(self, iterations: int | None = None, stop_on_convergence: bool = True, callback=None,
+            started: float | None = None) -> np.ndarray:
+        """Step until ``iterations`` (default: the config's), convergence or the config's ``budget_s`` -> the best
+        scene (K, 4, 4), settled. The budget counts from ``started`` (a ``time.perf_counter()``; default now), so
+        that a frame's loading counts against it. The run's time by stage is in ``clock`` (``inference.clock``)."""
         total = self.config.iterations if iterations is None else iterations
+        self.start_clock(started)
         while self.iteration < total:
+            if self.iteration >= 0 and self.out_of_budget():
+                break
             report = self.step()
             if callback is not None:
                 callback(report)
             if stop_on_convergence and report.converged:
                 break
         return self.settle()
+
+    @property
+    def clock(self) -> StageClock:
+        return self.filter.clock
+
+    @property
+    def cut_short(self) -> str | None:
+        """The stages of this run the budget skipped, in order, of "iterations", "polish" and "settle", "turns",
+        "posterior" (the answer from there on), e.g. "iterations, posterior"; None where it finished."""
+        return self.filter.clock.cut_short
+
+    def out_of_budget(self) -> bool:
+        """Whether another iteration, as long as the last one, would pass the iterations' share of the clock's
+        budget; if so, the iterations are cut short from here (``cut_short``)."""
+        clock = self.filter.clock
+        if clock.budget_s is None:
+            return False
+        last = self.history[-1].timings["total"] if self.history else 0.0
+        if clock.elapsed() + last < ITERATE_SHARE * clock.budget_s:
+            return False
+        clock.cut("iterations")
+        return True
+
+    def start_clock(self, started: float | None = None) -> None:
+        """A new ``clock`` with the config's budget, counting from ``started`` (a ``time.perf_counter()``; default
+        now): a run's time and its cuts are its own."""
+        self.filter.clock = StageClock(self.config.budget_s, started)
 
     def settle(self) -> np.ndarray:
         """The search's answer from the estimate (``Search.finish``; the default search fits it to the observed
@@ -121,6 +155,8 @@ class Estimator:
         answer = self.search.finish(self.filter)
         self.settled, self.settled_loglik, self.ties = answer.scene, answer.loglik, answer.ties
         self.posterior = answer.posterior
+        if self.posterior is not None and self.cut_short is not None:  # the run's cuts, not only its answer's
+            self.posterior = replace(self.posterior, cut_short=self.cut_short)
         self.settle_scenes += answer.scored
         self._settled_from = None if estimate is None else estimate.copy()
         return self.settled

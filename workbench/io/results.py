@@ -57,10 +57,12 @@ def result_rows(frame: Frame, problem: Problem, best: np.ndarray, scores: np.nda
 class ModeRow(ResultRow):
     """A result row that is one mode of an object's posterior (``score`` its probability). The object's first row
     also carries the whole posterior of the object as ``posterior_record`` writes it (JSON-able), else None;
-    ``posterior_seconds``: what the frame's posterior sweep took of its ``time``."""
+    ``posterior_seconds``: what the frame's posterior sweep took of its ``time``; ``cut_short``: the first stage the
+    run's budget skipped (``Posterior.cut_short``), None where it finished."""
 
     posterior: dict | None = None
     posterior_seconds: float = 0.0
+    cut_short: str | None = None
 
 
 def posterior_rows(frame: Frame, problem: Problem, posterior: Posterior, seconds: float) -> list[ModeRow]:
@@ -71,7 +73,7 @@ def posterior_rows(frame: Frame, problem: Problem, posterior: Posterior, seconds
         for i, mode in enumerate(o.modes):
             rows.append(ModeRow(frame.scene_id, frame.im_id, problem.models[o.obj].obj_id, mode.probability,
                                 problem.camera.T_cam_world @ mode.T, seconds, record if i == 0 else None,
-                                posterior.seconds))
+                                posterior.seconds, posterior.cut_short))
     return rows
 
 
@@ -318,14 +320,16 @@ class PosteriorFile:
             self.lock.release()
 
     def add(self, rows: list[ResultRow]) -> None:
-        """The posteriors the frame's rows carry (``ModeRow``), with the frame's wall seconds and the
-        posterior sweep's share of them; nothing for rows without one."""
+        """The posteriors the frame's rows carry (``ModeRow``), with the frame's wall seconds, the posterior
+        sweep's share of them and the stage a budget cut short (only where one did); nothing for rows without
+        one."""
         records = [r.posterior for r in rows if getattr(r, "posterior", None) is not None]
         if not records:
             return
         scene_id, im_id = rows[0].scene_id, rows[0].im_id
         self.frames[(scene_id, im_id)] = {"scene_id": scene_id, "im_id": im_id, "seconds": round(rows[0].time, 3),
                                           "posterior_seconds": round(rows[0].posterior_seconds, 3),
+                                          **({} if rows[0].cut_short is None else {"cut_short": rows[0].cut_short}),
                                           "objects": records}
         document = {"kind": POSTERIOR_KIND, "format_version": 1,
                     "frames": [frame for _, frame in sorted(self.frames.items())]}

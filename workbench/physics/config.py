@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from workbench.errors import InputError
 from workbench.physics.collision import KINDS
+
+BACKENDS = ("pybullet", "mujoco")
 
 
 @dataclass(frozen=True)
@@ -28,6 +31,8 @@ class PhysicsConfig:
     friction instead of its pyramid. ``shape_overrides``:
     (obj_id, kind) pairs forcing an object's collision shape kind (see ``collision``). ``sleep_calm``: a body at rest
     by the test above sleeps (Bullet skips it) until a moving body touches it; see ``PhysicsProjector._simulate``.
+    ``backend``: the simulator, Bullet ("pybullet", ``PhysicsProjector``) or MuJoCo ("mujoco", ``MujocoProjector``,
+    which leaves ``solver_residual`` and ``sleep_calm`` to Bullet); ``physics.make_projector`` builds its projector.
     """
 
     # 1/120 s with 30 solver iterations settles a 4-box particle in half the time of 1/240 s with 60, with
@@ -62,6 +67,7 @@ class PhysicsConfig:
     angular_damping: float = 0.04
     shape_overrides: tuple[tuple[int, str], ...] = ()
     sleep_calm: bool = True
+    backend: Literal["pybullet", "mujoco"] = "pybullet"
 
     def __post_init__(self):
         positive = ("timestep", "solver_iterations", "solver_residual", "max_steps", "rest_linear", "rest_angular",
@@ -80,6 +86,8 @@ class PhysicsConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"PhysicsConfig.{name}", f"must be a finite number >= 0, got {value!r}")
+        if self.backend not in BACKENDS:
+            raise InputError("PhysicsConfig.backend", f"must be one of {', '.join(BACKENDS)}, not {self.backend!r}")
         if not (math.isfinite(self.off_table_z) and self.off_table_z < 0):
             raise InputError("PhysicsConfig.off_table_z",
                              f"must be below the table top (< 0), got {self.off_table_z!r}")

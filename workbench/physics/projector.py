@@ -4,16 +4,22 @@ A hypothesis is the poses of the K objects in the table frame. ``PhysicsProjecto
 of the table and out of each other, lets them fall and settle under gravity in Bullet (pybullet), and returns where
 they came to rest, with how the simulation ended (``STATUS_*``). It simulates in one ``world.World``, reused for
 every particle without a particle's result depending on the ones before.
+
+``Projector`` is the interface it shares with MuJoCo's projector (``mujoco_projector``), and ``too_far``,
+``lift_onto_table`` and ``push_apart`` the checks and separation steps both take, so that both backends refuse the
+same inputs and start from the same separated poses.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from abc import ABC, abstractmethod
 
 import numpy as np
 
 from workbench.errors import InputError
+from workbench.physics.bodies import BodyFrame
 from workbench.physics.bullet import pybullet
 from workbench.physics.collision import CollisionShape, collision_shape_for
 from workbench.physics.config import PhysicsConfig
@@ -39,8 +45,92 @@ def collision_shapes(models: list[ObjectModel], config: PhysicsConfig = PhysicsC
     return [collision_shape_for(m.mesh, kind=overrides.get(m.obj_id), cache_dir=cache_dir) for m in models]
 
 
-class PhysicsProjector:
-    """Projects hypotheses of ``models`` resting on ``table`` to physically plausible ones.
+def too_far(pos: np.ndarray, table: Table, max_distance: float) -> bool:
+    """Is any body centre (K, 3) m beyond ``max_distance`` (m) around, above or below the table?"""
+    tb, d = table, max_distance
+    (x0, y0, z0), (x1, y1, z1) = pos.min(axis=0), pos.max(axis=0)
+    return not (tb.x_min - d <= x0 and x1 <= tb.x_max + d and tb.y_min - d <= y0 and y1 <= tb.y_max + d
+                and -d <= z0 and z1 <= d)
+
+
+def lift_onto_table(pos: np.ndarray, R: np.ndarray, frames: list[BodyFrame], sink: float, tolerance: float) -> bool:
+    """Lift every body (centres ``pos`` (K, 3) m, updated in place; rotations ``R`` (K, 3, 3)) whose lowest support
+    point lies more than ``tolerance`` (m) below the table top (at z = -``sink``) onto it. -> whether any moved."""
+    moved = False
+    for k, frame in enumerate(frames):
+        lowest = float(np.min(frame.support @ R[k, 2])) + pos[k, 2] + sink
+        if lowest < -tolerance:
+            pos[k, 2] -= lowest
+            moved = True
+    return moved
+
+
+def push_apart(pos: np.ndarray, a: int, b: int, shift: np.ndarray) -> None:
+    """Move bodies ``a`` and ``b`` (centres ``pos`` (K, 3), in place) apart by ``shift`` (3,) m, the way ``a``
+    must move relative to ``b``: sideways half each, upwards all on the upper body, so that no body is pushed into
+    the table."""
+    pos[a, :2] += shift[:2] / 2
+    pos[b, :2] -= shift[:2] / 2
+    if shift[2] > 0:
+        pos[a, 2] += shift[2]
+    else:
+        pos[b, 2] -= shift[2]
+
+
+class Projector(ABC):
+    """What every physics backend offers the evaluators: ``project`` one hypothesis, ``project_batch`` many, the
+    models' ``shapes``, ``close`` (also as a context manager). Made by ``physics.make_projector``."""
+
+    @property
+    @abstractmethod
+    def shapes(self) -> list[CollisionShape]:
+        """The collision shape of each model, in model order (what each collides as, with its measured fit)."""
+
+    @property
+    @abstractmethod
+    def n_objects(self) -> int:
+        """K, the objects of every hypothesis."""
+
+    @abstractmethod
+    def project(self, T_world_obj: np.ndarray, sink: float = 0.0) -> tuple[np.ndarray, int, int]:
+        """Simulate one hypothesis (K, 4, 4) to rest -> (resting poses (K, 4, 4), status, steps simulated)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Free the simulator."""
+
+    def __enter__(self) -> "Projector":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def project_batch(self, T_world_obj: np.ndarray, sink: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Project B hypotheses one after the other. (B, K, 4, 4) -> resting poses (B, K, 4, 4), status (B,)
+        int8, steps simulated (B,) int32. ``sink`` (B,) m: see ``project`` (default 0). Each result is the same
+        as ``project`` of that hypothesis alone."""
+        T = np.asarray(T_world_obj, dtype=np.float64)
+        if T.ndim != 4:
+            raise InputError("T_world_obj", f"expected shape (B, {self.n_objects}, 4, 4), got {T.shape}")
+        sink = np.zeros(len(T)) if sink is None else np.asarray(sink, dtype=np.float64)
+        out = np.empty_like(T)
+        status = np.empty(len(T), dtype=np.int8)
+        steps = np.empty(len(T), dtype=np.int32)
+        for b in range(len(T)):
+            out[b], status[b], steps[b] = self.project(T[b], float(sink[b]))
+        return out, status, steps
+
+    def _checked(self, T_world_obj: np.ndarray) -> np.ndarray:
+        """One hypothesis as float64 (K, 4, 4), or InputError for a wrong shape."""
+        T = np.asarray(T_world_obj, dtype=np.float64)
+        if T.shape != (self.n_objects, 4, 4):
+            raise InputError("T_world_obj", f"expected shape ({self.n_objects}, 4, 4), got {T.shape}")
+        return T
+
+
+class PhysicsProjector(Projector):
+    """Projects hypotheses of ``models`` resting on ``table`` to physically plausible ones, with Bullet.
 
     Owns one pybullet DIRECT client (create one projector per process; construction is self-contained, so it
     can happen inside a spawned worker). ``shapes``: the models' collision shapes if already computed (e.g. in
@@ -63,34 +153,14 @@ class PhysicsProjector:
 
     @property
     def shapes(self) -> list[CollisionShape]:
-        """The collision shape of each model, in model order (what each collides as, with its measured fit)."""
         return list(self._world.shapes)
+
+    @property
+    def n_objects(self) -> int:
+        return len(self._world.bodies)
 
     def close(self) -> None:
         self._world.close()
-
-    def __enter__(self) -> "PhysicsProjector":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    # ------------------------------------------------------------------------------------------ projection
-    def project_batch(self, T_world_obj: np.ndarray, sink: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Project B hypotheses one after the other. (B, K, 4, 4) -> resting poses (B, K, 4, 4), status (B,)
-        int8, steps simulated (B,) int32. ``sink`` (B,) m: see ``project`` (default 0). Each result is the same
-        as ``project`` of that hypothesis alone."""
-        T = np.asarray(T_world_obj, dtype=np.float64)
-        if T.ndim != 4:
-            raise InputError("T_world_obj", f"expected shape (B, {len(self._world.bodies)}, 4, 4), got {T.shape}")
-        sink = np.zeros(len(T)) if sink is None else np.asarray(sink, dtype=np.float64)
-        out = np.empty_like(T)
-        status = np.empty(len(T), dtype=np.int8)
-        steps = np.empty(len(T), dtype=np.int32)
-        for b in range(len(T)):
-            out[b], status[b], steps[b] = self.project(T[b], float(sink[b]))
-        return out, status, steps
 
     def project(self, T_world_obj: np.ndarray, sink: float = 0.0) -> tuple[np.ndarray, int, int]:
         """Simulate one hypothesis to rest. (K, 4, 4) -> (resting poses (K, 4, 4), status, steps simulated).
@@ -102,12 +172,9 @@ class PhysicsProjector:
         STATUS_UNSTABLE with the input poses back; so does a simulation that blows up. Never raises for the
         values of the poses, only for a wrong shape.
         """
-        T = np.asarray(T_world_obj, dtype=np.float64)
+        T = self._checked(T_world_obj)
         world = self._world
-        K = len(world.bodies)
-        if T.shape != (K, 4, 4):
-            raise InputError("T_world_obj", f"expected shape ({K}, 4, 4), got {T.shape}")
-        if K == 0:
+        if len(T) == 0:
             return T.copy(), STATUS_REST, 0
         if not np.all(np.isfinite(T)):
             return T.copy(), STATUS_UNSTABLE, 0
@@ -115,7 +182,7 @@ class PhysicsProjector:
         if start is None:
             return T.copy(), STATUS_UNSTABLE, 0
         pos, R, quat = start
-        if self._too_far(pos) or not math.isfinite(sink):
+        if too_far(pos, self._table, self.config.max_distance) or not math.isfinite(sink):
             return T.copy(), STATUS_UNSTABLE, 0
         world.set_sink(sink)
         self._separate(pos, R, quat)
@@ -128,32 +195,19 @@ class PhysicsProjector:
             return T.copy(), STATUS_UNSTABLE, steps
         return poses, status, steps
 
-    def _too_far(self, pos: np.ndarray) -> bool:
-        """Is any body centre (K, 3) beyond ``max_distance`` around, above or below the table?"""
-        tb, d = self._table, self.config.max_distance
-        (x0, y0, z0), (x1, y1, z1) = pos.min(axis=0), pos.max(axis=0)
-        return not (tb.x_min - d <= x0 and x1 <= tb.x_max + d and tb.y_min - d <= y0 and y1 <= tb.y_max + d
-                    and -d <= z0 and z1 <= d)
-
     def _separate(self, pos: np.ndarray, R: np.ndarray, quat: np.ndarray) -> None:
         """Move the bodies (centres ``pos`` (K, 3), updated in place; rotations ``R`` (K, 3, 3) and ``quat``
         (K, 4) xyzw kept) out of the table and out of each other.
 
         Starting in penetration makes Bullet throw the objects (2 cm launches a box 16 cm). Each pass lifts every
         body whose lowest point is below the table top onto it, then moves each penetrating pair apart by its
-        deepest penetration along the contact normal: sideways half each, upwards all on the upper body, so that
-        no body is pushed into the table.
+        deepest penetration along the contact normal (``push_apart``).
         """
         cfg, world = self.config, self._world
         cid, bodies = world.client, world.bodies
         tol = cfg.penetration_tolerance
         for _ in range(cfg.separation_iterations):
-            moved = False
-            for k, frame in enumerate(world.frames):
-                lowest = float(np.min(frame.support @ R[k, 2])) + pos[k, 2] + world.sink
-                if lowest < -tol:
-                    pos[k, 2] -= lowest
-                    moved = True
+            moved = lift_onto_table(pos, R, world.frames, world.sink, tol)
             if len(bodies) < 2:
                 break
             world.teleport(pos, quat)
@@ -166,13 +220,7 @@ class PhysicsProjector:
                     if deepest[8] >= -tol:
                         continue
                     # contactNormalOnB points from b to a: move a along it relative to b.
-                    shift = np.asarray(deepest[7]) * -deepest[8]
-                    pos[a, :2] += shift[:2] / 2
-                    pos[b, :2] -= shift[:2] / 2
-                    if shift[2] > 0:
-                        pos[a, 2] += shift[2]
-                    else:
-                        pos[b, 2] -= shift[2]
+                    push_apart(pos, a, b, np.asarray(deepest[7]) * -deepest[8])
                     moved = True
                     world.teleport(pos, quat)
             if not moved:

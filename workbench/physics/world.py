@@ -16,56 +16,20 @@ pybullet's quaternion order (x, y, z, w) appears only in this module (the projec
 
 from __future__ import annotations
 
-import math
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass
 
 import numpy as np
 import trimesh
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, matrix_to_quat_wxyz, wxyz_to_xyzw
+from workbench.physics.bodies import BodyFrame, body_frame, body_rotations, checked_masses, parking
 from workbench.physics.bullet import pybullet
 from workbench.physics.collision import BOX, COMPOUND, CYLINDER, CollisionShape
 from workbench.physics.config import PhysicsConfig
 from workbench.problem.scene import ObjectModel, Table
-
-
-@dataclass(frozen=True)
-class BodyFrame:
-    """Where Bullet's body sits in the object: its origin must be the centre of mass and its axes the principal
-    axes, because Bullet takes the body frame as the inertial frame. ``T_obj_body`` (4, 4); ``inertia`` (3,)
-    principal moments, kg m^2; ``support`` (N, 3) the shape's support points in the body frame."""
-
-    T_obj_body: np.ndarray
-    inertia: np.ndarray
-    support: np.ndarray
-
-
-def _body_frame(mesh: trimesh.Trimesh, shape: CollisionShape, mass: float) -> BodyFrame:
-    """A box or cylinder collides, and so moves, as a uniform box or cylinder: its own frame (a Bullet primitive
-    cannot be offset from its body without wrapping it in a compound). Anything else keeps the mass distribution
-    of the mesh (of its hull when the mesh is not watertight, matching ``ObjectModel.mass``)."""
-    if shape.kind == BOX:
-        T_obj_body = shape.T_obj_shape.copy()
-        e2 = (2.0 * shape.half_extents) ** 2
-        inertia = mass / 12.0 * np.array([e2[1] + e2[2], e2[0] + e2[2], e2[0] + e2[1]])
-    elif shape.kind == CYLINDER:
-        T_obj_body = shape.T_obj_shape.copy()
-        r2, h2 = shape.half_extents[0] ** 2, (2.0 * shape.half_extents[2]) ** 2
-        inertia = mass * np.array([(3 * r2 + h2) / 12.0, (3 * r2 + h2) / 12.0, r2 / 2.0])
-    else:
-        src = mesh if mesh.is_watertight else mesh.convex_hull
-        tensor = np.asarray(src.moment_inertia, dtype=np.float64) * (mass / abs(float(src.mass)))
-        inertia, axes = np.linalg.eigh(tensor)
-        if np.linalg.det(axes) < 0:
-            axes[:, 2] *= -1.0
-        T_obj_body = make_pose(axes, np.asarray(src.center_mass, dtype=np.float64))
-    T_body_obj = invert_pose(T_obj_body)
-    support = shape.support_points() @ T_body_obj[:3, :3].T + T_body_obj[:3, 3]
-    return BodyFrame(T_obj_body, np.maximum(inertia, 1e-12), support)
 
 
 class World:
@@ -79,29 +43,17 @@ class World:
 
     def __init__(self, models: list[ObjectModel], table: Table, config: PhysicsConfig,
                  shapes: list[CollisionShape]):
-        if len(shapes) != len(models):
-            raise InputError("shapes", f"{len(shapes)} collision shapes for {len(models)} models")
-        if not (table.x_min < table.x_max and table.y_min < table.y_max):
-            raise InputError("table", f"empty table rectangle {table}")
-        masses = [m.mass for m in models]
-        for model, mass in zip(models, masses):
-            if not (math.isfinite(mass) and mass > 0):
-                raise InputError(model.source or f"model {model.obj_id}", f"mass must be positive, got {mass}")
+        masses = checked_masses(models, table, shapes)
         self.config = config
         self.shapes = list(shapes)
         self._models = list(models)
         self._table = table
         self._masses = masses
-        self.frames = [_body_frame(m.mesh, s, mass) for m, s, mass in zip(models, shapes, masses)]
+        self.frames = [body_frame(m.mesh, s, mass) for m, s, mass in zip(models, shapes, masses)]
         self._T_obj_body = np.stack([f.T_obj_body for f in self.frames]) if models else np.zeros((0, 4, 4))
         self._T_body_obj = invert_pose(self._T_obj_body)
         self._inertia = [f.inertia.tolist() for f in self.frames]
-        # Where the bodies wait between particles: beside the table, 1 m apart plus their sizes, so that no two
-        # parked bodies (nor a body and the table) are near enough to touch.
-        radius = max([float(np.max(np.linalg.norm(f.support, axis=1))) for f in self.frames], default=0.0)
-        spacing = 2.0 * radius + 1.0
-        self._parking = np.array([[table.x_max + spacing * (k + 1), table.y_max, spacing]
-                                  for k in range(len(models))])
+        self._parking = parking(self.frames, table.x_max, table.y_max)
         self._tmpdir = tempfile.mkdtemp(prefix="workbench_physics_")
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
@@ -185,12 +137,12 @@ class World:
         """The bodies' poses for finite object poses (K, 4, 4): centres (K, 3), rotations (K, 3, 3) exactly
         orthonormal, as Bullet will use them, and those as quaternions (K, 4) xyzw. None when the poses'
         rotations are not rotations."""
-        T_wb = T_world_obj @ self._T_obj_body
-        R = T_wb[:, :3, :3]
-        if np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3))) > 1e-3:
+        start = body_rotations(T_world_obj, self._T_obj_body)
+        if start is None:
             return None
+        pos, R = start
         quat = wxyz_to_xyzw(matrix_to_quat_wxyz(R))
-        return T_wb[:, :3, 3].copy(), self._rotations(quat), quat
+        return pos, self._rotations(quat), quat
 
     def object_poses(self) -> np.ndarray:
         """Current object poses in the table frame -> (K, 4, 4)."""

@@ -71,21 +71,26 @@ def estimate_frame(
         with announced_if(heavy if not (show_progress and sys.stderr.isatty()) else "",
                           f"estimating scene {scene_id} frame {im_id}"):
             estimator, best = run_estimator(Estimator(problem, config, evaluator), f"scene {scene_id} frame {im_id}",
-                                            early_stop, show_progress)
+                                            early_stop, show_progress, started=t0)
     finally:
         evaluator.close()
     if estimator.posterior is not None:  # one line per frame: what the view leaves open
         print(f"scene {scene_id} frame {im_id}: {estimator.posterior.summary(problem)} "
-              f"[posterior {estimator.posterior.seconds:.1f} s]", file=sys.stderr)
+              f"[posterior {estimator.posterior.seconds:.1f} s{cut_note(estimator.cut_short)}]", file=sys.stderr)
     return estimator_rows(frame, problem, estimator, best, time.perf_counter() - t0)
 
 
-def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show_progress: bool = False
-                  ) -> tuple[Estimator, np.ndarray]:
-    """Run ``estimator`` to its iteration budget (or convergence, ``early_stop``) -> (it, its settled estimate
-    (K, 4, 4) table frame). ``show_progress``: a progress bar named ``desc`` on stderr when stderr is a terminal.
-    Without a bar, a plain line says how far the run is every LOG_EVERY_S seconds: a tracked frame asked for
-    100,000 iterations ran minutes without one."""
+def cut_note(cut_short: str | None) -> str:
+    """What a frame's line says of its budget: nothing where the run finished."""
+    return "" if cut_short is None else f"; the budget cut short: {cut_short}"
+
+
+def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show_progress: bool = False,
+                  started: float | None = None) -> tuple[Estimator, np.ndarray]:
+    """Run ``estimator`` to its iteration budget (or convergence, ``early_stop``, or its time budget counted from
+    ``started``, see ``Estimator.run``) -> (it, its settled estimate (K, 4, 4) table frame). ``show_progress``: a
+    progress bar named ``desc`` on stderr when stderr is a terminal. Without a bar, a plain line says how far the
+    run is every LOG_EVERY_S seconds: a tracked frame asked for 100,000 iterations ran minutes without one."""
     # On a terminal only (disable=None): in a log file the bar's carriage returns would share lines with the
     # messages after it, so there a plain line says how far the frame is, at most every LOG_EVERY_S seconds.
     t0 = last = time.perf_counter()
@@ -102,7 +107,7 @@ def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show
                 last = now
                 print(f"{desc}: step {done} of at most {bar.total} after {now - t0:.0f} s "
                       f"(best {report.best_loglik:.0f})", file=sys.stderr, flush=True)
-        best = estimator.run(stop_on_convergence=early_stop, callback=progress)
+        best = estimator.run(stop_on_convergence=early_stop, callback=progress, started=started)
     return estimator, best
 
 

@@ -42,8 +42,11 @@ def answer_json(answer: Answer) -> dict:
 
 def posterior_json(posterior: Posterior) -> dict:
     """A posterior as plain JSON: per object its modes (pose, log-likelihood, gap, probability, what), position
-    spread (m) and open heading range (degrees, or null), and the temperature."""
+    spread (m) and open heading range (degrees, or null), the temperature, and the stage a budget cut short (only
+    where one did)."""
+    cut = {} if posterior.cut_short is None else {"cut_short": posterior.cut_short}
     return {
+        **cut,
         "temperature": float(posterior.temperature),
         "objects": [{
             "obj": int(o.obj),
@@ -73,14 +76,17 @@ def parse_answer(value, K: int) -> Answer | None:
 
 def parse_posterior(value, K: int, where: str = "posterior") -> Posterior:
     """A ``posterior_json`` for K objects -> Posterior; ValueError naming what is malformed."""
-    read.exact_keys(value, ("temperature", "objects"), where)
+    read.exact_keys(value, ("temperature", "objects", "cut_short") if "cut_short" in value
+                    else ("temperature", "objects"), where)
+    cut_short = None if "cut_short" not in value else read.short_text(value["cut_short"], f"{where}.cut_short")
     temperature = read.quantity(value["temperature"], f"{where}.temperature")
     if temperature <= 0:
         raise ValueError(f"{where}.temperature must be > 0, got {temperature!r}")
     objects = read.json_list(value["objects"], f"{where}.objects")
     if len(objects) != K:
         raise ValueError(f"{where}.objects must list the {K} objects, got {len(objects)}")
-    return Posterior([_object(o, k, f"{where}.objects[{k}]") for k, o in enumerate(objects)], temperature)
+    return Posterior([_object(o, k, f"{where}.objects[{k}]") for k, o in enumerate(objects)], temperature,
+                     cut_short=cut_short)
 
 
 def _object(value, k: int, where: str) -> ObjectPosterior:

@@ -122,6 +122,16 @@ def save_object_models(out: Path) -> None:
                     symmetries_continuous={can.obj_id: [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]})
 
 
+def _name_models(out: Path, names: dict[int, str]) -> None:
+    """Give the models ``names`` in models_info.json (the ``name`` the workbench reads): the demo's objects are
+    called "foam_brick", not "obj_000006"."""
+    path = Path(out) / "models" / "models_info.json"
+    info = readers.read_json(path)
+    for obj_id, name in names.items():
+        info[str(obj_id)] = {"name": name, **info[str(obj_id)]}
+    _write_json(path, info)
+
+
 def _write_camera_json(out: Path, cfg: SynthConfig) -> None:
     K = cfg.K()
     cam = {"cx": K[0, 2], "cy": K[1, 2], "fx": K[0, 0], "fy": K[1, 1], "width": cfg.width, "height": cfg.height,
@@ -242,6 +252,7 @@ def make_demo(out: Path, seed: int = 0, force: bool = False) -> list[dict]:
         sim.close()
     ids = [p.item.obj_id for p in sample.layout]
     save_box_models(out, ids)
+    _name_models(out, {p.item.obj_id: p.item.name for p in sample.layout})
     _write_camera_json(out, cfg)
     write_scene(out, 0, sample, cfg)
     meta = [_scene_meta(0, sample)]

@@ -15,6 +15,7 @@ retried once, and the user is told (``evaluators``). If this whole process dies,
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -33,6 +34,8 @@ from workbench.app.engine.sequence import EngineSequence, HeldRun
 from workbench.app.engine.sessions import OpenedSession, open_session, save_session
 from workbench.app.engine.snapshot import ParticleDisplay
 from workbench.errors import InputError
+from workbench.io.readers import read_json
+from workbench.physics.config import PhysicsConfig
 
 log = logging.getLogger(__name__)
 
@@ -52,12 +55,28 @@ def user_data_dir() -> Path:
     return Path(base).expanduser() / "workbench"
 
 
+def name_like_bundled(demo: Path) -> None:
+    """Give a demo copied before the bundled models were named (``obj_000006``) their names; nothing else of the
+    copy changes. A copy that cannot be read is left to the load, which says what is wrong with it."""
+    bundled, copied = DEMO_DIR / "models" / "models_info.json", demo / "models" / "models_info.json"
+    try:
+        names = {k: v["name"] for k, v in read_json(bundled).items() if "name" in v}
+        info = read_json(copied)  # the one reader: a copy nested 200,000 levels deep is refused, not a RecursionError
+    except (ValueError, AttributeError, TypeError):  # InputError among them
+        return
+    missing = {k: n for k, n in names.items() if isinstance(info.get(k), dict) and "name" not in info[k]}
+    if missing:
+        info.update({k: {"name": n, **info[k]} for k, n in missing.items()})
+        copied.write_text(json.dumps(info, indent=2) + "\n")
+
+
 def demo_dataset() -> Path:
     """The demo the app shows, and saves labels into: ``user_data_dir()/demo``, copied once from the bundled
     ``assets/demo`` (or written by ``synth.make_demo`` when the checkout has none), so that nothing is ever saved
     into the installed package. An existing copy is used as it is: it may hold the user's labels."""
     out = user_data_dir() / "demo"
     if (out / "models" / "models_info.json").is_file():
+        name_like_bundled(out)
         return out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(out, "the demo's copy is incomplete (no models/models_info.json): move it away and the "
@@ -81,7 +100,7 @@ def demo_dataset() -> Path:
     return out
 
 
-def load(source: p.Source, likelihood: str):
+def load(source: p.Source, likelihood: str, physics: PhysicsConfig = PhysicsConfig()):
     """-> (dataset folder, frame, problem, the frame's view) for ``source``; raises ``InputError`` naming the file at
     fault."""
     from workbench.app.engine.observation import build_view
@@ -102,7 +121,7 @@ def load(source: p.Source, likelihood: str):
         if not frames:
             raise InputError(dataset, f"no frames{'' if scene_id is None else f' in scene {scene_id}'}")
         scene_id, im_id = frames[0] if im_id is None else (frames[0][0], im_id)
-    config = ProblemConfig(likelihood=LikelihoodConfig(model=likelihood))
+    config = ProblemConfig(likelihood=LikelihoodConfig(model=likelihood), physics=physics)
     frame, problem = load_bop_problem(dataset, scene_id, im_id, config=config)
     return dataset, frame, problem, build_view(frame, problem, source.title(frame.scene_id, frame.im_id), dataset)
 
@@ -151,9 +170,10 @@ class Engine:
     (the frame's labels) and ``sequence`` (the frames of its scene). These get only what they use (``on_show``: the
     run on show, read-only) and change none of the engine's fields: it applies what they return (``put_on_show``)."""
 
-    def __init__(self, results, workers: int, ray=None):
+    def __init__(self, results, workers: int, ray=None, physics: PhysicsConfig = PhysicsConfig()):
         # results: what the engine tells the server, anything with a put (engine_process.Outbox, a test's list)
         self.results = results
+        self.physics = physics  # how the frames it loads are simulated (a session brings its own)
         self.evaluators = Evaluators(results, workers, ray)
         self.display = ParticleDisplay()
         self.labels = FrameLabels(results, self.evaluators, self.on_show)
@@ -221,7 +241,7 @@ class Engine:
 
     def load(self, cmd: p.Load) -> None:
         cmd.config.validate()
-        dataset, frame, problem, view = load(cmd.source, cmd.likelihood)  # on failure the old run stays
+        dataset, frame, problem, view = load(cmd.source, cmd.likelihood, self.physics)  # on failure the old run stays
         self.replace_frame(cmd.source, view, frame, problem, cmd.config)
         self.new_estimator()
         self.labels.adopt_frame(dataset)
@@ -270,6 +290,7 @@ class Engine:
         if self.finished():
             self.results.put(nothing_to_run(self.estimator))
             return
+        self.estimator.start_clock()  # each Run has the whole budget (EstimatorConfig.budget_s) to itself
         self.running = True
         self.send_state("running")
 
@@ -293,14 +314,17 @@ class Engine:
 
         if self.estimator is None:
             raise InputError(None, "nothing is loaded: load a dataset or the demo first")
+        if not self.running:  # a Step is a run of its own: the cuts of the Run before it no longer stand
+            self.estimator.start_clock()
         try:
             report = self.estimator.step()
         except (WorkerCrashed, *CRASH_ERRORS) as err:
             self.estimator.evaluator = self.evaluators.restart(err)
             report = self.estimator.step()  # a second crash in a row is a Failure for the user
-        if self.running and self.finished():
+        out_of_time = self.running and self.estimator.out_of_budget()
+        if self.running and (self.finished() or out_of_time):
             self.running = False
-        if self.finished():
+        if self.finished() or out_of_time:
             # The run's answer, as `workbench estimate` gives it: the estimate settled, with its posterior, which
             # the snapshot carries. Computed once per estimate (a Step past the end settles only a new one).
             self.estimator.settle()
@@ -308,7 +332,8 @@ class Engine:
         if self.finished():
             self.sequence.finished()
         if not self.running:
-            self.send_state("converged" if report.converged else "done" if self.finished() else "paused")
+            self.send_state("converged" if report.converged else "done" if self.finished()
+                            else "budget spent" if out_of_time else "paused")
 
     def publish(self, report=None) -> None:
         est = self.estimator

@@ -22,6 +22,7 @@ from typing import Callable
 
 from workbench.app import protocol as p
 from workbench.app.engine.engine import Engine
+from workbench.physics.config import PhysicsConfig
 
 log = logging.getLogger(__name__)
 
@@ -36,14 +37,15 @@ class Outbox:
         self.conn.send(msg)
 
 
-def engine_main(commands: "mp.Queue", results, workers: int, ray=None) -> None:
+def engine_main(commands: "mp.Queue", results, workers: int, ray=None, physics: PhysicsConfig = PhysicsConfig()
+                ) -> None:
     """Entry point of the spawned process. ``results``: the writing end of a one-way pipe; ``ray``: a
-    evaluation.ray.RayConfig to evaluate on Ray actors."""
+    evaluation.ray.RayConfig to evaluate on Ray actors; ``physics``: how the frames it loads are simulated."""
     # Ctrl-C in a terminal reaches the whole process group; the server shuts this process down in order instead.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="engine: %(message)s")
     outbox = Outbox(results)
-    engine = Engine(outbox, workers, ray)
+    engine = Engine(outbox, workers, ray, physics)
     parent = mp.parent_process()
     try:
         outbox.put(p.Ready(os.getpid()))
@@ -95,9 +97,10 @@ class EngineClient:
     RESTART_WINDOW_S = 60.0
 
     def __init__(self, workers: int, on_message: Callable[[object], None],
-                 on_restart: Callable[[int | None, bool], None], ray=None):
+                 on_restart: Callable[[int | None, bool], None], ray=None, physics: PhysicsConfig = PhysicsConfig()):
         self.workers = workers
         self.ray = ray
+        self.physics = physics
         self.on_message = on_message
         self.on_restart = on_restart
         self._ctx = mp.get_context("spawn")
@@ -120,7 +123,8 @@ class EngineClient:
         # Not a daemon: it starts the worker pool, and daemonic processes may not have children. It exits on its
         # own when this process dies (it polls its parent).
         self.process = self._ctx.Process(
-            target=engine_main, args=(self.commands, writer, self.workers, self.ray), name="workbench-engine"
+            target=engine_main, args=(self.commands, writer, self.workers, self.ray, self.physics),
+            name="workbench-engine"
         )
         self.process.start()
         writer.close()  # from now on only the engine holds the writing end

@@ -63,6 +63,9 @@ class ParticleDisplay:
         )
         row = report.as_dict()
         row["distinct_after_resampling"] = expected_distinct(weights, particles)
+        clock = est.clock
+        row["budget_left_s"] = None if clock.budget_s is None else max(0.0, clock.budget_s - clock.elapsed())
+        row["cut_short"] = est.cut_short
         row.update(reference)
         return p.Snapshot(row, cloud, running, particles, est.current_posterior)
 

@@ -9,7 +9,11 @@ import viser
 
 from workbench.app import protocol as p
 from workbench.app.ui.widgets.colors import VIRIDIS, legend_html
+from workbench.app.ui.widgets.numeric import NumberRule
 from workbench.errors import InputError
+
+# BOP names scenes and images by six-digit numbers.
+SCENE_ID, FRAME_ID = NumberRule("Scene id", 0, 999_999, whole=True), NumberRule("Frame id", 0, 999_999, whole=True)
 
 
 class DataTab:
@@ -33,14 +37,14 @@ class DataTab:
         self.sequence_order = (self.demo.order + self.rgb_image.order) / 2
 
     def frame_ids(self) -> tuple[int | None, int | None]:
-        """The scene and frame typed; empty means the dataset's first."""
+        """The scene and frame typed (read by the panel's one rule for numbers); empty means the dataset's first."""
         out = []
-        for handle, what in ((self.scene_id, "scene id"), (self.im_id, "frame id")):
+        for handle, rule in ((self.scene_id, SCENE_ID), (self.im_id, FRAME_ID)):
             text = handle.value.strip()
             try:
-                out.append(int(text) if text else None)
-            except ValueError:
-                raise InputError(what, f"must be a whole number (or empty for the first), got {text!r}") from None
+                out.append(rule.parse(text) if text else None)
+            except InputError as err:
+                raise InputError(err.path, f"{err.problem} (or empty for the first)") from None
         return out[0], out[1]
 
     def show_frame(self, view: p.ObservationView) -> None:

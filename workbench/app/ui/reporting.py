@@ -35,6 +35,7 @@ class Reporter:
         # -> markdown. All are listed, not only the newest; they go when the input is corrected or an iteration
         # goes through.
         self.current: dict[str, str] = {}
+        self.outlined: dict[str, str] = {}  # the refused fields' element ids by label, outlined in red
 
     def set_title(self, what: str) -> None:
         self.title.content = f"**workbench** · {what}"
@@ -56,32 +57,38 @@ class Reporter:
         last = failures[-1] if failures else None
         if last is not None and last.fatal:
             return
-        self.current = {}
-        self.outline({})
+        self.current, self.outlined = {}, {}
+        self.outline()
         if self.error.visible:
             self.error.visible = False
 
     def field_errors(self, errors: dict[str, str], ids: dict[str, str]) -> None:
-        """The typed fields refused now ({label: problem}; they were put back to the values in use): each
-        outlined (``ids``: the fields' element ids by label) and listed in the banner, with whatever else is
-        wrong. An empty dict clears the fields' lines (the banner goes if nothing else is on it)."""
-        before = dict(self.current)
-        self.current = {k: v for k, v in self.current.items() if not k.startswith("field:")}
+        """The typed fields of one group (``ids``: their element ids by label) refused now ({label: problem}; they
+        are put back to the values in use): each outlined and listed in the banner, with whatever else is wrong,
+        the other groups' refusals included. The group's fields not in ``errors`` lose their lines and outlines
+        (the banner goes if nothing else is on it). No notification: this runs on every keystroke, and "2.5e" is on
+        its way to "2.5e-1" (``refused_put_back`` notifies once the value is put back)."""
+        for label in (*ids, *errors):
+            self.current.pop(f"field:{label}", None)
+            self.outlined.pop(label, None)
         for label, problem in errors.items():
             log.warning("Input error: %s: %s", label, problem)
             self.current[f"field:{label}"] = (f"`{label}`: {escape(problem)} — **kept the value in use**")
-        self.outline({label: ids[label] for label in errors if label in ids})
+            if label in ids:
+                self.outlined[label] = ids[label]
+        self.outline()
         self.show_banner()
-        new = {label: problem for label, problem in errors.items()
-               if before.get(f"field:{label}") != self.current[f"field:{label}"]}
-        for label, problem in new.items():  # each once, not on every keystroke
+
+    def refused_put_back(self, refused: dict[str, str]) -> None:
+        """The refused fields ({label: problem}) were put back to the values in use: a notification each."""
+        for label, problem in refused.items():
             self.notify("Input error", f"{label}: {problem}; the value in use was put back", color="red")
 
-    def outline(self, ids: dict[str, str]) -> None:
-        """Outline in red the fields whose element ids are ``ids``' values (none: clear), by their labels' ``for``."""
+    def outline(self) -> None:
+        """Outline in red the fields refused now (``outlined``; none: clear), by their labels' ``for``."""
         css = "".join(
             f'.mantine-Flex-root:has(label[for="{i}"]) input{{outline:2px solid #e03131;outline-offset:-1px}}'
-            f'label[for="{i}"]{{color:#e03131;font-weight:600}}' for i in ids.values())
+            f'label[for="{i}"]{{color:#e03131;font-weight:600}}' for i in self.outlined.values())
         content = f"<style>{css}</style>" if css else ""
         if self.field_style.content != content:
             self.field_style.content = content

@@ -39,6 +39,7 @@ from workbench.app.ui.ui_thread import UiThread, on_ui_thread
 from workbench.app.ui.widgets.quiet import Quiet
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
+from workbench.physics.config import PhysicsConfig
 
 # Small enough for one software-rendered machine to iterate at a few Hz; the panel changes it.
 DEFAULT_CONFIG = EstimatorConfig(particles=128, iterations=60)
@@ -53,7 +54,8 @@ class App:
 
     def __init__(self, server: viser.ViserServer, source: p.Source | None, workers: int,
                  config: EstimatorConfig = DEFAULT_CONFIG, likelihood: str = "robust",
-                 sessions_dir: Path = SESSIONS_DIR, session: Path | None = None, ray=None):
+                 sessions_dir: Path = SESSIONS_DIR, session: Path | None = None, ray=None,
+                 physics: PhysicsConfig = PhysicsConfig()):
         self.server = server
         self.ui = UiThread()  # runs every GUI callback and engine message, one at a time: no module takes a lock
         self.quiet = Quiet()  # set while the server itself writes controls: their callbacks must not echo
@@ -71,10 +73,10 @@ class App:
         tab = {name: tabs.add_tab(name, icon) for name, icon in TABS}
         self.settings = SettingsForm(gui, tab["Estimator"], self.ui, self.quiet, self.reporter, self.send, config,
                                      likelihood)
-        self.labelling = Labelling(server, tab["Label"], self.send, self.ui, self.quiet,
+        self.labelling = Labelling(server, tab["Label"], self.send, self.ui, self.quiet, self.reporter,
                                    on_heatmap_mode=lambda: self.display.label_heatmap_mode_changed())
-        self.display = RunDisplay(server, tab["Inspect"], self.ui, self.view_box, self.labelling, config.particles,
-                                  self.send, on_error=self.reporter.drawing_failed)
+        self.display = RunDisplay(server, tab["Inspect"], self.ui, self.quiet, self.reporter, self.view_box,
+                                  self.labelling, config.particles, self.send)
         self.plots = Plots(gui, tab["Plots"], self.ui)
         self.data = DataTab(gui, tab["Data"])
         with tab["Data"]:
@@ -86,7 +88,8 @@ class App:
                                     sequence=self.sequence.on_failure)
         self._wire()
         self.engine = EngineClient(workers, lambda msg: self.ui.call(self.on_message, msg),
-                                   lambda code, gave_up: self.ui.call(self.on_engine_died, code, gave_up), ray=ray)
+                                   lambda code, gave_up: self.ui.call(self.on_engine_died, code, gave_up), ray=ray,
+                                   physics=physics)
         self.ui.call(self._start, source, session)
 
     def _start(self, source: p.Source | None, session: Path | None) -> None:
@@ -103,7 +106,8 @@ class App:
         """The controls whose actions reach beyond their own part of the panel."""
         on_ui, V, D = self.ui.callback, self.view_box, self.data
         V.visibility.on_click(on_ui(lambda event: self.toggle(event.target.value)))
-        V.camera.on_click(on_ui(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client)))
+        V.camera.on_click(on_ui(lambda event: self.cameras.preset(self.state.view, event.target.value, event.client,
+                                                                  self.labelling.editor.estimate)))
         self.server.on_client_connect(on_ui(self.cameras.client_connected))
         D.load.on_click(on_ui(lambda _: self.load_typed()))
         D.demo.on_click(on_ui(lambda _: self.load(p.Source(demo=True))))
@@ -348,12 +352,14 @@ def serve(
     session: Path | None = None,
     sessions_dir: Path | None = None,
     ray=None,
+    physics: PhysicsConfig = PhysicsConfig(),
 ) -> AppHandle:
     """Start the workbench on ``host:port`` (localhost unless told otherwise) with ``dataset``'s frame, or the demo
     (``demo``, or no dataset), or continuing the saved ``session`` (a session JSON file). Sessions are saved to and
     listed from ``sessions_dir`` (default: the session's folder, else ./sessions). ``block``: serve until Ctrl-C
     and then stop; else return the handle at once. ``ray`` (a evaluation.ray.RayConfig): evaluate each batch on
-    ``workers`` Ray actors instead of local processes, with the same results.
+    ``workers`` Ray actors instead of local processes, with the same results. ``physics``: how the frames loaded
+    are simulated (``PhysicsConfig.backend``: Bullet or MuJoCo); a session keeps its own.
 
     A session continues bit for bit only with the worker count it was saved with (``workers``; the command line
     uses 2), on either engine: the tile a hypothesis is rendered in changes the last bits of its depth."""
@@ -368,7 +374,7 @@ def serve(
         server.stop()
         raise InputError("--port", port_in_use_message(host, port))
     app = App(server, None if session is not None else source, workers, config, likelihood, sessions_dir,
-              None if session is None else Path(session), ray=ray)
+              None if session is None else Path(session), ray=ray, physics=physics)
     handle = AppHandle(server, app, f"http://{host}:{server.get_port()}")
     if not block:
         return handle

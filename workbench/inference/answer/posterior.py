@@ -122,11 +122,13 @@ class ObjectPosterior:
 @dataclass(frozen=True)
 class Posterior:
     """Per object its modes; the ``temperature`` that made their probabilities; the wall ``seconds`` the sweep
-    took (its extra cost over settling)."""
+    took (its extra cost over settling); ``cut_short``: the stages a run's budget skipped (``Estimator.cut_short``;
+    where the answer's posterior sweep was among them, ``unswept``), None for a whole run."""
 
     objects: list[ObjectPosterior] = field(default_factory=list)
     temperature: float = TEMPERATURE
     seconds: float = 0.0
+    cut_short: str | None = None
 
     def summary(self, problem: Problem, threshold: float = 0.9) -> str:
         """One line: e.g. "2 of 6 objects uncertain: potted meat can (turned over its x axis, p = 0.45), mug
@@ -275,6 +277,20 @@ def yaw_range(angles: np.ndarray, gaps: np.ndarray, distinct: np.ndarray, step_d
     if hi - lo + 1 < 3 or not other[lo:hi + 1].any():
         return None
     return float(max(a[lo] - step_deg / 2, -180.0)), float(min(a[hi] + step_deg / 2, 180.0))
+
+
+def unswept(problem: Problem, scene: np.ndarray, loglik: float, projected: np.ndarray, weights: np.ndarray,
+            cut_short: str) -> Posterior:
+    """The posterior of ``scene`` (K, 4, 4) when a budget leaves no time to sweep: per object one mode, the scene's
+    pose, and the chance it is elsewhere the weight share of the particles (``projected`` (N, K, 4, 4), ``weights``
+    (N,)) that put it more than 2 cm away (with no particles, 0). ``cut_short`` names the stage skipped."""
+    objects = []
+    for k in range(problem.n_objects):
+        near = np.linalg.norm(projected[:, k, :3, 3] - scene[k, :3, 3], axis=-1) < 0.02
+        elsewhere = float(weights[~near].sum()) if len(weights) else 0.0
+        objects.append(ObjectPosterior(k, [Mode(scene[k].copy(), loglik, 0.0, 1.0, "the estimate")],
+                                       position_spread(projected, weights, scene[k], k), elsewhere=elsewhere))
+    return Posterior(objects, cut_short=cut_short)
 
 
 def position_spread(projected: np.ndarray, weights: np.ndarray, T: np.ndarray, k: int, radius: float = 0.02

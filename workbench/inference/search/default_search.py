@@ -23,6 +23,7 @@ import numpy as np
 
 from workbench.evaluation import Evaluation, run_here
 from workbench.inference.answer import assemble, polish, posterior, settle
+from workbench.inference.clock import ITERATE_SHARE
 from workbench.inference.search import datadriven, hiding, leaning
 from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves import gaussian
@@ -69,6 +70,11 @@ def fit_sink(filt: ParticleFilter) -> Update:
     old sink until their next move."""
     if filt.estimate is None:  # every particle failed physics so far
         return Update()
+    with filt.clock.stage("sink"):
+        return _fit_sink(filt)
+
+
+def _fit_sink(filt: ParticleFilter) -> Update:
     scenes = np.repeat(filt.estimate[None], len(SINK_GRID), axis=0)
     scenes[:, :, 2, 3] -= (SINK_GRID - filt.sink)[:, None]
     ev = filt.evaluate(scenes, SINK_GRID)
@@ -90,6 +96,12 @@ def fit_near_misses(filt: ParticleFilter, pools: list[tuple[np.ndarray, np.ndarr
     Each candidate was fitted alone to its cluster, so one partly hidden by another is often a few centimetres
     off, and the right arrangement then loses to the estimate after physics: generated clutter frame 5 (four
     objects moved together) scored 191 below it as assembled and 21 above it fitted."""
+    with filt.clock.stage("near misses"):
+        return _fit_near_misses(filt, pools, estimate, done)
+
+
+def _fit_near_misses(filt: ParticleFilter, pools: list[tuple[np.ndarray, np.ndarray, int, int]],
+                     estimate: np.ndarray, done: set) -> list[np.ndarray]:
     cfg, searches, counts = filt.config, [], []
     for scenes, loglik, least, most in pools:
         chosen = 0
@@ -181,7 +193,12 @@ class DefaultSearch:
         return Proposed(out, log_q, kinds, ev, time.perf_counter() - t0 + self._map_wait)
 
     def after_step(self, filt: ParticleFilter) -> Iterator[Update]:
+        """Every ``library_every`` iterations, the sink fitted and the estimate polished; not once the iterations'
+        share of a budget is spent (``clock.ITERATE_SHARE``): the answer needs the rest."""
         if filt.iteration % filt.config.library_every == 0:
+            if filt.clock.over(ITERATE_SHARE):
+                filt.clock.cut("polish")
+                return
             yield fit_sink(filt)
             yield self.polish(filt)
 
@@ -191,33 +208,46 @@ class DefaultSearch:
         turns (``settle.turn_over``), each object not turned restarted a few degrees away in the same region
         (``settle.hop``), and the posterior of what it settled on (``posterior.sweep``). The estimate itself, with no
         posterior, when settling is off."""
-        cfg = filt.config
+        cfg, clock = filt.config, filt.clock
         if filt.estimate is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return Settled(filt.estimated_scene.copy(), filt.estimate_loglik)
-        score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
-        scene, loglik, scored = settle.pattern_search(
-            filt.estimate, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
-            max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
-        rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
-        before = scene
-        scene, loglik, turned, ties, turns = settle.turn_over(self.problem, scene, loglik, score, rest,
-                                                              cfg.settle_shift, cfg.settle_turn)
-        # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its half turn
-        # then no longer does. A turned object was settled from a fresh start; the others restart where physics
-        # put them.
-        kept = [k for k in range(len(scene)) if np.array_equal(scene[k], before[k])]
-        scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, filt.estimate, cfg.settle_shift,
-                                           cfg.settle_turn, kept)
         if filt.particles is None:  # settled before any step (a label fitted, a test): no particles to spread
-            projected, weights = np.zeros((0, *scene.shape)), np.zeros(0)
+            projected, weights = np.zeros((0, *filt.estimate.shape)), np.zeros(0)
         else:
             projected, weights = filt.particles.projected, filt.weights()
-        scorer = settle.Scorer(score, rest, cfg.settle_shift, cfg.settle_turn, partial(self._run, filt))
-        found, swept, final, loglik = posterior.sweep(
-            self.problem, posterior.SweepStart(scene, loglik, turns, before, projected, weights), scorer,
-            self.geometry(filt))
+        # Each stage only while the budget lasts; where it runs out, the answer is the scene settled so far with the
+        # particles' posterior of it (``posterior.unswept``).
+        scene, loglik, scored = filt.estimate, filt.estimate_loglik, 0
+        score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
+        rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
+        for stage in ("settle", "turns", "posterior"):
+            if clock.over():
+                clock.cut(stage)
+                return Settled(scene, loglik, [], scored,
+                               posterior.unswept(self.problem, scene, loglik, projected, weights, stage))
+            with clock.stage(stage):
+                if stage == "settle":
+                    scene, loglik, scored = settle.pattern_search(
+                        filt.estimate, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
+                        max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
+                elif stage == "turns":
+                    before = scene
+                    scene, loglik, turned, ties, turns = settle.turn_over(self.problem, scene, loglik, score, rest,
+                                                                          cfg.settle_shift, cfg.settle_turn)
+                    # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its
+                    # half turn then no longer does. A turned object was settled from a fresh start; the others
+                    # restart where physics put them.
+                    kept = [k for k in range(len(scene)) if np.array_equal(scene[k], before[k])]
+                    scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, filt.estimate,
+                                                       cfg.settle_shift, cfg.settle_turn, kept)
+                    scored += turned + hopped
+                else:
+                    scorer = settle.Scorer(score, rest, cfg.settle_shift, cfg.settle_turn, partial(self._run, filt))
+                    found, swept, final, loglik = posterior.sweep(
+                        self.problem, posterior.SweepStart(scene, loglik, turns, before, projected, weights), scorer,
+                        self.geometry(filt))
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
-        return Settled(final, loglik, ties, scored + turned + hopped + swept, found)
+        return Settled(final, loglik, ties, scored + swept, found)
 
     # ------------------------------------------------------------------------------------------------ sessions
     def state_dict(self) -> dict:
@@ -256,13 +286,18 @@ class DefaultSearch:
             return run_here(self.problem)(fn, calls)
         t0 = time.perf_counter()
         try:
-            return filt.evaluator.map(fn, calls)
+            with filt.clock.waiting():
+                return filt.evaluator.map(fn, calls)
         finally:
             self._map_wait += time.perf_counter() - t0
 
     def refit_library(self, filt: ParticleFilter, scene: np.ndarray | None = None) -> None:
         """Candidates from the clusters of observed points the estimate (or ``scene`` (K, 4, 4), when given) does
         not explain (all of them before the first estimate), merged with the earlier candidates."""
+        with filt.clock.stage("library"):
+            self._refit_library(filt, scene)
+
+    def _refit_library(self, filt: ParticleFilter, scene: np.ndarray | None) -> None:
         g = self.geometry(filt)
         loose = unexplained(self.problem, g.points, filt.estimate if scene is None else scene, g.samples)
         groups = clusters(g.points.points[loose])
@@ -285,6 +320,10 @@ class DefaultSearch:
     def _assemblies(self, filt: ParticleFilter, base: np.ndarray, beam_width: int = assemble.BEAM) -> np.ndarray:
         """``assemble.assemblies`` of the library on ``base`` (K, 4, 4) -> (A, K, 4, 4). The candidates are
         rendered here, in the main process, by a renderer made for the call."""
+        with filt.clock.stage("assemblies"):
+            return self._assemble(filt, base, beam_width)
+
+    def _assemble(self, filt: ParticleFilter, base: np.ndarray, beam_width: int) -> np.ndarray:
         g = self.geometry(filt)
         renderer = DepthRenderer(self.problem.render_camera, [m.mesh for m in self.problem.models],
                                  self.problem.config.render)
@@ -301,6 +340,10 @@ class DefaultSearch:
         it to replace the worst particles (at most a tenth of them)."""
         if filt.estimate is None or self.library is None:
             return Update()
+        with filt.clock.stage("polish"):
+            return self._polish(filt)
+
+    def _polish(self, filt: ParticleFilter) -> Update:
         g, estimate = self.geometry(filt), filt.estimate
         # The estimate stuck since the last polish: leaning starts, and a wider beam. A leaning object is rare, and
         # a real desk's clutter shows slanted patches: tried at every polish, leaning starts win early on clutter and

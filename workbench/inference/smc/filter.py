@@ -30,6 +30,7 @@ from workbench.evaluation import STAGES, Done, Evaluation, Evaluator, Pending
 from workbench.geometry import rotation_angle
 from workbench.inference.answer.posterior import Posterior
 from workbench.inference.answer.settle import Tie
+from workbench.inference.clock import StageClock
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.moves.registry import MoveKind
 from workbench.inference.smc.particleset import ParticleSet
@@ -127,6 +128,22 @@ class _WithoutFloor:
         return replace(ev, loglik=ev.loglik - ev.floor_gain, floor_gain=np.zeros_like(ev.floor_gain))
 
 
+@dataclass
+class _Clocked:
+    """A pending evaluation whose wait, hypotheses and worker seconds go to the clock's stage that asks for it."""
+
+    pending: Pending
+    clock: StageClock
+    n: int
+    project: bool
+
+    def result(self) -> Evaluation:
+        with self.clock.waiting():
+            ev = self.pending.result()
+        self.clock.count(self.n, self.project, ev.timings)
+        return ev
+
+
 class Search(Protocol):
     """The hooks the filter calls. A search reads the filter's state and never writes it: what it changes comes
     back as ``Started``/``Update`` for the filter to apply. Its own memory between steps (candidates, scenes
@@ -175,7 +192,8 @@ class ParticleFilter:
     ``sink`` (m): how far below the fitted table plane (z = 0) the objects rest in physics, for every hypothesis
     evaluated. On real frames the objects' depth puts them several millimetres *into* the plane fitted to the
     table's depth around them; the default search fits the sink as one unknown of the scene, the paper's keeps 0.
-    ``evaluations`` counts the hypotheses projected and weighed."""
+    ``evaluations`` counts the hypotheses projected and weighed; ``clock`` says where the run's wall time went, and
+    holds its budget (``inference.clock``: made anew by ``Estimator.run``; not part of the state)."""
 
     def __init__(self, problem: Problem, config: EstimatorConfig, evaluator: Evaluator | None, search: Search):
         self.problem = problem
@@ -195,6 +213,7 @@ class ParticleFilter:
         self.sink = 0.0
         self.evaluations = 0
         self.floor_in = self.floor_at <= 0
+        self.clock = StageClock()
 
     @property
     def floor_at(self) -> int:
@@ -212,6 +231,11 @@ class ParticleFilter:
             return
         self.floor_in = True
         self.calm = 0
+        with self.clock.stage("floor"):
+            self._weigh_again()
+
+    def _weigh_again(self) -> None:
+        """The estimate and the particles scored again as they rest, with the clutter floor in."""
         if self.estimate is not None:
             self.estimate_loglik = float(self.evaluate(self.estimate[None], project=False).loglik[0])
         if self.particles is not None and np.isfinite(self.particles.loglik).any():
@@ -246,7 +270,7 @@ class ParticleFilter:
         if project:
             self.evaluations += len(hypotheses)
         sink = np.full(len(hypotheses), self.sink) if sink is None else sink
-        pending = self.evaluator.submit(hypotheses, sink, project)
+        pending = _Clocked(self.evaluator.submit(hypotheses, sink, project), self.clock, len(hypotheses), project)
         return pending if self.floor_in else _WithoutFloor(pending)
 
     def evaluate(self, hypotheses: np.ndarray, sink: np.ndarray | None = None, project: bool = True) -> Evaluation:
@@ -314,22 +338,28 @@ class ParticleFilter:
 
     # --------------------------------------------------------------------------------------------------- steps
     def step(self) -> IterationReport:
+        with self.clock.stage("filter"):  # what the search's own stages inside it leave over
+            return self._step()
+
+    def _step(self) -> IterationReport:
         cfg = self.config
         t0 = time.perf_counter()
         accept_rate, accepted = float("nan"), None
         if self.iteration + 1 >= self.floor_at:
             self.weigh_floor_in()
         if self.iteration < 0:
-            started = self.search.start(self)
-            self.apply(started.update)
-            start, kinds = started.hypotheses, started.kinds
-            t_resample = time.perf_counter() - t0
-            ev = self.evaluate(start)
+            with self.clock.stage("start"):
+                started = self.search.start(self)
+                self.apply(started.update)
+                start, kinds = started.hypotheses, started.kinds
+                t_resample = time.perf_counter() - t0
+                ev = self.evaluate(start)
             self.particles = ParticleSet.evaluated(start, ev, kinds)
         else:
             idx = systematic_resample(self.beta * self.particles.loglik, self.rng, cfg.particles)
             parents = self.particles[idx]
-            p = self.search.propose(self, parents.projected)
+            with self.clock.stage("proposals"):
+                p = self.search.propose(self, parents.projected)
             t_resample = time.perf_counter() - t0 - p.waited  # the main process's own work
             ev, kinds = p.evaluation, p.kinds
             proposed = ParticleSet.evaluated(p.hypotheses, ev, kinds)

@@ -8,10 +8,14 @@ import numpy as np
 import viser
 
 from workbench.app.ui.run.views import HEATMAP_MODES
+from workbench.app.ui.widgets.numeric import NumberRule
 from workbench.geometry import rot_x, rot_y, rot_z
 
-POSITION_FIELDS = ("x (cm)", "y (cm)", "z (cm)")
-ANGLE_FIELDS = ("roll (°)", "pitch (°)", "yaw (°)")
+# The pose fields' rules: a few metres hold any table scene; the angles' ranges are those ``matrix_to_euler``
+# gives, so that a typed angle is shown back as typed.
+POSITION_RULES = tuple(NumberRule(name, -500, 500, "cm") for name in ("x (cm)", "y (cm)", "z (cm)"))
+ANGLE_RULES = (NumberRule("roll (°)", -180, 180, "°"), NumberRule("pitch (°)", -90, 90, "°"),
+               NumberRule("yaw (°)", -180, 180, "°"))
 NO_OBJECT = "(nothing loaded)"
 TURNS = ("−90°", "+90°")
 AXES = {"x": rot_x, "y": rot_y, "z": rot_z}  # the table's axes
@@ -23,8 +27,9 @@ FACES = {"−z": (0, 0, -1), "+z": (0, 0, 1), "−x": (-1, 0, 0), "+x": (1, 0, 0
 class LabelTab:
     object: viser.GuiDropdownHandle
     state: viser.GuiMarkdownHandle
-    position: tuple[viser.GuiNumberHandle, viser.GuiNumberHandle, viser.GuiNumberHandle]  # cm, table frame
-    angles: tuple[viser.GuiNumberHandle, viser.GuiNumberHandle, viser.GuiNumberHandle]  # roll, pitch, yaw (deg)
+    # Text, not number inputs, read by ``pose_fields.PoseFields`` (see ``widgets.numeric`` for why).
+    position: tuple[viser.GuiTextHandle, viser.GuiTextHandle, viser.GuiTextHandle]  # cm, table frame
+    angles: tuple[viser.GuiTextHandle, viser.GuiTextHandle, viser.GuiTextHandle]  # roll, pitch, yaw (deg)
     turns: tuple[viser.GuiButtonGroupHandle, viser.GuiButtonGroupHandle, viser.GuiButtonGroupHandle]  # x, y, z
     lay: viser.GuiButtonGroupHandle
     show_gizmo: viser.GuiCheckboxHandle
@@ -47,10 +52,10 @@ class LabelTab:
 def build_label_tab(gui: viser.GuiApi) -> LabelTab:
     obj = gui.add_dropdown("Object", (NO_OBJECT,), hint="the object whose label the fields and the gizmo edit")
     state = gui.add_markdown("")
-    position = tuple(gui.add_number(name, 0.0, step=0.01, hint="table frame: x, y along the table, z up from its "
-                                    "top; the object's origin") for name in POSITION_FIELDS)
-    angles = tuple(gui.add_number(name, 0.0, step=0.01, hint="about the table's axes: R = Rz(yaw) Ry(pitch) Rx(roll)")
-                   for name in ANGLE_FIELDS)
+    position = tuple(gui.add_text(r.label, r.show(0.0), hint="table frame: x, y along the table, z up from its "
+                                  f"top; the object's origin; {r.span}") for r in POSITION_RULES)
+    angles = tuple(gui.add_text(r.label, r.show(0.0), hint="about the table's axes: R = Rz(yaw) Ry(pitch) Rx(roll); "
+                                f"{r.span}") for r in ANGLE_RULES)
     turns = tuple(gui.add_button_group(f"Turn about {a}", TURNS, hint=f"a quarter turn about the table's {a} axis, "
                                        "through the object's origin; it keeps its lowest point's height")
                   for a in AXES)

@@ -20,6 +20,7 @@ import viser
 
 from workbench.app import protocol as p
 from workbench.app.ui.labelling.controls import AXES, FACES, NO_OBJECT, TURNS, LabelTab
+from workbench.app.ui.labelling.pose_fields import PoseFields
 from workbench.app.ui.run.views import OUTLINE_WIDTH, Nodes, outline_segments, split_pose
 from workbench.app.ui.ui_thread import UiThread
 from workbench.app.ui.widgets.colors import LABEL_COLOR
@@ -27,7 +28,6 @@ from workbench.app.ui.widgets.quiet import Quiet
 from workbench.geometry import (
     euler_to_matrix,
     make_pose,
-    matrix_to_euler,
     quat_wxyz_to_matrix,
     rot_x,
     rotvec_to_matrix,
@@ -74,7 +74,9 @@ class LabelEditor:
     send: Callable[[object], None]
     ui: UiThread
     quiet: Quiet
+    reporter: object  # shows a refused typed value (``Reporter.field_errors``)
     on_unlabelled: Callable[[], None] = lambda: None
+    fields: PoseFields = field(init=False)
     labels: list = field(default_factory=list)
     estimate: np.ndarray | None = None  # the most likely scene (K, 4, 4): where unlabelled objects are shown
     names: list[str] = field(default_factory=list)
@@ -89,10 +91,7 @@ class LabelEditor:
     def __post_init__(self) -> None:
         t, on_ui = self.tab, self.ui.callback
         t.object.on_update(on_ui(lambda _: self.guarded(self.selection_changed)))
-        for i, h in enumerate(t.position):
-            h.on_update(on_ui(lambda _, i=i: self.guarded(lambda: self.field_edited(position_axis=i))))
-        for h in t.angles:
-            h.on_update(on_ui(lambda _: self.guarded(lambda: self.field_edited(position_axis=None))))
+        self.fields = PoseFields(t, self.ui, self.quiet, self.reporter, self.field_edited)
         t.show_gizmo.on_update(on_ui(lambda _: self.guarded(self.redraw)))
         for axis, h in zip(AXES, t.turns):
             h.on_click(on_ui(lambda event, axis=axis: self.guarded(lambda: self.turn(axis, event.target.value))))
@@ -189,13 +188,10 @@ class LabelEditor:
         if sel is None:
             t.state.content = "Load a frame to label its objects."
             return
-        T = self.pose(sel)
-        xyz = T[:3, 3] * 100.0
-        rpy = np.degrees(matrix_to_euler(T[:3, :3]))
-        for h, v in zip((*t.position, *t.angles), (*xyz, *rpy)):
-            h.value = float(v)
-        if abs(rpy[1]) > GIMBAL_DEG:
-            gimbal = (f" Pitch is {rpy[1]:.0f}°: roll and yaw now turn about nearly the same axis, so use **Turn**, "
+        self.fields.show(self.pose(sel))
+        pitch = self.fields.values[4]
+        if abs(pitch) > GIMBAL_DEG:
+            gimbal = (f" Pitch is {pitch:.0f}°: roll and yaw now turn about nearly the same axis, so use **Turn**, "
                       "**Lay on face** or the gizmo rather than typing angles.")
         else:
             gimbal = ""
@@ -242,17 +238,18 @@ class LabelEditor:
         self.redraw()
         self.send_labels()
 
-    def field_edited(self, position_axis: int | None) -> None:
-        """A typed value: a position field changes that coordinate only; an angle field sets the rotation from
-        all three angles (so the other coordinates are kept to the last bit)."""
+    def field_edited(self, i: int, value: float) -> None:
+        """Pose field ``i`` typed (``PoseFields``' order; its rule read ``value``): a position field changes that
+        coordinate only; an angle field sets the rotation from the three angles shown, that one changed (so the
+        other coordinates are kept to the last bit)."""
         k = self.selected()
         if k is None:
             return
         T = np.array(self.pose(k), dtype=np.float64)
-        if position_axis is not None:
-            T[position_axis, 3] = float(self.tab.position[position_axis].value) / 100.0
+        if i < 3:
+            T[i, 3] = value / 100.0
         else:
-            T[:3, :3] = euler_to_matrix(np.radians([float(h.value) for h in self.tab.angles]))
+            T[:3, :3] = euler_to_matrix(np.radians(self.fields.angles_with(i, value)))
         self.set_label(k, T)
 
     def gizmo_moved(self, k: int, event: viser.TransformControlsEvent) -> None:

@@ -19,13 +19,15 @@ from workbench.app.ui.labelling.editor import LabelEditor
 from workbench.app.ui.labelling.mode_choice import ModeChoice
 from workbench.app.ui.run.views import HeatmapLayer
 from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.colors import named
 from workbench.app.ui.widgets.quiet import Quiet
 
 
 def errors_markdown(msg: p.LabelErrors, names: list[str]) -> str:
     """The estimate's errors against the labels, one row per object (``names``: the objects' display names)."""
     rows = []
-    for name, e in zip(names, msg.errors):
+    for k, e in enumerate(msg.errors[:len(names)]):
+        name = named(k, names[k])
         if e["position_error_m"] is None:
             rows.append(f"| {name} | — | — | — |")
         else:
@@ -49,6 +51,7 @@ class Labelling:
     send: Callable[[object], None]
     ui: UiThread
     quiet: Quiet
+    reporter: object  # shows a refused typed pose value (``Reporter.field_errors``)
     on_heatmap_mode: Callable[[], None] = lambda: None
     tab: LabelTab = field(init=False)
     editor: LabelEditor = field(init=False)
@@ -62,7 +65,7 @@ class Labelling:
             with self.tab.backups:
                 self.backups = Backups(self.server.gui, self.send, self.ui)
         self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
-        self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet,
+        self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet, self.reporter,
                                   on_unlabelled=self.clear_heatmap)
         self.modes = ModeChoice(self.server.gui, self.tab.modes)
         t, on_ui = self.tab, self.ui.callback

@@ -37,9 +37,10 @@ class ModeChoice:
         if posterior is not None and iteration == self.iteration:
             return  # the same snapshot again (e.g. more particles drawn): keep the user's choice
         self.iteration = iteration if posterior is not None else -1
-        modes = {o.obj: o.modes for o in posterior.objects} if posterior is not None else {}
+        objects = {o.obj: o for o in posterior.objects} if posterior is not None else {}
         for k, d in enumerate(self.dropdowns):
-            options = tuple(mode_option(j, m) for j, m in enumerate(modes.get(k, [])))
+            o = objects.get(k)
+            options = tuple(mode_option(j, o, m) for j, m in enumerate(o.modes)) if o is not None else ()
             if len(options) > 1:
                 d.options = options
                 d.value = options[0]

@@ -48,7 +48,7 @@ class RunButtons:
             return
         self.since = started = time.monotonic()
         self.step.disabled = True
-        self.busy.content = "⏳ **Step running** · 0 s"
+        self.busy.content = "**Step running** · 0 s"
         self.busy.visible = self.busy_bar.visible = True
         self.send(p.Step())
         self.ui.later(1.0, lambda: self._count(started))
@@ -57,7 +57,7 @@ class RunButtons:
         """Another second of the Step sent at ``started``, while it is still out."""
         if self.since != started:
             return
-        self.busy.content = f"⏳ **Step running** · {time.monotonic() - started:.0f} s"
+        self.busy.content = f"**Step running** · {time.monotonic() - started:.0f} s"
         self.ui.later(1.0, lambda: self._count(started))
 
     def done(self) -> None:

@@ -16,14 +16,17 @@ import viser
 from workbench.app import protocol as p
 from workbench.app.engine.snapshot import default_drawn
 from workbench.app.ui.labelling.labelling import Labelling
+from workbench.app.ui.reporting import Reporter
 from workbench.app.ui.run.ghosts import ModesLayer
-from workbench.app.ui.run.inspect import build_inspect_tab
+from workbench.app.ui.run.inspect import DRAWN, build_inspect_tab
 from workbench.app.ui.run.modes import confidences, posterior_markdown
 from workbench.app.ui.run.status import physics_markdown
 from workbench.app.ui.run.view_box import ViewBox
 from workbench.app.ui.run.views import ChosenLayer, HeatmapLayer, ObservationLayer, ParticleLayer, light_cheaply
 from workbench.app.ui.ui_thread import UiThread
 from workbench.app.ui.widgets.colors import view_legend_html
+from workbench.app.ui.widgets.numeric import NumberField
+from workbench.app.ui.widgets.quiet import Quiet
 from workbench.app.ui.widgets.scene_throttle import SceneThrottle
 from workbench.inference.answer.posterior import Posterior
 
@@ -40,19 +43,19 @@ class RunDisplay:
     View box's legend, with the layers ``view_box`` shows. ``send`` reaches the engine (which particle is chosen,
     how many are drawn); ``on_error(what, err)``: a throttled drawing failed."""
 
-    def __init__(self, server: viser.ViserServer, container: viser.GuiTabHandle, ui: UiThread, view_box: ViewBox,
-                 labelling: Labelling, particles: int, send: Callable[[object], None],
-                 on_error: Callable[[str, Exception], None]):
+    def __init__(self, server: viser.ViserServer, container: viser.GuiTabHandle, ui: UiThread, quiet: Quiet,
+                 reporter: Reporter, view_box: ViewBox, labelling: Labelling, particles: int,
+                 send: Callable[[object], None]):
         self.server, self.view_box, self.labelling, self.send = server, view_box, labelling, send
         self.drawn_by_user = False  # whether the user has set Particles drawn (else each frame gets its share)
         with container:
             self.inspect = ins = build_inspect_tab(server.gui, particles)
         ins.rank.on_update(ui.callback(lambda _: send(p.Select(int(ins.rank.value)))))
         ins.best.on_click(ui.callback(lambda _: self.pick(0)))
-        ins.max_particles.on_update(ui.callback(self.drawn_changed))
+        self.drawn = NumberField(ins.max_particles, DRAWN, ui, quiet, reporter, self.drawn_changed)
         ins.scene_mode.on_update(ui.callback(lambda _: self.redraw_chosen()))
         ins.heatmap_mode.on_update(ui.callback(lambda _: self.heatmap_mode_changed()))
-        self.throttle = SceneThrottle(server, ui, SCENE_INTERVAL_S, SCENE_GATHER_S, on_error)
+        self.throttle = SceneThrottle(server, ui, SCENE_INTERVAL_S, SCENE_GATHER_S, reporter.drawing_failed)
         light_cheaply(server)
         self.observation = ObservationLayer(server)
         self.particles = ParticleLayer(server, on_pick=lambda rank: ui.call(self.pick, rank))
@@ -74,10 +77,10 @@ class RunDisplay:
         else:
             slider.value = rank
 
-    def drawn_changed(self, event) -> None:
+    def drawn_changed(self, drawn: int, event) -> None:
         """Particles drawn: the engine sends that many; once the user sets it (a client's event), frames keep it."""
         self.drawn_by_user |= event.client is not None
-        self.send(p.SetDisplay(int(self.inspect.max_particles.value)))
+        self.send(p.SetDisplay(drawn))
 
     def truth_reloaded(self, msg: p.TruthReloaded) -> None:
         """The frame's ground truth read again (a label save or a restore wrote scene_gt.json): drawn anew."""
@@ -96,8 +99,10 @@ class RunDisplay:
         self.heatmap.set_frame(view)
         self.modes.set_frame(view.meshes)
         self.posterior = None
-        if not self.drawn_by_user:  # the frame's share of the outlines drawn (sends SetDisplay)
-            ins.max_particles.value = default_drawn(len(view.meshes))
+        drawn = default_drawn(len(view.meshes))
+        if not self.drawn_by_user and drawn != self.drawn.value:  # the frame's share of the outlines drawn
+            self.drawn.show(drawn)
+            self.send(p.SetDisplay(drawn))
         ins.posterior.content = posterior_markdown(None, [], -1)
         ins.heat_image.visible = False
         ins.legend.content = ""

@@ -8,15 +8,25 @@ from dataclasses import dataclass, replace
 import numpy as np
 import viser
 
+from workbench.app.ui.widgets.numeric import NumberRule, parse_list
 from workbench.errors import InputError
-from workbench.inference.config import EstimatorConfig
+from workbench.inference.config import MAX_BUDGET_S, MAX_SIGMA_M, EstimatorConfig
 from workbench.inference.smc.particles import Sigma
 
 METHOD_LABELS = {"PI-PF": "pipf", "PI-MCPF": "mcpf"}
 LIKELIHOODS = ("robust", "ssd")
 SIGMA_XY, SIGMA_Z, SIGMA_ANGLES = "σ x, y (cm)", "σ elevation (cm)", "σ roll, pitch, yaw (°)"
-RESET_NOTE = ("<small>Method, particles, iterations and σ apply at the next step; **likelihood and seed apply at "
-              "Reset**.</small>")
+# Every typed number is read by the one rule (``numeric``); a diffusion beyond these leaves any table scene
+# (EstimatorConfig's MAX_SIGMA_M, MAX_SIGMA_RAD).
+PARTICLES = NumberRule("Particles", 1, 100_000, whole=True)
+ITERATIONS = NumberRule("Iterations", 0, 100_000, whole=True)
+SEED = NumberRule("Seed", 0, 2**32 - 1, whole=True)
+BUDGET = NumberRule("Budget (s)", 0.1, MAX_BUDGET_S, "s")
+SIGMA_XY_RULES = (NumberRule("x", 0, MAX_SIGMA_M * 100, "cm"), NumberRule("y", 0, MAX_SIGMA_M * 100, "cm"))
+SIGMA_Z_RULE = NumberRule(SIGMA_Z, 0, MAX_SIGMA_M * 100, "cm")
+SIGMA_ANGLE_RULES = tuple(NumberRule(a, 0, 360, "°") for a in ("roll", "pitch", "yaw"))
+RESET_NOTE = ("<small>Method, particles, iterations and σ apply at the next step, the budget at the next Run; "
+              "**likelihood and seed apply at Reset**.</small>")
 
 
 @dataclass
@@ -25,6 +35,7 @@ class EstimatorTab:
     # Text, not number inputs: a number input silently empties itself on "abc" and keeps the old value unseen.
     particles: viser.GuiTextHandle
     iterations: viser.GuiTextHandle
+    budget: viser.GuiTextHandle  # seconds; empty: until converged
     sigma_xy: viser.GuiTextHandle  # "x, y" in cm
     sigma_z: viser.GuiTextHandle
     sigma_angles: viser.GuiTextHandle  # "roll, pitch, yaw" in degrees
@@ -37,7 +48,8 @@ class EstimatorTab:
     @property
     def fields(self) -> dict[str, viser.GuiTextHandle]:
         """The typed fields by their labels (the names errors are reported under)."""
-        return {"Particles": self.particles, "Iterations": self.iterations, SIGMA_XY: self.sigma_xy,
+        return {"Particles": self.particles, "Iterations": self.iterations, BUDGET.label: self.budget,
+                SIGMA_XY: self.sigma_xy,
                 SIGMA_Z: self.sigma_z, SIGMA_ANGLES: self.sigma_angles, "Seed": self.seed}
 
     def estimator_config(self, base: EstimatorConfig) -> EstimatorConfig:
@@ -66,18 +78,19 @@ class EstimatorTab:
         def exact(shown, value, scale):
             return value if abs(shown - value * scale) <= 1e-6 * abs(value * scale) + 1e-12 else shown / scale
 
-        sx, sy = read(self.sigma_xy, lambda t: numbers(t, SIGMA_XY, 2, "cm"), (s.x * 100, s.y * 100))
-        (sz,) = read(self.sigma_z, lambda t: numbers(t, SIGMA_Z, 1, "cm"), (s.z * 100,))
-        roll, pitch, yaw = read(self.sigma_angles, lambda t: numbers(t, SIGMA_ANGLES, 3, "°"),
+        sx, sy = read(self.sigma_xy, lambda t: parse_list(t, SIGMA_XY_RULES, SIGMA_XY), (s.x * 100, s.y * 100))
+        sz = read(self.sigma_z, SIGMA_Z_RULE.parse, s.z * 100)
+        roll, pitch, yaw = read(self.sigma_angles, lambda t: parse_list(t, SIGMA_ANGLE_RULES, SIGMA_ANGLES),
                                 (s.roll * deg, s.pitch * deg, s.yaw * deg))
         config = replace(
             base,
             method=METHOD_LABELS[self.method.value],
-            particles=read(self.particles, lambda t: whole_number(t, "Particles", 1, 100_000), base.particles),
-            iterations=read(self.iterations, lambda t: whole_number(t, "Iterations", 0, 100_000), base.iterations),
+            particles=read(self.particles, PARTICLES.parse, base.particles),
+            iterations=read(self.iterations, ITERATIONS.parse, base.iterations),
+            budget_s=read(self.budget, parse_budget, base.budget_s),
             sigma=Sigma(x=exact(sx, s.x, 100.0), y=exact(sy, s.y, 100.0), z=exact(sz, s.z, 100.0),
                         roll=exact(roll, s.roll, deg), pitch=exact(pitch, s.pitch, deg), yaw=exact(yaw, s.yaw, deg)),
-            seed=read(self.seed, lambda t: whole_number(t, "Seed", 0, 2**32 - 1), base.seed),
+            seed=read(self.seed, SEED.parse, base.seed),
         )
         config.validate()
         return config, errors
@@ -88,6 +101,7 @@ class EstimatorTab:
         values = {
             "Particles": (self.particles, str(config.particles)),
             "Iterations": (self.iterations, str(config.iterations)),
+            BUDGET.label: (self.budget, shown_budget(config.budget_s)),
             SIGMA_XY: (self.sigma_xy, shown_numbers(s.x * 100, s.y * 100)),
             SIGMA_Z: (self.sigma_z, shown_numbers(s.z * 100)),
             SIGMA_ANGLES: (self.sigma_angles, shown_numbers(s.roll * deg, s.pitch * deg, s.yaw * deg)),
@@ -106,39 +120,22 @@ class EstimatorTab:
     def show_config(self, config: EstimatorConfig, likelihood: str) -> None:
         """Put ``config`` into the controls (call inside ``Quiet``: these writes fire the controls' callbacks)."""
         self.method.value = {v: k for k, v in METHOD_LABELS.items()}[config.method]
-        self.revert(("Particles", "Iterations", SIGMA_XY, SIGMA_Z, SIGMA_ANGLES, "Seed"), config)
+        self.revert(("Particles", "Iterations", BUDGET.label, SIGMA_XY, SIGMA_Z, SIGMA_ANGLES, "Seed"), config)
         self.likelihood.value = likelihood
-
-
-def whole_number(text: str, field: str, lo: int, hi: int) -> int:
-    """A typed whole number in [lo, hi]; InputError naming the field otherwise."""
-    try:
-        value = int(str(text).strip())
-    except ValueError:
-        raise InputError(field, f"must be a whole number from {lo} to {hi}, got {str(text)!r}") from None
-    if not lo <= value <= hi:
-        raise InputError(field, f"must be a whole number from {lo} to {hi}, got {value}")
-    return value
-
-
-def numbers(text: str, field: str, n: int, unit: str) -> tuple[float, ...]:
-    """``n`` comma-separated numbers, each finite and >= 0, in the field's unit; InputError naming the field."""
-    parts = [t.strip() for t in str(text).replace(";", ",").split(",")]
-    try:
-        values = tuple(float(t) for t in parts)
-    except ValueError:
-        values = ()
-    if len(values) != n or not all(np.isfinite(v) and v >= 0 for v in values):
-        what = "a number" if n == 1 else f"{n} numbers separated by commas, each"
-        raise InputError(field, f"must be {what} >= 0 {unit}, got {str(text).strip()!r}")
-    return values
 
 
 def shown_numbers(*values: float) -> str:
     return ", ".join(f"{v:.6g}" for v in values)
 
 
-SIGMA_XY, SIGMA_Z, SIGMA_ANGLES = "σ x, y (cm)", "σ elevation (cm)", "σ roll, pitch, yaw (°)"
+def parse_budget(text: object) -> float | None:
+    """The Budget field: empty (or "none") for a run until converged, else seconds by the one rule."""
+    return None if str(text).strip().lower() in ("", "none") else BUDGET.parse(text)
+
+
+def shown_budget(budget_s: float | None) -> str:
+    return "" if budget_s is None else shown_numbers(budget_s)
+
 
 
 def build_estimator_tab(gui: viser.GuiApi, config: EstimatorConfig, likelihood: str) -> EstimatorTab:
@@ -147,7 +144,10 @@ def build_estimator_tab(gui: viser.GuiApi, config: EstimatorConfig, likelihood: 
                               initial_value={v: k for k, v in METHOD_LABELS.items()}[config.method],
                               hint="applies at the next step")
     particles = gui.add_text("Particles", str(config.particles), hint="1 to 100000; applies at the next step")
-    iterations = gui.add_text("Iterations", str(config.iterations), hint="the budget Run stops at")
+    iterations = gui.add_text("Iterations", str(config.iterations), hint="the most a Run steps")
+    budget = gui.add_text(BUDGET.label, shown_budget(config.budget_s),
+                          hint="anytime: a Run stops by this many seconds and answers with its best scene so far; "
+                               "empty: until converged or the iterations end")
     s, deg = config.sigma, 180.0 / np.pi
     sigma_xy = gui.add_text(SIGMA_XY, shown_numbers(s.x * 100, s.y * 100),
                             hint="diffusion of the position on the table: x, y; applies at the next step")
@@ -159,7 +159,7 @@ def build_estimator_tab(gui: viser.GuiApi, config: EstimatorConfig, likelihood: 
     pending = gui.add_markdown(RESET_NOTE)
     stop = gui.add_checkbox("Stop at convergence", True)
     timings = gui.add_markdown("")
-    return EstimatorTab(method=method, particles=particles, iterations=iterations, sigma_xy=sigma_xy,
+    return EstimatorTab(method=method, particles=particles, iterations=iterations, budget=budget, sigma_xy=sigma_xy,
                         sigma_z=sigma_z, sigma_angles=sigma_angles, likelihood=like, seed=seed, pending=pending,
                         stop_on_convergence=stop, timings=timings)
 
@@ -170,4 +170,4 @@ def pending_markdown(in_use: tuple[str, int], shown: tuple[str, int]) -> str:
                                                        ("seed", in_use[1], shown[1])) if old != new]
     if not waiting:
         return RESET_NOTE
-    return f"**⏳ {' and '.join(waiting)}: waiting for Reset** (the run uses {in_use[0]}, seed {in_use[1]})."
+    return f"**{' and '.join(waiting)}: waiting for Reset** (the run uses {in_use[0]}, seed {in_use[1]})."

@@ -1,5 +1,6 @@
 """The other modes of the posterior in the 3D view: each object's alternatives to the estimate (``modes[1:]``) as
-ghosts, faint outlines in a pale tint of the object's colour, each with its probability as a label.
+ghosts, faint outlines in a pale tint of the object's colour, each labelled beside it with its object's name and
+its probability.
 
 Ghosts are drawn as the particles are (``views.outline_mesh``: the feature edges of a coarse decimation, one
 instanced wireframe per object), not as solid meshes or every triangle edge: a few more instances cost software
@@ -22,22 +23,30 @@ from workbench.inference.answer.posterior import Posterior
 
 GHOST_OPACITY = 0.55
 LABEL_LIFT_M = 0.02  # a label sits this far above the ghost's highest outline point
+LABEL_GAP_M = 0.01  # and this far beyond its outline, on the side away from the other objects
 
 
-def label_position(segments: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Where a ghost's label goes: above the middle of its outline ``segments`` (E, 2, 3) object frame, posed by
-    ``T`` (4, 4) table frame -> (3,) table frame, m."""
+def label_position(segments: np.ndarray, T: np.ndarray, away_from: np.ndarray) -> np.ndarray:
+    """Where a ghost's label goes: beside its outline ``segments`` (E, 2, 3) object frame, posed by ``T`` (4, 4)
+    table frame, on the side away from ``away_from`` (3,) (the estimate's centre: over the middle of the ghost the
+    label sat over the other objects), just above its top -> (3,) table frame, m."""
     points = segments.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
-    top = points[:, 2].max() if len(points) else T[2, 3]
-    centre = points.mean(axis=0) if len(points) else T[:3, 3]
-    return np.array([centre[0], centre[1], top + LABEL_LIFT_M])
+    if not len(points):
+        points = T[None, :3, 3]
+    centre = points.mean(axis=0)
+    out = centre[:2] - np.asarray(away_from, dtype=np.float64)[:2]
+    norm = np.linalg.norm(out)
+    out = out / norm if norm > 1e-9 else np.array([1.0, 0.0])
+    reach = float(np.max((points[:, :2] - centre[:2]) @ out))  # the outline's extent that way
+    xy = centre[:2] + out * (reach + LABEL_GAP_M)
+    return np.array([xy[0], xy[1], points[:, 2].max() + LABEL_LIFT_M])
 
 
 @dataclass
 class ModesLayer:
     """Per object with other modes: one instanced outline (an instance per mode after the first) and a label per
-    mode ("p = 0.31 turned over its x axis"). ``ghosts[k]``: object k's outline handle, if it has other modes;
-    ``labels``: every label's handle; ``texts``: their texts, in the order drawn (for the tests)."""
+    mode ("mug · p = 0.31 turned over its x axis"). ``ghosts[k]``: object k's outline handle, if it has other
+    modes; ``labels``: every label's handle; ``texts``: their texts, in the order drawn (for the tests)."""
 
     server: viser.ViserServer
     meshes: list[MeshData] = field(default_factory=list)
@@ -61,6 +70,7 @@ class ModesLayer:
         if posterior is None or not self.meshes:
             return
         scene, add = self.server.scene, self.nodes.add
+        middle = np.mean([o.modes[0].T[:3, 3] for o in posterior.objects], axis=0)
         with self.server.atomic():
             for o in posterior.objects:
                 others = o.modes[1:]
@@ -78,9 +88,9 @@ class ModesLayer:
                     lod="off", wireframe=True, visible=self.shown, **NO_SHADOW))
                 segments = vertices.reshape(-1, 2, 3)
                 for j, m in enumerate(others, start=1):
-                    text = mode_label(m)
+                    text = f"{mesh.name} · {mode_label(o, m)}"
                     self.labels.append(add(scene.add_label(
-                        f"/modes/{k}/label_{j}", text, position=label_position(segments, m.T),
+                        f"/modes/{k}/label_{j}", text, position=label_position(segments, m.T, middle),
                         anchor="bottom-center", visible=self.shown)))
                     self.texts.append(text)
 

@@ -6,13 +6,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from workbench.app.ui.widgets.colors import named
 from workbench.app.ui.widgets.markdown import escape
 from workbench.inference.answer.posterior import DOUBTFUL, Mode, ObjectPosterior, Posterior
 
 
-def mode_label(mode: Mode) -> str:
-    """A mode's label in the 3D view: "p = 0.31 turned over its x axis"."""
-    return f"p = {mode.probability:.2f} {mode.what}"
+def chance(o: ObjectPosterior, mode: Mode) -> float:
+    """``mode``'s probability among all of object ``o``'s chances: its modes share what ``elsewhere`` leaves, so that
+    the modes and elsewhere add up to 1 as shown (``Mode.probability`` is given that the object was found)."""
+    return mode.probability * (1.0 - o.elsewhere)
+
+
+def mode_label(o: ObjectPosterior, mode: Mode) -> str:
+    """A mode of object ``o`` in words: "p = 0.31 turned over its x axis"."""
+    return f"p = {chance(o, mode):.2f} {mode.what}"
 
 
 def yaw_text(o: ObjectPosterior) -> str:
@@ -24,12 +31,12 @@ def yaw_text(o: ObjectPosterior) -> str:
 
 
 def confidence_text(o: ObjectPosterior) -> str:
-    """An object's confidence: its top mode's probability, the open heading if any, and the chance that it is
+    """An object's confidence: its top mode's ``chance``, the open heading if any, and the chance that it is
     elsewhere when that is at least ``posterior.DOUBTFUL``: "p = 0.84", "p = 1.00, heading open −60° … +90°",
-    "p = 1.00, elsewhere 0.62"."""
+    "p = 0.38, elsewhere 0.62"."""
     yaw = yaw_text(o)
     doubt = f"elsewhere {o.elsewhere:.2f}" if o.elsewhere >= DOUBTFUL else ""
-    return ", ".join([f"p = {o.confidence:.2f}", *(t for t in (yaw, doubt) if t)])
+    return ", ".join([f"p = {chance(o, o.modes[0]):.2f}", *(t for t in (yaw, doubt) if t)])
 
 
 def confidences(posterior: Posterior | None, n_objects: int) -> list[str]:
@@ -41,9 +48,9 @@ def confidences(posterior: Posterior | None, n_objects: int) -> list[str]:
     return out
 
 
-def mode_option(j: int, mode: Mode) -> str:
-    """One entry of the Label tab's choice of mode: "mode 2 · p = 0.38 · turned over its x axis"."""
-    return f"mode {j + 1} · p = {mode.probability:.2f} · {mode.what}"
+def mode_option(j: int, o: ObjectPosterior, mode: Mode) -> str:
+    """One entry of the Label tab's choice of object ``o``'s mode: "mode 2 · p = 0.38 · turned over its x axis"."""
+    return f"mode {j + 1} · p = {chance(o, mode):.2f} · {mode.what}"
 
 
 NO_POSTERIOR = ("<small>No posterior yet: it is computed when the run finishes (iteration budget or convergence), "
@@ -57,18 +64,19 @@ def posterior_markdown(posterior: Posterior | None, names: list[str], iteration:
         return NO_POSTERIOR
     rows = []
     for o in posterior.objects:
-        name = escape(names[o.obj] if o.obj < len(names) else f"object {o.obj}")
-        others = "; ".join(escape(mode_label(m)) for m in o.modes[1:]) or "—"
-        rows.append(f"| {name} | {o.confidence:.2f} | {o.elsewhere:.2f} ({100 * o.seen_through:.0f} %) | "
-                    f"{o.position_spread_m * 1000:.1f} | {yaw_text(o).removeprefix('heading open ') or '—'} | "
-                    f"{others} |")
+        name = named(o.obj, names[o.obj] if o.obj < len(names) else f"object {o.obj}")
+        others = "<br>".join(escape(mode_label(o, m)) for m in o.modes[1:]) or "—"  # one line each
+        rows.append(f"| {name} | {chance(o, o.modes[0]):.2f} | {others} | {o.elsewhere:.2f} "
+                    f"({100 * o.seen_through:.0f} %) | {o.position_spread_m * 1000:.1f} | "
+                    f"{yaw_text(o).removeprefix('heading open ') or '—'} |")
     return (f"**Posterior** of the settled estimate · iteration {iteration}\n\n"
-            "| object | p (estimate) | elsewhere (seen through) | spread (mm) | heading open | other modes |\n"
-            "|---|---:|---:|---:|---|---|\n"
+            "| object | p (estimate) | other modes | elsewhere (seen through) | spread (mm) | heading open |\n"
+            "|---|---:|---|---:|---:|---|\n"
             + "\n".join(rows)
-            + f"\n\n<small>other modes are drawn as ghosts in the 3D view; probabilities at temperature "
-              f"{posterior.temperature:g}, given that the object was found; *elsewhere*: the chance that it is none "
-              f"of its modes, from the share of its surface the sensor sees through</small>")
+            + f"\n\n<small>per object, the estimate, the other modes and *elsewhere* add up to 1; other modes are "
+              f"drawn as ghosts in the 3D view; probabilities at temperature {posterior.temperature:g}; *elsewhere*: "
+              f"the chance that it is none of its modes, from the share of its surface the sensor sees "
+              f"through</small>")
 
 
 def scene_with_modes(scene: np.ndarray, posterior: Posterior | None, modes: tuple[int, ...],

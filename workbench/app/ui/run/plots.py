@@ -27,6 +27,7 @@ import viser
 import viser.uplot as uplot
 
 from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.layout import without_number_box
 
 HEIGHT = 140  # px per chart; the tab's "Plot height" slider changes it (100 to 400)
 # The popped-out window at first (x, y, width, height in CSS px: left of the panel, clear of it from a window 1000 px
@@ -229,6 +230,7 @@ class Plots:
         with self.tab:
             self.size = self.gui.add_slider("Plot height", 100, 400, 20, HEIGHT, order=-2.0,
                                             hint="px per chart: taller charts, or more of them on screen")
+            without_number_box(self.gui, self.size)
             self.pop = self.gui.add_button("Pop out", icon=viser.Icon.ARROWS_MAXIMIZE, order=-1.0,
                                            hint="the charts in a window of their own: move it, dock it, resize it")
             self.away = self.gui.add_markdown("The charts are in their own window.", order=-0.5, visible=False)

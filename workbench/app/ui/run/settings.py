@@ -11,13 +11,12 @@ import viser
 
 from workbench.app import protocol as p
 from workbench.app.ui.reporting import Reporter
-from workbench.app.ui.run.estimator_tab import build_estimator_tab, pending_markdown
-from workbench.app.ui.ui_thread import Later, UiThread
+from workbench.app.ui.run.estimator_tab import SEED, build_estimator_tab, pending_markdown
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.numeric import Refusals
 from workbench.app.ui.widgets.quiet import Quiet
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
-
-REVERT_S = 1.5  # a refused typed value is put back this long after the last keystroke
 
 
 class SettingsForm:
@@ -28,17 +27,18 @@ class SettingsForm:
         self.ui, self.quiet, self.reporter, self.send = ui, quiet, reporter, send
         self.config = config
         self.likelihood = likelihood  # the likelihood model of the run (the tab's applies at Reset)
-        self.revert_timer: Later | None = None
         with container:
             self.tab = build_estimator_tab(gui, config, likelihood)
+        self.refusals = Refusals(ui, quiet, reporter, lambda: self.tab.field_ids,
+                                 lambda labels: self.tab.revert(labels, self.config))
         for h in (self.tab.method, *self.tab.fields.values()):
             h.on_update(ui.callback(lambda _: self.changed()))
         self.tab.likelihood.on_update(ui.callback(lambda _: self.show_pending()))
 
     def changed(self) -> None:
         """A setting was typed: the valid ones go to the engine at once (the seed waits for Reset); refused ones
-        are outlined and listed now, and put back to the value in use once the typing pauses (REVERT_S: reverting
-        mid-word would fight the user) or at Step, Run or Reset."""
+        are outlined and listed now, and put back to the value in use once the typing pauses (``Refusals``) or at
+        Step, Run or Reset."""
         if self.quiet.active:
             return  # a restored session's settings being shown, not a user's edit
         try:
@@ -46,10 +46,7 @@ class SettingsForm:
         except InputError as err:
             self.reporter.report(p.Failure("Input error", err.problem, err.path))
             return
-        self.reporter.field_errors(errors, self.tab.field_ids)
-        self.cancel()
-        if errors:
-            self.revert_timer = self.ui.later(REVERT_S, self.revert)
+        self.refusals.refuse(errors)
         config = replace(config, seed=self.config.seed)  # the seed applies at Reset
         if config != self.config:
             self.config = config
@@ -59,20 +56,15 @@ class SettingsForm:
     def revert(self) -> bool:
         """Put the values in use back into the fields that hold refused ones (they stay outlined and listed)
         -> whether any was refused."""
-        self.cancel()
-        _, errors = self.tab.read_config(self.config)
-        if errors:
-            with self.quiet:
-                self.tab.revert(tuple(errors), self.config)
-        return bool(errors)
+        return self.refusals.put_back()
 
     def show_pending(self) -> None:
         """Say which settings wait for Reset (likelihood, seed), and which apply at once."""
         if self.quiet.active:
             return
         try:
-            seed = int(str(self.tab.seed.value).strip())
-        except ValueError:
+            seed = SEED.parse(self.tab.seed.value)
+        except InputError:
             seed = self.config.seed
         content = pending_markdown((self.likelihood, self.config.seed), (self.tab.likelihood.value, seed))
         if self.tab.pending.content != content:
@@ -88,6 +80,4 @@ class SettingsForm:
 
     def cancel(self) -> None:
         """No refused value is put back later (one is now, or the app stops)."""
-        if self.revert_timer is not None:
-            self.revert_timer.cancel()
-            self.revert_timer = None
+        self.refusals.cancel()

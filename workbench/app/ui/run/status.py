@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workbench.app import protocol as p
+from workbench.app.ui.widgets.colors import named
 from workbench.geometry import rotation_angle
 from workbench.inference.config import EstimatorConfig
 from workbench.physics import STATUS_NAMES
@@ -45,8 +46,11 @@ def status_markdown(s: RunView, cfg) -> str:
         return f"No iterations yet ({cfg.iterations} planned) · {state}. Press **Step** or **Run**."
     r = s.reports[-1]
     it = r["iteration"]
+    left = r.get("budget_left_s")
     if s.running:
-        state = "running"
+        state = "running" if left is None else f"running, {left:.0f} s of the budget left"
+    elif r.get("cut_short"):
+        state = f"**finished**: the budget cut short {r['cut_short']}"
     elif r["converged"]:
         state = "**finished**: converged"
     elif it >= cfg.iterations:
@@ -93,7 +97,8 @@ def physics_markdown(c: p.Chosen, names: list[str]) -> str:
     """How far physics moved each object of the chosen particle (``names``: the objects' display names)."""
     moved = np.linalg.norm(c.after[:, :3, 3] - c.before[:, :3, 3], axis=-1)
     turned = np.degrees(rotation_angle(np.swapaxes(c.before[:, :3, :3], -1, -2) @ c.after[:, :3, :3]))
-    rows = "\n".join(f"| {name} | {m * 100:.1f} | {a:.1f} |" for name, m, a in zip(names, moved, turned))
+    rows = "\n".join(f"| {named(k, name)} | {m * 100:.1f} | {a:.1f} |"
+                     for k, (name, m, a) in enumerate(zip(names, moved, turned)))
     return (
         f"Rank **{c.rank}** (particle {c.index}) · log-lik {c.loglik:.1f} · weight {c.weight:.3g} · "
         f"proposed by: {c.move} move · physics: {STATUS_NAMES.get(c.status, c.status)}\n\n"

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.app.ui.widgets.markdown import escape
+from workbench.app.ui.run.modes import chance
+from workbench.app.ui.widgets.colors import named
 from workbench.score.metrics import RIGHT_CM, RIGHT_DEG, add_s, is_right, position_error, rotation_error
 
 
@@ -46,11 +47,12 @@ def truth_rows(frame, problem, estimate: np.ndarray, points: list, posterior=Non
 
 
 def top_probabilities(posterior, n_objects: int) -> list[float]:
-    """(K,) each object's top mode's probability under ``posterior`` (None: all NaN)."""
+    """(K,) each object's top mode's probability under ``posterior`` (None: all NaN), as the panel shows it: of
+    all the object's chances, elsewhere included (``modes.chance``)."""
     out = [float("nan")] * n_objects
     for o in posterior.objects if posterior is not None else []:
         if 0 <= o.obj < n_objects:
-            out[o.obj] = float(o.confidence)
+            out[o.obj] = float(chance(o, o.modes[0]))
     return out
 
 
@@ -65,7 +67,7 @@ def truth_markdown(iteration: int, rows: list[dict], names: list[str]) -> str:
         return ""
     lines = []
     for r in rows:
-        name = escape(names[r["index"]] if r["index"] < len(names) else f"obj_{r['obj_id']:06d}")
+        name = named(r["index"], names[r["index"]] if r["index"] < len(names) else f"obj_{r['obj_id']:06d}")
         if not np.isfinite(r["position_cm"]):
             lines.append(f"| {name} | — | — | — | no estimate | – |")
             continue

@@ -7,6 +7,7 @@ from __future__ import annotations
 import viser
 
 from workbench.app.ui.run.camera import FRAME_OBJECTS, FROM_SENSOR
+from workbench.app.ui.widgets.layout import TABLE_CSS
 
 # The visibility bar: one toggle per layer of the 3D view, and what is shown at first.
 SHOW_ITEMS = ("points", "particles", "estimate", "modes", "truth", "labels", "heatmap")
@@ -31,6 +32,7 @@ class ViewBox:
         with gui.add_folder("View", expand_by_default=True):
             self.camera = gui.add_button_group("Camera", (FRAME_OBJECTS, FROM_SENSOR))
             self.visibility = gui.add_button_group("Show", visibility_options(self.shown))
+            gui.add_html(TABLE_CSS)  # for every table of the page, this one first
             self.truth = gui.add_markdown("")  # the estimate against the dataset's ground truth
             with gui.add_folder("Legend", expand_by_default=False):
                 self.legend = gui.add_html("")

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 import viser
 
-from workbench.app.protocol import Chosen, MeshData, ObservationView, ParticleCloud
+from workbench.app.protocol import Chosen, MeshData, ObservationView, ParticleCloud, PointSet
 from workbench.app.ui.widgets import colors
 
 SCENE_MODES = ("after physics", "before physics", "before + after", "side by side", "hidden")
@@ -113,6 +113,23 @@ class Nodes:
         self.handles = []
 
 
+DEPTH_BINS = 4  # each cloud of observed points is drawn as this many, nearest to farthest from the sensor
+
+
+def by_depth(c: PointSet, T_world_cam: np.ndarray, bins: int = DEPTH_BINS) -> list[tuple]:
+    """The points of ``c`` in ``bins`` bands of depth from the sensor (pose ``T_world_cam``) -> per band (points,
+    colours, point size). ``c.point_size`` fits the pixels' spacing at the median depth, and that spacing grows
+    with depth: one size for all drew the near points as overlapping tiles and left gaps between the far ones."""
+    if not len(c.points):
+        return []
+    depth = (c.points - T_world_cam[:3, 3]) @ T_world_cam[:3, 2]
+    middle = max(float(np.median(depth)), 1e-6)
+    band = np.searchsorted(np.quantile(depth, np.linspace(0.0, 1.0, bins + 1)[1:-1]), depth)
+    return [(c.points[band == b], c.colors[band == b],
+             c.point_size * max(float(np.median(depth[band == b])), 1e-6) / middle)
+            for b in range(bins) if np.any(band == b)]
+
+
 @dataclass
 class ObservationLayer:
     """The frame as seen: point clouds (fine near the objects, coarse elsewhere), table, object region, camera
@@ -126,12 +143,12 @@ class ObservationLayer:
     def draw(self, view: ObservationView, show_cloud: bool, show_gt: bool) -> None:
         scene, add = self.server.scene, self.nodes.add
         self.nodes.clear()
-        # Square points: "rounded" ones cost a fragment-shader discard per pixel in software WebGL, and at the
-        # data's spacing the squares tile the surface.
+        # Square points: "rounded" ones cost a fragment-shader discard per pixel in software WebGL.
         self.clouds = [
-            add(scene.add_point_cloud(f"/observation/{name}", c.points, c.colors, point_size=c.point_size,
+            add(scene.add_point_cloud(f"/observation/{name}/{b}", points, rgb, point_size=size,
                                       point_shape="square", visible=show_cloud))
-            for name, c in (("points", view.near), ("surroundings", view.far)) if len(c.points)
+            for name, c in (("points", view.near), ("surroundings", view.far))
+            for b, (points, rgb, size) in enumerate(by_depth(c, view.T_world_cam))
         ]
         x0, x1, y0, y1 = view.table
         # The table slab's top a millimetre below z = 0, so the table's own points stay visible on it.

@@ -79,13 +79,13 @@ class SequencePanel:
     def next(self) -> None:
         if self.waiting or self.state is None or self.state.next_id is None:
             return
-        self.wait(f"⏳ **Going to frame {self.state.next_id}** …")
+        self.wait(f"**Going to frame {self.state.next_id}** …")
         self.send(p.NextFrame())
 
     def jump(self, option: str) -> None:
         if self.waiting or self.state is None or not option.isdigit() or int(option) == self.state.current:
             return
-        self.wait(f"⏳ **Showing frame {option}** …")
+        self.wait(f"**Showing frame {option}** …")
         self.send(p.ShowFrame(int(option)))
 
     def wait(self, text: str) -> None:

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from workbench.app.ui.widgets.markdown import escape
+
 # Control points sampled from matplotlib's viridis (perceptually uniform, readable in greyscale).
 VIRIDIS = np.array(
     [[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142], [38, 130, 142],
@@ -75,6 +77,14 @@ SENSOR_COLOR = (40, 40, 40)
 
 def object_color(k: int) -> tuple[int, int, int]:
     return OBJECT_COLORS[k % len(OBJECT_COLORS)]
+
+
+def named(k: int, name: str) -> str:
+    """Object ``k``'s ``name`` (Markdown, escaped) after a square of its colour in the 3D view: a table's object
+    cell, told apart at a glance."""
+    r, g, b = object_color(k)
+    return (f'<span style="display:inline-block;width:0.7em;height:0.7em;border-radius:2px;margin-right:0.3em;'
+            f'vertical-align:-0.05em;background:rgb({r},{g},{b})"></span>{escape(name)}')
 
 
 GHOST_WHITE = 0.5  # the share of white in another mode's colour: pale, told apart from the solid estimate

@@ -1,0 +1,76 @@
+"""The Label tab's six pose fields (x, y, z in cm; roll, pitch, yaw in degrees) of the selected object, read by
+the panel's one rule for numbers (``widgets.numeric``): a refused value is shown in red and put back, and never
+reaches the label."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from workbench.app.ui.labelling.controls import ANGLE_RULES, POSITION_RULES, LabelTab
+from workbench.app.ui.ui_thread import UiThread
+from workbench.app.ui.widgets.numeric import Refusals
+from workbench.app.ui.widgets.quiet import Quiet
+from workbench.errors import InputError
+from workbench.geometry import matrix_to_euler
+
+RULES = (*POSITION_RULES, *ANGLE_RULES)
+
+
+class PoseFields:
+    """``on_typed(i, value)``: field ``i`` (0-2 position in cm, 3-5 angles in degrees, in RULES' order) was typed
+    and reads as ``value``. ``reporter`` shows refused values (``Reporter.field_errors``)."""
+
+    def __init__(self, tab: LabelTab, ui: UiThread, quiet: Quiet, reporter,
+                 on_typed: Callable[[int, float], None]):
+        self.handles = (*tab.position, *tab.angles)
+        self.quiet, self.on_typed = quiet, on_typed
+        # The pose shown, to the last bit: the fields show it rounded, and an angle typed into one field keeps the
+        # other two angles as they were, not as rounded.
+        self.values = np.zeros(6)
+        self.refusals = Refusals(ui, quiet, reporter, self.ids, self.restore)
+        for i, h in enumerate(self.handles):
+            h.on_update(ui.callback(lambda _, i=i: self.typed(i)))
+
+    def ids(self) -> dict[str, str]:
+        return {r.label: h._impl.uuid for r, h in zip(RULES, self.handles)}
+
+    def show(self, T: np.ndarray) -> None:
+        """Show pose ``T`` (4, 4; table frame) in the fields (call inside ``Quiet``). A field that already reads as
+        its value keeps its text: rewriting "1." as "1.00" would fight the user typing "1.5"; so does one being
+        typed into ("-" on its way to "-3", refused until then: ``Refusals`` puts the value back once the typing
+        pauses), though the run's estimate moves an unlabelled object's fields every iteration."""
+        self.values = np.concatenate([T[:3, 3] * 100.0, np.degrees(matrix_to_euler(T[:3, :3]))])
+        for rule, h, v in zip(RULES, self.handles, self.values):
+            if rule.label not in self.refusals.refused and not rule.shows(h.value, v):
+                h.value = rule.show(v)
+
+    def angles_with(self, i: int, value: float) -> np.ndarray:
+        """The angles shown (roll, pitch, yaw; degrees), angle field ``i`` (3-5) set to ``value``."""
+        angles = self.values[3:].copy()
+        angles[i - 3] = value
+        return angles
+
+    def typed(self, i: int) -> None:
+        """Field ``i`` was typed: every field of the six is read (one refused earlier may still be), the refused
+        ones are shown, and field ``i``'s value, if it reads well, goes to ``on_typed``."""
+        if self.quiet.active:
+            return  # the server showing a pose, not the user typing
+        errors, value = {}, None
+        for j, (rule, h) in enumerate(zip(RULES, self.handles)):
+            try:
+                v = rule.parse(h.value)
+            except InputError as err:
+                errors[rule.label] = err.problem
+            else:
+                value = v if j == i else value
+        self.refusals.refuse(errors)
+        if value is not None:
+            self.on_typed(i, value)
+
+    def restore(self, labels: tuple[str, ...]) -> None:
+        """Put the pose shown back into the fields labelled ``labels`` (``Refusals`` calls this inside ``Quiet``)."""
+        for rule, h, v in zip(RULES, self.handles, self.values):
+            if rule.label in labels:
+                h.value = rule.show(v)
