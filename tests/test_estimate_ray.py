@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -157,6 +158,25 @@ def test_ray_address_needs_the_ray_engine_and_an_answering_head(dataset, tmp_pat
     t0 = time.perf_counter()
     assert main(["estimate", str(dataset), "--out", out, "--engine", "ray", "--ray-address", "127.0.0.1:1"]) == 2
     assert "nothing answers at 127.0.0.1:1" in capsys.readouterr().err and time.perf_counter() - t0 < 30
+
+
+PRIVATE_RAY = """
+import ray
+from workbench.evaluation.ray import RayConfig, connect, disconnect
+connect(RayConfig(num_cpus=1))
+print(ray.get_runtime_context().gcs_address, flush=True)
+disconnect()
+"""
+
+
+def test_without_an_address_ray_starts_its_own_instance_and_joins_no_other(tmp_path):
+    """RAY_ADDRESS names a cluster (here one that does not answer): Ray's own default would join it; the run starts
+    a private Ray instead."""
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run([sys.executable, "-c", PRIVATE_RAY], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "RAY_ADDRESS": "127.0.0.1:1", "PYTHONPATH": str(root)})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() and not done.stdout.strip().endswith(":1"), done.stdout
 
 
 def test_ray_evaluator_equals_the_local_pool(cluster, dataset):

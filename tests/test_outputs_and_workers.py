@@ -172,6 +172,21 @@ def test_a_lock_is_released_and_taken_again_in_one_process(tmp_path):
     assert not (tmp_path / ".r.csv.lock").exists()
 
 
+# A process that may write no byte (RLIMIT_FSIZE 0, SIGXFSZ ignored): the kernel's EFBIG, as a full disk's ENOSPC.
+NO_BYTES = ("import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (0, 0)); from workbench.cli import main; sys.exit(main())")
+
+
+def test_a_lock_that_cannot_be_written_is_an_error_and_leaves_no_lock_file(demo, tmp_path):
+    out = tmp_path / "r.csv"
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run([sys.executable, "-c", NO_BYTES, "estimate", str(demo), "--out", str(out)],
+                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(root)})
+    assert done.returncode == 2 and done.stderr.startswith("workbench: error: ") and "Traceback" not in done.stderr
+    assert f"{out}: cannot write the lock file" in done.stderr, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo"]
+
+
 @pytest.mark.parametrize("command", ["estimate", "track"])
 def test_posterior_and_out_on_one_file_are_refused_before_any_work(demo, tmp_path, capsys, command):
     """The posterior JSON written over the results CSV lost every result, with exit 0."""

@@ -2,11 +2,13 @@
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from test_cli import _workbench
 
+from workbench.errors import InputError
 from workbench.geometry import make_pose, rot_z
 from workbench.io import bop
 from workbench.io.results import ResultRow, write_results_csv
@@ -48,12 +50,20 @@ def test_only_each_objects_top_row_is_its_estimate_the_others_are_modes(touching
     frame, rows = _truth_rows(touching_dataset)
     away = rows[0].T_cam_obj.copy()
     away[:3, 3] += [0.1, 0.0, 0.0]
+    truth = replace(rows[0], score=0.8)  # the object's modes: probabilities that sum to 1
     mode = ResultRow(0, 0, frame.object_ids[0], 0.2, away, 1.0)  # a less likely mode 10 cm off: not matched
-    [scored] = score_results(touching_dataset, [mode, *rows])
+    [scored] = score_results(touching_dataset, [mode, truth, *rows[1:]])
     assert scored.unmatched_rows == 0 and scored.objects[0].right
-    top = ResultRow(0, 0, frame.object_ids[0], 2.0, away, 1.0)  # scored above the truth's row: the estimate
-    [scored] = score_results(touching_dataset, [top, *rows])
+    top = ResultRow(0, 0, frame.object_ids[0], 0.8, away, 1.0)  # more likely than the truth's row: the estimate
+    [scored] = score_results(touching_dataset, [top, replace(rows[0], score=0.2), *rows[1:]])
     assert not scored.objects[0].right and scored.objects[1].right
+
+
+def test_modes_that_are_no_probabilities_are_refused_naming_the_frame_and_object(touching_dataset):
+    frame, rows = _truth_rows(touching_dataset)  # each scored 1.0
+    second = replace(rows[0], score=0.8)
+    with pytest.raises(InputError, match=f"object {frame.object_ids[0]}: 2 rows for 1 instance.*sum to 1.8"):
+        score_results(touching_dataset, [second, *rows])
 
 
 def test_instances_of_one_object_are_matched_nearest_first():

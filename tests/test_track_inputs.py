@@ -91,6 +91,51 @@ def test_the_command_line_refuses_bad_input_with_exit_code_2(tmp_path, capsys):
     assert not (tmp_path / "r.csv").exists()
 
 
+def _depth_of_frame(tmp_path, i, depth_m, size=(240, 320)):
+    """Frame ``i``'s depth image replaced by ``depth_m`` metres everywhere (save_frame's depth_scale 0.1: PNG units
+    are 0.1 mm)."""
+    from PIL import Image
+
+    raw = np.full(size, depth_m * 10_000.0).clip(0, 65535).astype(np.uint16)
+    Image.fromarray(raw).save(tmp_path / "test" / "000001" / "depth" / f"{i:06d}.png")
+
+
+@pytest.mark.parametrize("frame, depth_m, size, words", [
+    (3, 0.8, (480, 640), "frame 3: the depth image is 640x480, but frame 1's is 320x240"),
+    (3, 0.0008, (240, 320), "frame 3: its median depth is 0.001x frame 1's"),  # written in m, read as mm
+    (2, 70.0, (240, 320), "frame 2: most of the depth image is saturated"),
+])
+def test_a_later_frames_depth_is_checked_before_the_first_runs_naming_it(tmp_path, frame, depth_m, size, words):
+    _sequence(tmp_path, [1, 2, 3])
+    _depth_of_frame(tmp_path, frame, depth_m, size)
+    with pytest.raises(InputError, match=words) as err:
+        sequence_frames(tmp_path, 1, None, None)
+    assert err.value.path.endswith(f"depth/{frame:06d}.png")
+
+
+def _world(tmp_path, t_of):
+    poses = {str(i): {"R_w2c": rot_z(0.05 * i).ravel().tolist(), "t_w2c": t_of(i)} for i in (1, 2, 3, 4)}
+    (tmp_path / "test" / "000001" / "scene_camera_world.json").write_text(json.dumps(poses))
+
+
+@pytest.mark.parametrize("t_of, words", [
+    (lambda i: [10_000.0 * i, 0.0, 900_000.0], "micrometres"),  # 1 cm steps written in um
+    (lambda i: [0.01 * i, 0.0, 0.9], "metres"),  # 1 cm steps written in m
+    (lambda i: [10.0 * i, 0.0, 900.0], None),  # mm, as BOP's
+])
+def test_world_translations_in_other_units_are_warned_about_once_naming_the_world_file(tmp_path, caplog, t_of,
+                                                                                       words):
+    _sequence(tmp_path, [1, 2, 3, 4])
+    _world(tmp_path, t_of)
+    with caplog.at_level("WARNING"):
+        sequence_world(tmp_path, 1, None, "auto", [1, 2, 3, 4])
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    if words is None:
+        assert warnings == []
+    else:
+        assert len(warnings) == 1 and "scene_camera_world.json" in warnings[0] and words in warnings[0], warnings
+
+
 def test_an_object_keeps_its_world_pose_under_the_given_motion():
     T_w_obj = make_pose(rot_z(0.3), np.array([0.1, 0.2, 0.0]))
     T_c0_w = make_pose(rot_x(2.2), np.array([0.0, 0.1, 0.9]))

@@ -6,14 +6,15 @@ import argparse
 import logging
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 from workbench.errors import InputError, check_count
-from workbench.evaluation.pool import check_workers
-from workbench.inference.config import METHODS, EstimatorConfig, check_seed
+from workbench.evaluation.pool import check_run_memory, check_workers
+from workbench.inference.config import MAX_ITERATIONS, MAX_PARTICLES, METHODS, EstimatorConfig, check_seed
 from workbench.inference.search.moves.registry import PROPOSALS
 from workbench.inference.smc.particles import STATES, Sigma
 from workbench.physics import BACKENDS, PhysicsConfig, check_backend
@@ -23,6 +24,11 @@ from workbench.track.config import TrackConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
 TRACK_DEFAULTS = TrackConfig()
+# Upper bounds of the other counts, each with its reason (the estimator's own: inference.config).
+MAX_RETRIES = 100  # a worker that died 100 times will die again: out of memory, or a broken install
+MAX_TRACK_ITERATIONS = 1000  # a tracked frame runs 2 (6 with an object lost); 1000 take many minutes per frame
+MAX_REPEATS = 1000  # bench --speed: the median of 1000 repeats is as steady as it gets
+MAX_SCENES = 100_000  # make-scenes, bench: scenes per category, and frames per sequence (an hour of video at 30 fps)
 
 
 def _add_estimator_args(p: argparse.ArgumentParser) -> None:
@@ -115,7 +121,7 @@ def ray_config(args: argparse.Namespace):
     check_reachable(args.ray_address)  # a malformed address first: it is wrong with or without Ray
     require_ray()
     retries = getattr(args, "max_retries", RayConfig.max_retries)
-    check_count(retries, "--max-retries", low=0)
+    check_count(retries, "--max-retries", low=0, high=MAX_RETRIES)
     return RayConfig(address=args.ray_address, max_retries=retries)
 
 
@@ -142,7 +148,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     config.validate("")
     problem.validate()
     check_workers(args.workers)
-    check_count(args.max_retries, "--max-retries", low=0)
+    check_count(args.max_retries, "--max-retries", low=0, high=MAX_RETRIES)
+    check_run_memory(config.particles, problem.max_render_pixels)
     ray = ray_config(args)
     posterior, results = _open_outputs(args)
     try:
@@ -160,6 +167,8 @@ def _open_outputs(args: argparse.Namespace):
     from workbench.io.results import PosteriorFile, ResultsFile
 
     check_distinct({"--out": args.out, "--posterior": args.posterior})
+    if args.posterior is not None:
+        check_posterior_made(args)
     posterior = (None if args.posterior is None else
                  PosteriorFile.open(args.posterior, force=args.force, resume=args.resume))
     try:
@@ -168,6 +177,16 @@ def _open_outputs(args: argparse.Namespace):
         if posterior is not None:
             posterior.close()
         raise
+
+
+def check_posterior_made(args: argparse.Namespace) -> None:
+    """InputError when ``--posterior`` is asked of a search that makes none: the posterior comes from settling the
+    estimate (``DefaultSearch.finish``), which --no-settle and the paper's search leave out; the file would never
+    be written."""
+    for given, why in ((args.no_settle, "--no-settle"), (args.proposals == "paper", "--proposals paper")):
+        if given:
+            raise InputError("--posterior", f"the posterior is made while the estimate is settled, which {why} "
+                                            f"leaves out: no file would be written; drop --posterior or {why}")
 
 
 def _estimate_into(results, args: argparse.Namespace, config: EstimatorConfig, problem: ProblemConfig, ray,
@@ -215,9 +234,11 @@ def _cmd_track(args: argparse.Namespace) -> int:
     config.validate("")
     problem.validate()
     check_workers(args.workers)
-    check_count(args.max_retries, "--max-retries", low=0)
-    check_count(args.track_particles, "--track-particles", low=1)
-    check_count(args.track_iterations, "--track-iterations", low=1)
+    check_count(args.max_retries, "--max-retries", low=0, high=MAX_RETRIES)
+    check_count(args.track_particles, "--track-particles", low=1, high=MAX_PARTICLES)
+    check_count(args.track_iterations, "--track-iterations", low=1, high=MAX_TRACK_ITERATIONS)
+    check_run_memory(config.particles, problem.max_render_pixels)
+    check_run_memory(args.track_particles, problem.max_render_pixels, "--track-particles")
     track = TrackConfig(particles=args.track_particles, iterations=args.track_iterations, motion=args.motion)
     track.validate()
     ray = ray_config(args)
@@ -281,9 +302,12 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
         check_output_file(args.reliability, ours=lambda p: p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n",
                           force=args.force, what="a reliability diagram", flag="--reliability")
+    from workbench.meshes.heavy import announced
+
     vsd = VSDConfig()  # BOP's: tau 20 mm, theta 0.3, delta 15 mm; AR_VSD's grid
-    frames = score_results(args.dataset, read_results_csv(args.results), split=args.split,
-                           results_path=args.results, vsd=vsd)
+    with announced(f"scoring {args.results}", cached=False):  # a million rows take minutes: never silent for long
+        frames = score_results(args.dataset, read_results_csv(args.results), split=args.split,
+                               results_path=args.results, vsd=vsd)
     print("\n".join(report(frames, vsd)))
     if args.reliability is not None:
         from workbench.score.calibration import reliability_png
@@ -304,9 +328,9 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
 def _is_score_json(path: Path) -> bool:
     """A file `workbench score --json` wrote."""
-    import json
+    from workbench.io.readers import read_json
 
-    document = json.loads(path.read_text())
+    document = read_json(path)
     # "summary" came with VSD: a score JSON written before it is ours too
     return isinstance(document, dict) and set(document) - {"summary"} == {"dataset", "results", "objects"}
 
@@ -342,9 +366,26 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     config = replace(DEFAULT_CONFIG, **run)
     config.validate("")  # before any server starts
     physics = physics_config(args)
+    check_run_memory(config.particles, ProblemConfig().max_render_pixels)
+    if not _is_loopback(args.host):
+        print(f"WARNING: serving on {args.host}, not this machine alone: anyone who can reach port {args.port} can "
+              "run estimates here, and write labels (scene_gt.json) into the dataset and sessions into the "
+              "sessions folder; serve on 127.0.0.1 unless that is meant", file=sys.stderr, flush=True)
     serve(dataset=dataset, scene_id=args.scene, im_id=args.frame, host=args.host, port=args.port,
           session=args.session, sessions_dir=args.sessions_dir, config=config, ray=ray, physics=physics)
     return 0
+
+
+def _is_loopback(host: str) -> bool:
+    """Whether ``host`` is this machine alone (127.0.0.0/8, ::1, localhost): the server is open to no one else."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
 
 
 def _check_session_frame(session: Path, state) -> None:
@@ -366,7 +407,8 @@ def _check_frame_exists(dataset: Path, scene_id: int | None, im_id: int | None) 
     scenes = sorted({s for s, _ in frames})
     if scene_id is not None and scene_id not in scenes:
         raise InputError(dataset, f"no scene {scene_id} (scenes: {scenes[:20]})")
-    in_scene = [i for s, i in frames if s == (scenes[0] if scene_id is None else scene_id)]
+    scene_id = scenes[0] if scene_id is None else scene_id
+    in_scene = [i for s, i in frames if s == scene_id]
     if im_id is not None and im_id not in in_scene:
         raise InputError(dataset, f"no frame {im_id} in scene {scene_id} (frames: {in_scene[:20]})")
 
@@ -375,7 +417,7 @@ def _cmd_make_scenes(args: argparse.Namespace) -> int:
     from workbench.synth import make_demo, make_scenes
 
     check_seed(args.seed)
-    check_count(args.per_category, "--per-category", low=1)
+    check_count(args.per_category, "--per-category", low=1, high=MAX_SCENES)
     t0 = time.perf_counter()
     if args.demo:
         make_demo(args.out, seed=args.seed, force=args.force)
@@ -399,7 +441,7 @@ def _make_sequences(args: argparse.Namespace, t0: float) -> int:
     """``make-scenes --sequence N``: each scene as a sequence of N frames on an arc (``synth.sequence``)."""
     from workbench.synth.sequence import Push, TakeOut, make_sequences
 
-    check_count(args.sequence, "--sequence", low=1)
+    check_count(args.sequence, "--sequence", low=1, high=MAX_SCENES)
     if not (np.isfinite(args.arc) and 0.0 <= args.arc <= 180.0):
         raise InputError("--arc", f"must be degrees in [0, 180], got {args.arc}")
     if args.models is not None or args.distractors is not None or args.table_pose is not None:
@@ -425,10 +467,11 @@ def _make_sequences(args: argparse.Namespace, t0: float) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     check_workers(args.workers)
-    check_count(args.repeats, "--repeats", low=1)
-    for name in ("particles", "iterations", "per_category"):
+    check_count(args.repeats, "--repeats", low=1, high=MAX_REPEATS)
+    for name, high in (("particles", MAX_PARTICLES), ("iterations", MAX_ITERATIONS), ("per_category", MAX_SCENES)):
         if getattr(args, name) is not None:
-            check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1)
+            check_count(getattr(args, name), "--" + name.replace("_", "-"), low=0 if name == "iterations" else 1,
+                        high=high)
     physics = physics_config(args).backend
     if args.speed:
         from workbench.bench.speed import run_speed_benchmark
@@ -667,8 +710,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
     previous = _stop_on_sigterm()
+    _TERMINATED.clear()
     try:
-        return args.func(args)
+        code = args.func(args)
+        if _TERMINATED.is_set():  # a command that stops on Ctrl-C as its way to end (serve) was stopped by SIGTERM
+            raise _Terminated()
+        return code
     except InputError as err:
         print(f"workbench: error: {err}", file=sys.stderr)
         return 2
@@ -683,6 +730,9 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
+_TERMINATED = threading.Event()  # set by SIGTERM: the exit code is 143 even where a command took it as Ctrl-C
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, raised where the main process is, so that it stops as on Ctrl-C: workers told to stop, files whole."""
 
@@ -691,6 +741,7 @@ def _stop_on_sigterm():
     """SIGTERM -> ``_Terminated`` in the main thread -> the previous handler (None when this is not the main
     thread, where no handler can be set)."""
     def stop(signum, frame):
+        _TERMINATED.set()
         raise _Terminated()
 
     try:

@@ -30,6 +30,7 @@ from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator, object_confidence
 from workbench.io import bop
 from workbench.io.outputs import write_file
+from workbench.io.readers import read_json
 from workbench.io.results import RESULTS_HEADER, ResultRow, results_csv_lines
 from workbench.physics.config import PhysicsConfig
 from workbench.problem.build import load_bop_problem
@@ -448,7 +449,7 @@ def truth_loglik(frame: Frame, problem: Problem, evaluator: Evaluator) -> float:
 
 def is_report_json(path: Path) -> bool:
     """A report.json that ``run_benchmark`` wrote."""
-    report = json.loads(Path(path).read_text())
+    report = read_json(Path(path))
     return isinstance(report, dict) and {"table1", "table2", "runs", "objects"} <= set(report)
 
 

@@ -20,6 +20,11 @@ log = logging.getLogger(__name__)
 # Memory one evaluation worker needs: docs/benchmarks.md's speed table measured 433 MB peak per worker (4 objects, 1444
 # particles); the rest is headroom for larger meshes and the main process's share. It bounds ``--workers``.
 WORKER_MEMORY_BYTES = 600 * 2**20
+# A run's peak resident memory grows with its particles and the pixels each is rendered at: on the demo (2 objects,
+# 160 x 120 renders, one iteration, one worker) 0.62 GB for 1000 particles and 2.46 GB for 8000, so ~14 bytes per
+# particle and rendered pixel over ~0.4 GB. It bounds --particles before the run (``check_run_memory``).
+RUN_BASE_BYTES = 400 * 2**20
+BYTES_PER_PARTICLE_PIXEL = 14
 
 
 def usable_cores() -> int:
@@ -43,6 +48,22 @@ def available_memory() -> int | None:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def run_memory(particles: int, render_pixels: int) -> int:
+    """Bytes a run of ``particles`` rendered at ``render_pixels`` pixels each is expected to hold at its peak."""
+    return RUN_BASE_BYTES + particles * render_pixels * BYTES_PER_PARTICLE_PIXEL
+
+
+def check_run_memory(particles: int, render_pixels: int, where: str = "--particles") -> None:
+    """InputError naming ``where``, before the run, when ``run_memory`` exceeds the memory available here: such a
+    run would swap for minutes and then be killed."""
+    need, memory = run_memory(particles, render_pixels), available_memory()
+    if memory is not None and need > memory:
+        raise InputError(where, f"{particles} particles rendered at {render_pixels} pixels each would need about "
+                                f"{need / 2**30:.1f} GiB (~{BYTES_PER_PARTICLE_PIXEL} bytes per particle and pixel, "
+                                f"measured), and this machine has {memory / 2**30:.1f} GiB free: use fewer "
+                                "particles or a smaller --max-render-pixels")
 
 
 def max_workers() -> int:

@@ -84,16 +84,22 @@ def connect(config: RayConfig):
         return ray
     config.validate()
     check_reachable(config.address)
+    from workbench.meshes.heavy import announced
+
+    what = "starting Ray for the run" if config.address is None else f"joining the Ray cluster at {config.address}"
     try:
-        ray.init(
-            address=config.address,
-            num_cpus=config.num_cpus if config.address is None else None,
-            include_dashboard=False,
-            # Task output (pybullet's banner, llvmpipe warnings) would tear the progress bar; errors come back as
-            # exceptions and are reported per frame.
-            log_to_driver=False,
-            logging_level=logging.WARNING,
-        )
+        with announced(what, cached=False):  # Ray takes from seconds to minutes to start: never silent
+            ray.init(
+                # "local": a Ray of its own for the run, never a cluster another process started that Ray would find
+                # through RAY_ADDRESS or its current-cluster file (the meaning of None)
+                address=config.address or "local",
+                num_cpus=config.num_cpus if config.address is None else None,
+                include_dashboard=False,
+                # Task output (pybullet's banner, llvmpipe warnings) would tear the progress bar; errors come back as
+                # exceptions and are reported per frame.
+                log_to_driver=False,
+                logging_level=logging.WARNING,
+            )
     except ConnectionError as err:
         raise InputError("--ray-address", f"no Ray cluster reachable at {config.address!r} ({err}); start one with "
                                           "`ray start --head`, or leave out --ray-address to start Ray here. A "

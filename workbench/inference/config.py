@@ -14,6 +14,9 @@ from workbench.inference.smc.particles import STATES, Sigma
 
 METHODS = ("pipf", "mcpf")
 MAX_SEED = 2**64 - 1
+# Upper bounds of the counts a user gives, each with its reason: beyond them a run is a typo, not a plan.
+MAX_PARTICLES = 100_000  # the paper used 1444; a run's memory grows with them (evaluation.pool.check_run_memory)
+MAX_ITERATIONS = 10_000  # the search converges within 100 on every frame measured; 10,000 take hours per frame
 MAX_SIGMA_M = 1.0  # a diffusion step of more than a metre leaves any table scene
 MAX_SIGMA_RAD = 2 * math.pi
 MAX_BUDGET_S = 86400.0
@@ -81,8 +84,9 @@ class EstimatorConfig:
             raise InputError("method", f"unknown method {self.method!r}; use one of {', '.join(METHODS)}")
         if self.state not in STATES:
             raise InputError("state", f"unknown state {self.state!r}; use one of {', '.join(STATES)}")
-        if not 1 <= self.particles <= 100_000:
-            raise InputError("particles", f"particle count must be between 1 and 100000, got {self.particles}")
+        if not 1 <= self.particles <= MAX_PARTICLES:
+            named = "particles" if where is None else f"{where}particles" if where else "--particles"
+            raise InputError(named, f"particle count must be between 1 and {MAX_PARTICLES}, got {self.particles}")
         if self.iterations < 0:
             raise InputError("iterations", f"iterations must be >= 0, got {self.iterations}")
         if self.proposals not in PROPOSALS:
@@ -106,8 +110,8 @@ class EstimatorConfig:
         if where is None:
             return
         check_seed(self.seed, f"{where}seed" if where else "--seed")
-        check_count(self.iterations, f"{where}iterations" if where else "--iterations", low=0)
-        check_count(self.particles, f"{where}particles" if where else "--particles", high=100_000)
+        check_count(self.iterations, f"{where}iterations" if where else "--iterations", low=0, high=MAX_ITERATIONS)
+        check_count(self.particles, f"{where}particles" if where else "--particles", high=MAX_PARTICLES)
         sigma = np.asarray(self.sigma.as_array(), dtype=np.float64)  # x, y, z metres; roll, pitch, yaw radians
         if np.any(sigma[:3] > MAX_SIGMA_M) or np.any(sigma[3:] > MAX_SIGMA_RAD):
             raise InputError(f"{where}sigma", f"diffusion must be at most {MAX_SIGMA_M:g} m and 360 degrees per "

@@ -23,8 +23,10 @@ from __future__ import annotations
 import io
 import json
 import logging
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import trimesh
@@ -48,7 +50,10 @@ from workbench.meshes.heavy import loading
 from workbench.problem.scene import Camera, Frame, ObjectModel
 
 log = logging.getLogger(__name__)
-_WARNED_OPEN: set[tuple[str, int, int]] = set()  # open meshes already warned about (read_mesh)
+# The warning that an open mesh's mass comes from its hull concerns physics only: a logger of its own, which the
+# commands that simulate nothing (score) silence.
+hull_log = logging.getLogger(f"{__name__}.hull")
+_WARNED_MESHES: set[tuple[str, int, int, str]] = set()  # meshes already warned about, and why (read_mesh)
 
 # Folders that hold the meshes, in order of preference (T-LESS ships models_cad/models_reconst, no models/).
 MODEL_DIRS = ("models", "models_cad", "models_eval", "models_reconst")
@@ -58,6 +63,10 @@ PLAUSIBLE_MEDIAN_DEPTH = (0.15, 6.0)
 CONTINUOUS_SYMMETRY_STEPS = 36
 MAX_FOCAL_IN_IMAGES = 100
 MAX_DEPTH_SCALE = 1e4  # millimetres per PNG unit; beyond it 16-bit depth holds nothing but astronomy
+# The largest depth sensors give 12 million pixels; at 25 million a frame's depth alone takes 200 MB as float64 (a
+# 13000 x 13000 PNG took 4 GB before it was refused), so a larger image is a mistake, refused from its header.
+MAX_IMAGE_PIXELS = 25_000_000
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -82,31 +91,68 @@ def _png_bytes(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def read_depth_png(path: Path) -> np.ndarray:
-    """A 16-bit single-channel PNG -> (H, W) float64 raw sensor units."""
+def image_size(path: Path, what: str = "image") -> tuple[int, int]:
+    """(width, height) of an image from its header alone (a PNG's first 24 bytes, else PIL's lazy open), checked
+    against MAX_IMAGE_PIXELS; InputError naming the file otherwise. Cheap enough to check every frame of a sequence
+    before the first one runs."""
     if not path.is_file():
-        raise InputError(path, "depth image not found")
+        raise InputError(path, f"{what} not found")
     try:
-        with Image.open(path) as im:
-            im.load()
-            mode = im.mode
-            raw = np.asarray(im)
+        with open(path, "rb") as f:
+            head = f.read(24)
+        if head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
+            size = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        else:
+            with _opened(path) as im:
+                size = im.size
+    except OSError as e:
+        raise InputError(path, f"cannot be read ({e.strerror or e})") from e
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise InputError(path, f"is {size[0]} x {size[1]} pixels, more than any depth sensor gives "
+                               f"({MAX_IMAGE_PIXELS // 10**6} million pixels at most)")
+    return size
+
+
+@contextmanager
+def _opened(path: Path) -> Iterator[Image.Image]:
+    """PIL's image, opened lazily, its own size limit (a warning, then an error, far above ours) and decoding
+    errors turned into InputError naming the file."""
+    try:
+        with warnings.catch_warnings():
+            # A size PIL warns about is refused by image_size anyway: the warning would only repeat it, raw.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(path)
+        with im:
+            yield im
+    except Image.DecompressionBombError as e:
+        raise InputError(path, f"has too many pixels ({e})") from e
     except (UnidentifiedImageError, OSError, SyntaxError) as e:
         raise InputError(path, f"corrupt or unreadable image ({e})") from e
-    if mode not in ("I;16", "I;16B", "I;16L", "I"):
+
+
+def read_image(path: Path, what: str = "image") -> Image.Image:
+    """The one image reader every input goes through: the decoded PIL image, its size checked from the header
+    before any pixel is decoded (``image_size``), or InputError naming the file."""
+    image_size(path, what)
+    with _opened(path) as im:
+        im.load()
+        return im
+
+
+def read_depth_png(path: Path) -> np.ndarray:
+    """A 16-bit single-channel PNG -> (H, W) float64 raw sensor units."""
+    im = read_image(path, "depth image")
+    if im.mode not in ("I;16", "I;16B", "I;16L", "I"):
         raise InputError(
-            path, f"depth must be a 16-bit single-channel PNG, this one is mode {mode!r} (an 8-bit or colour image?)"
+            path, f"depth must be a 16-bit single-channel PNG, this one is mode {im.mode!r} (an 8-bit or colour "
+                  "image?)"
         )
-    return raw.astype(np.float64)
+    return np.asarray(im).astype(np.float64)
 
 
 def read_rgb(path: Path) -> np.ndarray:
     """(H, W, 3) uint8."""
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:
-        raise InputError(path, f"corrupt or unreadable image ({e})") from e
+    return np.asarray(read_image(path, "colour image").convert("RGB"))
 
 
 def image_ids(content, path: Path) -> list[int]:
@@ -225,13 +271,23 @@ def _read_mesh(path: Path, scale: float) -> trimesh.Trimesh:
         extents = np.round(mesh.extents / scale, 6).tolist()
         raise InputError(path, f"mesh is degenerate (extents {extents} in file units)")
     if not mesh.is_watertight:
-        stat = path.stat()
-        # Once per file (as it is now) and process: estimating many frames of one dataset reloads its models.
-        seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
-        if seen not in _WARNED_OPEN:
-            _WARNED_OPEN.add(seen)
-            log.warning("%s: mesh is not watertight; its mass is taken from its convex hull", path)
+        _warn_once(path, "mesh is not watertight; its mass is taken from its convex hull", hull_log)
+    elif mesh.volume < 0:
+        # Faces wound inside out (normals inward): rendering would cull the wrong side and physics would take a
+        # negative volume. A closed mesh has one outside: turned right side out, and said.
+        mesh.invert()
+        _warn_once(path, "mesh is wound inside out (its faces point inward); it is used turned right side out")
     return mesh
+
+
+def _warn_once(path: Path, problem: str, logger: logging.Logger = log) -> None:
+    """A WARNING naming the mesh file, once per file (as it is now), problem and process: estimating many frames of
+    one dataset reloads its models."""
+    stat = path.stat()
+    seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, problem)
+    if seen not in _WARNED_MESHES:
+        _WARNED_MESHES.add(seen)
+        logger.warning("%s: %s", path, problem)
 
 
 # ----------------------------------------------------------------------------------------------------------------

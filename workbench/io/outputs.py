@@ -173,7 +173,26 @@ class OutputLock:
         self._fd: int | None = None
 
     def acquire(self) -> "OutputLock":
-        self.lock_path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.lock_path.parent.mkdir(parents=True, exist_ok=True)
+            fd = self._lock()
+        except OSError as err:  # a full disk, a quota, a folder that refuses new files
+            raise InputError(self.path, f"cannot take the lock file {self.lock_path} ({err.strerror or err}); "
+                                        "nothing was written") from err
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as err:
+            # Ours alone (we hold it): removed, so that a full disk leaves no empty lock file behind.
+            self.lock_path.unlink(missing_ok=True)
+            os.close(fd)
+            raise InputError(self.path, f"cannot write the lock file {self.lock_path} ({err.strerror or err}); "
+                                        "nothing was written") from err
+        self._fd = fd
+        return self
+
+    def _lock(self) -> int:
+        """The lock file, opened and exclusively locked -> its descriptor; InputError if another run holds it."""
         while True:
             fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
@@ -193,12 +212,8 @@ class OutputLock:
             except FileNotFoundError:
                 same = False
             if same:
-                break
+                return fd
             os.close(fd)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        self._fd = fd
-        return self
 
     def release(self) -> None:
         if self._fd is None:

@@ -25,6 +25,7 @@ import trimesh
 from workbench.errors import InputError
 from workbench.io.bop import (
     MAX_DEPTH_SCALE,
+    MAX_IMAGE_PIXELS,
     check_depth,
     check_depth_units,
     check_principal_point,
@@ -46,9 +47,14 @@ def _read_depth(path: Path, depth_scale: float) -> np.ndarray:
         if not path.is_file():
             raise InputError(path, "depth file not found")
         try:
-            depth = np.load(path, allow_pickle=False)
+            # Mapped first: its size is checked from the header before any number is read (as a PNG's).
+            mapped = np.load(path, allow_pickle=False, mmap_mode="r")
         except (ValueError, OSError, EOFError) as e:
             raise InputError(path, f"corrupt .npy file ({e})") from e
+        if mapped.size > MAX_IMAGE_PIXELS:
+            raise InputError(path, f"holds {mapped.size} numbers ({' x '.join(map(str, mapped.shape))}), more than "
+                                   f"any depth sensor gives ({MAX_IMAGE_PIXELS // 10**6} million pixels at most)")
+        depth = np.array(mapped)
         real = np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)
         if depth.ndim != 2 or not real:
             raise InputError(path, f"depth must be a 2-D array of real numbers (float metres), got {depth.dtype} "

@@ -29,14 +29,78 @@ MAX_TABLE_DISTANCE = 100.0  # metres from the camera to the table frame's origin
 # A dataset's files: InputError naming the file
 
 
+# Limits of every JSON file read (``read_json``, ``parse_json``): a hand-edited or hostile file is refused by name
+# before it can exhaust the stack, the memory or Python's integer parser.
+MAX_JSON_BYTES = 128 * 2**20  # the largest BOP file (a scene_gt_info.json of 1000 images) is ~10 MB; parsing takes
+#                               ~10x the file's size in memory
+MAX_JSON_DEPTH = 64  # a BOP file nests 3 levels, a session 8; Python's own parser fails near 1000 levels
+MAX_NUMBER_CHARS = 100  # a float64 needs 24 characters, numpy's 128-bit RNG state 39 digits; a 400-digit integer
+#                         overflows a float, and 4300 digits are beyond what Python parses
+
+
 def read_json(path: Path) -> dict | list:
-    """The parsed JSON file, or InputError naming it."""
+    """The parsed JSON file, within the limits above, or InputError naming it."""
+    path = Path(path)
     if not path.is_file():
         raise InputError(path, "file not found")
     try:
-        return json.loads(path.read_text())
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise InputError(path, f"is {size / 2**20:.0f} MB, more than any input of the workbench "
+                                   f"({MAX_JSON_BYTES // 2**20} MB): not the file meant?")
+        data = path.read_bytes()
+    except OSError as e:
+        raise InputError(path, f"cannot be read ({e.strerror or e})") from e
+    return parse_json(data, path)
+
+
+def parse_json(data: bytes | str, path: Path | str) -> dict | list:
+    """``data`` (UTF-8) parsed, within the limits above, or InputError naming ``path``: corrupt JSON, nesting deeper
+    than MAX_JSON_DEPTH, or a number longer than MAX_NUMBER_CHARS."""
+    if len(data) > MAX_JSON_BYTES:
+        raise InputError(path, f"holds {len(data) / 2**20:.0f} MB, more than any input of the workbench "
+                               f"({MAX_JSON_BYTES // 2**20} MB)")
+    try:
+        text = data.decode("utf-8") if isinstance(data, bytes) else data
+        value = json.loads(text, parse_int=_bounded(int), parse_float=_bounded(float))
+    except _LongNumber as e:
+        raise InputError(path, f"holds a number of {e.args[0]} characters ({e.args[1]}...); no value the "
+                               f"workbench reads needs more than {MAX_NUMBER_CHARS}") from None
+    except RecursionError:
+        raise InputError(path, f"is nested deeper than Python can read; no input of the workbench nests more than "
+                               f"{MAX_JSON_DEPTH} levels") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(path, f"corrupt JSON ({e}); re-export or re-download the file") from e
+    if _nesting_exceeds(value, MAX_JSON_DEPTH):
+        raise InputError(path, f"is nested more than {MAX_JSON_DEPTH} levels deep; no input of the workbench is")
+    return value
+
+
+class _LongNumber(Exception):
+    """A JSON number literal longer than MAX_NUMBER_CHARS: (its length, its start)."""
+
+
+def _bounded(convert):
+    """``convert`` for a JSON number literal, refusing one longer than MAX_NUMBER_CHARS before converting it."""
+    def parse(literal: str):
+        if len(literal) > MAX_NUMBER_CHARS:
+            raise _LongNumber(len(literal), literal[:20])
+        return convert(literal)
+    return parse
+
+
+def _nesting_exceeds(value, limit: int) -> bool:
+    """Whether lists and objects in ``value`` nest more than ``limit`` levels (walked without recursion)."""
+    stack = [(value, 1)]
+    while stack:
+        item, level = stack.pop()
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else ()
+        for child in children:
+            if isinstance(child, (dict, list)):
+                if level + 1 > limit:
+                    return True
+                stack.append((child, level + 1))
+    return False
 
 
 def expect_object(value, path: Path, what: str) -> dict:

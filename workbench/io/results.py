@@ -22,7 +22,7 @@ from workbench.errors import InputError
 from workbench.inference.answer.posterior import Posterior
 from workbench.io import bop
 from workbench.io.outputs import OutputLock, check_output_file, replace_file, write_file
-from workbench.io.readers import parse_pose
+from workbench.io.readers import parse_pose, read_json
 from workbench.problem.problem import Problem
 from workbench.problem.scene import Frame
 
@@ -136,14 +136,21 @@ def write_results_lines(path: Path, lines: list[str]) -> None:
 
 
 def read_results_csv(path: Path) -> list[ResultRow]:
-    """Inverse of ``write_results_csv``."""
+    """Inverse of ``write_results_csv``. A score or time that is not a finite number, and a line that repeats an
+    earlier one, are refused naming the line: a score decides which row is an object's estimate, and NaN would make
+    that depend on the rows' order; a repeated row would count one estimate twice."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "results file not found")
-    lines = list(csv.reader(path.read_text().splitlines()))
+    try:
+        lines = list(csv.reader(path.read_bytes().decode("utf-8").splitlines()))
+    except UnicodeDecodeError as e:
+        raise InputError(path, f"is not UTF-8 text ({e.reason} at byte {e.start}): not a results CSV") from None
+    except csv.Error as e:
+        raise InputError(path, f"is not a CSV ({e})") from None
     if not lines or [c.strip() for c in lines[0]] != RESULTS_HEADER:
         raise InputError(path, f"first line must be the header {','.join(RESULTS_HEADER)}")
-    rows = []
+    rows, first_seen = [], {}
     for n, cells in enumerate(lines[1:], start=2):
         if not cells:
             continue
@@ -153,7 +160,16 @@ def read_results_csv(path: Path) -> list[ResultRow]:
             R, t = [float(v) for v in R.split()], [float(v) for v in t.split()]
             score, time = float(score), float(time)
         except ValueError as e:
-            raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: {cells}") from e
+            raise InputError(path, f"line {n} is not scene_id,im_id,obj_id,score,R,t,time: "
+                                   f"{','.join(cells)[:120]!r}") from e
+        if not (np.isfinite(score) and np.isfinite(time)):
+            raise InputError(path, f"line {n}: score and time must be finite numbers, got score {cells[3]!r}, time "
+                                   f"{cells[6]!r} ({','.join(cells)[:120]})")
+        key = tuple(c.strip() for c in cells)
+        if key in first_seen:
+            raise InputError(path, f"line {n} repeats line {first_seen[key]} ({','.join(cells)[:120]}): one "
+                                   "estimate would count twice; remove the copy")
+        first_seen[key] = n
         rows.append(ResultRow(*ids, score, parse_pose(R, t, path, f"line {n}"), time))
     return rows
 
@@ -295,7 +311,7 @@ class PosteriorFile:
         if not _is_posterior_file(Path(path)):
             raise InputError(path, "is not a posterior JSON written by `workbench estimate`: there is nothing to "
                                    "resume; choose another --posterior")
-        document = json.loads(Path(path).read_text(encoding="utf-8"))
+        document = read_json(Path(path))
         return {(f["scene_id"], f["im_id"]): f for f in document["frames"]}
 
     def close(self) -> None:
@@ -322,7 +338,7 @@ class PosteriorFile:
 
 def _is_posterior_file(path: Path) -> bool:
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
+        document = read_json(path)
         return document.get("kind") == POSTERIOR_KIND and isinstance(document.get("frames"), list)
     except (OSError, UnicodeDecodeError, ValueError, AttributeError):
         return False

@@ -27,6 +27,7 @@ PHYSICS_MAX = {"timestep": 0.1, "solver_iterations": 10_000, "max_steps": 100_00
                "penetration_tolerance": 1.0, "gravity": 1e3, "table_friction": 100.0}
 RENDER_BACKENDS = ("auto", "osmesa", "egl")
 MAX_FRAMEBUFFER = 16384
+MAX_RENDER_PIXELS = 25_000_000  # a hypothesis rendered finer than the largest depth image read (io.bop) adds nothing
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,8 @@ class ProblemConfig:
             value = getattr(lik, name)
             if not (isinstance(value, (int, float)) and 1e-6 <= value <= 1e3):
                 raise InputError(f"{where}likelihood.{name}", f"must be from 1e-6 to 1000 metres, got {value!r}")
-        check_count(self.max_render_pixels, f"{where}max_render_pixels" if where else "--max-render-pixels", low=64)
+        check_count(self.max_render_pixels, f"{where}max_render_pixels" if where else "--max-render-pixels", low=64,
+                    high=MAX_RENDER_PIXELS)
         check_count(self.min_object_pixels, f"{where}min_object_pixels", low=0)
         for name, high in PHYSICS_MAX.items():
             value = getattr(self.physics, name)

@@ -7,6 +7,7 @@ Frames run one after another here (``--engine local``) or as Ray tasks over a cl
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -24,7 +25,7 @@ from workbench.evaluation.ray import RayConfig  # imports Ray only when used
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator, object_confidence
 from workbench.io.results import ResultRow, posterior_rows, result_rows
-from workbench.meshes.heavy import announced_if, heavy_models
+from workbench.meshes.heavy import announced, announced_if, heavy_models
 from workbench.problem.build import load_bop_problem
 from workbench.problem.problem import Problem, ProblemConfig
 from workbench.problem.scene import Frame
@@ -91,14 +92,18 @@ def estimate_frame(
     ``show_progress``: a progress bar of its iterations on stderr when stderr is a terminal, opened once the frame
     has loaded (a bad frame fails before any bar)."""
     t0 = time.perf_counter()
-    frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
-    # A frame with a model of over heavy.HEAVY_FACES faces says what it does while it does it: simplifying the model
-    # (once: cached), starting the workers (each takes the whole model) and estimating (on a terminal, its bar).
-    heavy = heavy_models(problem.models)
-    if heavy:
-        prepare_meshes(problem)  # announced on its own; the evaluators then read the cache
-    with announced_if(heavy, f"starting the evaluation of scene {scene_id} frame {im_id}"):
-        evaluator = evaluator_for(problem)
+    # Loading a real frame and starting its workers took 14-24 s without a word: said when it takes a while.
+    starting = f"loading scene {scene_id} frame {im_id} and starting its evaluation"
+    with announced(starting, cached=False) if show_progress else contextlib.nullcontext():
+        frame, problem = load_bop_problem(dataset, scene_id, im_id, split, object_ids, problem_config)
+        # A frame with a model of over heavy.HEAVY_FACES faces says what it does while it does it: simplifying the
+        # model (once: cached), starting the workers (each takes the whole model) and estimating (on a terminal,
+        # its bar).
+        heavy = heavy_models(problem.models)
+        if heavy:
+            prepare_meshes(problem)  # announced on its own; the evaluators then read the cache
+        with announced_if(heavy, f"starting the evaluation of scene {scene_id} frame {im_id}"):
+            evaluator = evaluator_for(problem)
     try:
         with announced_if(heavy if not (show_progress and sys.stderr.isatty()) else "",
                           f"estimating scene {scene_id} frame {im_id}"):
@@ -121,7 +126,8 @@ def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show
                   started: float | None = None) -> tuple[Estimator, np.ndarray]:
     """Run ``estimator`` to its iteration budget (or convergence, ``early_stop``, or its time budget counted from
     ``started``, see ``Estimator.run``) -> (it, its settled estimate (K, 4, 4) table frame). ``show_progress``: a
-    progress bar named ``desc`` on stderr when stderr is a terminal."""
+    progress bar named ``desc`` on stderr when stderr is a terminal. Without a bar, a plain line says how far the
+    run is every LOG_EVERY_S seconds: a tracked frame asked for 100,000 iterations ran minutes without one."""
     # On a terminal only (disable=None): in a log file the bar's carriage returns would share lines with the
     # messages after it, so there a plain line says how far the frame is, at most every LOG_EVERY_S seconds.
     t0 = last = time.perf_counter()
@@ -134,7 +140,7 @@ def run_estimator(estimator: Estimator, desc: str, early_stop: bool = True, show
             bar.update(1)
             bar.set_postfix(best=f"{report.best_loglik:.0f}", ess=f"{report.ess:.0f}")
             now = time.perf_counter()
-            if show_progress and bar.disable and now - last >= LOG_EVERY_S:
+            if bar.disable and now - last >= LOG_EVERY_S:
                 last = now
                 print(f"{desc}: step {done} of at most {bar.total} after {now - t0:.0f} s "
                       f"(best {report.best_loglik:.0f})", file=sys.stderr, flush=True)
@@ -190,11 +196,18 @@ def estimate_frames(
     check_workers(workers)
     rows: list[ResultRow] = []
     failures: list[FrameFailure] = []
+    finished, said = 0, time.perf_counter()
 
     def done(_frame: FrameKey, frame_rows: list[ResultRow]) -> None:
+        nonlocal finished, said
         if on_frame is not None:
             on_frame(frame_rows)
         rows.extend(frame_rows)
+        # Quick frames say nothing of their own: a run of 500 went 100 s without a line though 67 were done.
+        finished += 1
+        if time.perf_counter() - said >= LOG_EVERY_S:
+            said = time.perf_counter()
+            print(f"{finished} of {len(frames)} frame(s) done", file=sys.stderr, flush=True)
 
     pool = FramePool(workers, max_retries)
 

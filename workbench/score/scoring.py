@@ -42,6 +42,9 @@ from workbench.score.metrics import (
 )
 from workbench.score.vsd import VSDConfig, diameter, frame_vsd
 
+# Modes' probabilities as `estimate` writes them (rounded to 12 digits each) sum to 1 within this.
+MODE_SUM_TOLERANCE = 1e-3
+
 
 @dataclass(frozen=True)
 class ObjectScore:
@@ -96,13 +99,13 @@ class FrameScore:
 
 def _load_shapes(dataset: Path, obj_ids: list[int]) -> dict:
     """The models, for their shapes and symmetries only: the loader's warning that an open mesh's mass comes from
-    its convex hull concerns physics, not scoring, so it is not shown here."""
-    level = bop.log.level
-    bop.log.setLevel(logging.ERROR)
+    its convex hull concerns physics, not scoring, so it is not shown here (a mesh wound inside out is)."""
+    level = bop.hull_log.level
+    bop.hull_log.setLevel(logging.ERROR)
     try:
         return bop.load_models(dataset, obj_ids)
     finally:
-        bop.log.setLevel(level)
+        bop.hull_log.setLevel(level)
 
 
 def match(gt: np.ndarray, est: np.ndarray, symmetries: np.ndarray) -> list[tuple[int, int]]:
@@ -128,13 +131,29 @@ def instance_groups(rows: list[ResultRow], n: int) -> list[list[ResultRow]]:
     for r in rows:
         run.append(r)
         total += r.score
-        if abs(total - 1.0) < 1e-3:
+        if abs(total - 1.0) < MODE_SUM_TOLERANCE:
             groups.append(sorted(run, key=lambda r: -r.score))
             run, total = [], 0.0
     if run or len(groups) > n:
         ranked = sorted(rows, key=lambda r: -r.score)
         return [ranked] if n == 1 and ranked else [[r] for r in ranked[:n]]
     return groups
+
+
+def check_modes(rows: list[ResultRow], n: int, path: Path | None) -> None:
+    """InputError naming the file, the frame and the object when one object's rows, more than its ``n`` instances
+    and so read as the modes of its posterior (``instance_groups``), hold scores that are no probabilities: each in
+    [0, 1], all together at most 1 per instance. Calibration computed on them would mean nothing."""
+    if len(rows) <= n:
+        return
+    scores = np.array([r.score for r in rows])
+    total = float(scores.sum())
+    if scores.min() < 0.0 or scores.max() > 1.0 or total > n * (1.0 + MODE_SUM_TOLERANCE):
+        r = rows[0]
+        raise InputError(path, f"scene {r.scene_id} image {r.im_id} object {r.obj_id}: {len(rows)} rows for "
+                               f"{n} instance(s) are read as the modes of its posterior, whose scores are "
+                               f"probabilities, but they range from {scores.min():.3g} to {scores.max():.3g} and sum "
+                               f"to {total:.3g}; give each instance one row, or modes whose probabilities sum to 1")
 
 
 def score_results(dataset: Path, rows: list[ResultRow], split: str | None = None,
@@ -177,6 +196,7 @@ def score_results(dataset: Path, rows: list[ResultRow], split: str | None = None
             # One estimate per instance, its top row: further rows are other modes of the posterior (the same
             # instance's less likely poses), which must not be matched to the truth in the estimate's place.
             rows = [r for r in mine if r.obj_id == obj_id]
+            check_modes(rows, len(gi), results_path)
             groups = instance_groups(rows, len(gi))
             est = [g[0].T_cam_obj for g in groups]
             extra += len(rows) - len(groups)

@@ -17,7 +17,6 @@ Every value is read by the typed readers of ``io/readers.py``: a hand-edited val
 
 from __future__ import annotations
 
-import json
 import typing
 from dataclasses import asdict, dataclass, fields, is_dataclass
 from datetime import datetime, timezone
@@ -152,9 +151,9 @@ def read_document(path: Path) -> dict:
     if not path.is_file():
         raise InputError(path, "session file not found")
     try:
-        document = json.loads(path.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(path, f"corrupt session file, not JSON ({e})") from e
+        document = read.read_json(path)
+    except InputError as e:
+        raise InputError(path, f"corrupt session file, not JSON the workbench reads: {e.problem}") from e
     if not isinstance(document, dict) or document.get("kind") != KIND:
         raise InputError(path, "not a workbench session file")
     version = document.get("format_version")

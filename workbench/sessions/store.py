@@ -48,6 +48,7 @@ from workbench.inference.search.moves.registry import MoveKind
 from workbench.inference.smc.particleset import ParticleSet
 from workbench.io import bop
 from workbench.io.outputs import check_creatable, check_output_file, dataset_folder_of, folder_lock, write_file
+from workbench.io.readers import read_json
 from workbench.problem.problem import Problem, build_problem
 from workbench.problem.scene import Frame
 from workbench.sessions.answer import parse_answer
@@ -286,7 +287,7 @@ def _own_arrays_file(json_path: Path, name: str) -> str | None:
     """The arrays file the existing session JSON names, if it is one this module wrote for ``name`` (a hand-edited
     JSON must never make a save delete some other file)."""
     try:
-        entry = json.loads(json_path.read_text())["arrays"]["file"]
+        entry = read_json(json_path)["arrays"]["file"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
     pattern = re.escape(name) + r"\.[0-9a-f]{16}\.npz"

@@ -34,6 +34,7 @@ from workbench.app.engine.sequence import EngineSequence, HeldRun
 from workbench.app.engine.sessions import OpenedSession, open_session, save_session
 from workbench.app.engine.snapshot import ParticleDisplay
 from workbench.errors import InputError
+from workbench.io.readers import read_json
 from workbench.physics.config import PhysicsConfig
 
 log = logging.getLogger(__name__)
@@ -59,9 +60,9 @@ def name_like_bundled(demo: Path) -> None:
     copy changes. A copy that cannot be read is left to the load, which says what is wrong with it."""
     bundled, copied = DEMO_DIR / "models" / "models_info.json", demo / "models" / "models_info.json"
     try:
-        names = {k: v["name"] for k, v in json.loads(bundled.read_text()).items() if "name" in v}
-        info = json.loads(copied.read_text())
-    except (OSError, ValueError, AttributeError, TypeError):
+        names = {k: v["name"] for k, v in read_json(bundled).items() if "name" in v}
+        info = read_json(copied)  # the one reader: a copy nested 200,000 levels deep is refused, not a RecursionError
+    except (ValueError, AttributeError, TypeError):  # InputError among them
         return
     missing = {k: n for k, n in names.items() if isinstance(info.get(k), dict) and "name" not in info[k]}
     if missing:
