@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 from workbench.evaluation.base import STAGES as WORKER_STAGES
 
 # The share of a budget the iterations (with their polish) may spend; the rest is the answer's: settling, the turns and
-# the posterior sweep, which took 15-30 % of a real frame's time unbudgeted (docs/journal/2026-12.md, "Anytime").
+# the posterior sweep, which take about a tenth of a real frame's time without a budget, and more of a short one
+# (docs/journal/2026-12.md, "Anytime").
 ITERATE_SHARE = 0.75
 # The stages in the order a run meets them (the profile's rows and bars); a stage not listed goes last.
 ORDER = ("load", "start", "library", "proposals", "filter", "sink", "polish", "assemblies", "near misses", "floor",
