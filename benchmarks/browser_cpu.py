@@ -126,8 +126,7 @@ def main() -> int:
     probes = load_probes()
     sys.path.insert(0, str(args.root.resolve()))
 
-    from headless import free_port
-
+    free_port = probes.free_port
     import workbench
     from workbench.app import protocol as p
     from workbench.app.ui.server import serve
@@ -143,8 +142,9 @@ def main() -> int:
         if not app.wait_for(lambda s: s.view is not None or s.failures, 180) or app.state.view is None:
             print(f"the frame did not load: {app.state.failures}", file=sys.stderr)
             return 1
-        if hasattr(app.panel, "show_gt"):  # an older checkout: the ground truth was hidden by default
-            app.panel.show_gt.value = True
+        panel = getattr(app, "panel", None)  # an older checkout's: its ground truth was hidden by default
+        if panel is not None and hasattr(panel, "show_gt"):
+            panel.show_gt.value = True
         print(f"{app.state.view.title}: ground truth "
               f"{'shown' if app.state.view.gt_T_world_obj is not None else 'absent'}, particles shown", flush=True)
         with probes.chromium() as browser, probes.SentMessages().record() as sent:
