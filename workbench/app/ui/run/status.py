@@ -78,7 +78,8 @@ def status_markdown(s: RunView, cfg) -> str:
                     break
         last = "" if not np.isfinite(r["best_move_m"]) else \
             f" · last move {r['best_move_m'] * 100:.1f} cm, {r['best_move_deg']:.1f}°"
-        floor = "" if r.get("floor_in", True) else " · the run stops only once the clutter floor is weighed in"
+        # Calm enough to stop, but the run stops only once the clutter floor is weighed in (which restarts the count).
+        floor = "" if r.get("floor_in", True) or calm < cfg.converge_patience else " · waiting for the clutter floor"
         conv = f"calm {min(calm, cfg.converge_patience)}/{cfg.converge_patience} ({rule}){last}{floor}"
     return f"**{counter}** · {state}  \n{conv}"
 
