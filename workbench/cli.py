@@ -502,7 +502,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 def _bench_profile(args: argparse.Namespace) -> int:
     """``bench --profile``: one frame estimated as `estimate` would (its defaults, or --particles, --iterations,
     --budget), its time by stage printed and, with --png, drawn."""
-    from workbench.bench.profile import machine_line, profile_frame, profile_png, profile_table
+    from workbench.bench.profile import profile_frame, profile_png, profile_table
+    from workbench.bench.speed import machine_line
     from workbench.io.outputs import check_output_file
 
     if args.engine != "local":

@@ -9,8 +9,6 @@ and the command.
 
 from __future__ import annotations
 
-import os
-import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,8 +161,3 @@ def profile_png(profiles: list[FrameProfile], path: Path, title: str = "") -> No
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     image.save(path)
 
-
-def machine_line() -> str:
-    """The machine the figures were taken on."""
-    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load "
-            f"{os.getloadavg()[0]:.1f} at the end")

@@ -25,6 +25,12 @@ from workbench.render.depth import render_mesh
 from workbench.synth import make_scenes
 
 
+def machine_line() -> str:
+    """The machine the figures were taken on, and its load at the end (another job would skew them)."""
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load "
+            f"{os.getloadavg()[0]:.1f} at the end")
+
+
 def _peak_rss_mb() -> tuple[float, float]:
     """(this process, largest finished child) peak resident memory in MB (Linux reports KiB)."""
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -90,10 +96,8 @@ def run_speed_benchmark(particles: int | None = None, workers: int = 2, repeats:
             results.append(measure(dataset, scene_id, im_id, particles, workers, repeats,
                                    PhysicsConfig(backend=physics)))
     own, child = _peak_rss_mb()
-    load = os.getloadavg()[0]
     print(f"# workbench bench --speed {dataset}: N={particles}, {workers} workers, {repeats} timed iterations, "
-          f"physics {physics}, "
-          f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load {load:.1f} at the end")
+          f"physics {physics}, {machine_line()}")
     print("| frame | objects | render px | iteration s | evaluations/s | failed % | projection ms | render ms "
           "| likelihood ms | resampling ms |")
     print("|---|---|---|---|---|---|---|---|---|---|")

@@ -215,37 +215,42 @@ class DefaultSearch:
             projected, weights = np.zeros((0, *filt.estimate.shape)), np.zeros(0)
         else:
             projected, weights = filt.particles.projected, filt.weights()
-        # Each stage only while the budget lasts; where it runs out, the answer is the scene settled so far with the
-        # particles' posterior of it (``posterior.unswept``).
-        scene, loglik, scored = filt.estimate, filt.estimate_loglik, 0
         score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
         rest = lambda scenes: filt.evaluate(scenes).projected  # noqa: E731
-        for stage in ("settle", "turns", "posterior"):
-            if clock.over():
-                clock.cut(stage)
-                return Settled(scene, loglik, [], scored,
-                               posterior.unswept(self.problem, scene, loglik, projected, weights, stage))
-            with clock.stage(stage):
-                if stage == "settle":
-                    scene, loglik, scored = settle.pattern_search(
-                        filt.estimate, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
-                        max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
-                elif stage == "turns":
-                    before = scene
-                    scene, loglik, turned, ties, turns = settle.turn_over(self.problem, scene, loglik, score, rest,
-                                                                          cfg.settle_shift, cfg.settle_turn)
-                    # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its
-                    # half turn then no longer does. A turned object was settled from a fresh start; the others
-                    # restart where physics put them.
-                    kept = [k for k in range(len(scene)) if np.array_equal(scene[k], before[k])]
-                    scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, filt.estimate,
-                                                       cfg.settle_shift, cfg.settle_turn, kept)
-                    scored += turned + hopped
-                else:
-                    scorer = settle.Scorer(score, rest, cfg.settle_shift, cfg.settle_turn, partial(self._run, filt))
-                    found, swept, final, loglik = posterior.sweep(
-                        self.problem, posterior.SweepStart(scene, loglik, turns, before, projected, weights), scorer,
-                        self.geometry(filt))
+
+        # Each stage only while the budget lasts; where it runs out, the answer is the scene settled so far with the
+        # particles' posterior of it (``posterior.unswept``).
+        def cut(stage: str, scene: np.ndarray, loglik: float, scored: int) -> Settled:
+            clock.cut(stage)
+            return Settled(scene, loglik, [], scored,
+                           posterior.unswept(self.problem, scene, loglik, projected, weights, stage))
+
+        if clock.over():
+            return cut("settle", filt.estimate, filt.estimate_loglik, 0)
+        with clock.stage("settle"):
+            scene, loglik, scored = settle.pattern_search(
+                filt.estimate, score, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES,
+                max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn)
+        if clock.over():
+            return cut("turns", scene, loglik, scored)
+        with clock.stage("turns"):
+            before = scene
+            scene, loglik, turned, ties, turns = settle.turn_over(self.problem, scene, loglik, score, rest,
+                                                                  cfg.settle_shift, cfg.settle_turn)
+            # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its half
+            # turn then no longer does. A turned object was settled from a fresh start; the others restart where
+            # physics put them.
+            kept = [k for k in range(len(scene)) if np.array_equal(scene[k], before[k])]
+            scene, loglik, hopped = settle.hop(self.problem, scene, loglik, score, rest, filt.estimate,
+                                               cfg.settle_shift, cfg.settle_turn, kept)
+            scored += turned + hopped
+        if clock.over():
+            return cut("posterior", scene, loglik, scored)
+        with clock.stage("posterior"):
+            scorer = settle.Scorer(score, rest, cfg.settle_shift, cfg.settle_turn, partial(self._run, filt))
+            found, swept, final, loglik = posterior.sweep(
+                self.problem, posterior.SweepStart(scene, loglik, turns, before, projected, weights), scorer,
+                self.geometry(filt))
         ties = [t for t in ties if np.array_equal(final[t.obj], scene[t.obj])]  # an object the sweep moved: its own
         return Settled(final, loglik, ties, scored + swept, found)
 
