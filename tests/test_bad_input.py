@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench import labels
 from workbench.app.engine.engine import DEMO_DIR
 from workbench.errors import InputError
 from workbench.evaluation import pool
 from workbench.io.results import read_results_csv
+from workbench.label import frame as labels
 from workbench.sessions import store as sessions
 
 pytestmark = pytest.mark.slow  # needs whole estimates: pybullet and OpenGL

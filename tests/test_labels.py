@@ -9,7 +9,7 @@ from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator
 from workbench.geometry import invert_pose, rot_z
 from workbench.io import bop, readers
-from workbench.labels import (
+from workbench.label.frame import (
     fit_label,
     label_errors,
     labels_path,

@@ -1,5 +1,5 @@
 """The frame's label files, on the engine's side: saving the labels, listing the backups of the scene's
-scene_gt.json and restoring one (the file work is ``workbench.labels``'), and reading the frame's ground truth
+scene_gt.json and restoring one (the file work is ``workbench.label.frame``'), and reading the frame's ground truth
 again whenever one of these wrote scene_gt.json, so that the truth table and the Plots tab's reference score
 against the truth as it is now on disk.
 
@@ -21,7 +21,7 @@ from workbench.errors import InputError
 def act(cmd: p.SaveLabels | p.ListBackups | p.RestoreBackup, labels: FrameLabels, run: RunOnShow):
     """Do ``cmd`` -> the frame on show (``scene.Frame``) with its ground truth read again where scene_gt.json was
     written, else None. Bad input raises InputError naming the file, with nothing written."""
-    from workbench import labels as labelling
+    from workbench.label import frame as labelling
 
     if isinstance(cmd, p.SaveLabels):
         labels.save(cmd.overwrite_original)

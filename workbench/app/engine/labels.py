@@ -79,7 +79,7 @@ class FrameLabels:
     def adopt_frame(self, dataset: Path, labels: list | None = None) -> None:
         """Note where the loaded frame lives in its dataset (sessions and label files need it) and take its labels:
         ``labels`` (a session's), else those saved beside the dataset's ground truth, if any."""
-        from workbench import labels as labelling
+        from workbench.label import frame as labelling
         from workbench.sessions import store as sessions
 
         run, results = self.on_show(), self.results
@@ -161,7 +161,7 @@ class FrameLabels:
         return display_names(self.on_show().problem.models)
 
     def snap(self) -> None:
-        from workbench import labels as labelling
+        from workbench.label import frame as labelling
         from workbench.physics import STATUS_NAMES
 
         which = self.labelled()
@@ -174,7 +174,7 @@ class FrameLabels:
         self.adopt(projected, which, "snap", note)
 
     def fit(self) -> None:
-        from workbench import labels as labelling
+        from workbench.label import frame as labelling
 
         which = self.labelled()
         scene, filled = self.scene(leave_out=False)
@@ -216,7 +216,7 @@ class FrameLabels:
         return not shown and est.posterior is not None
 
     def save(self, overwrite_original: bool) -> None:
-        from workbench import labels as labelling
+        from workbench.label import frame as labelling
 
         self.labelled()
         run = self.on_show()
@@ -236,7 +236,7 @@ class FrameLabels:
     def publish_errors(self, always: bool = False) -> None:
         """The best scene against the labels (every iteration while something is labelled; ``always`` after an
         edit, so that clearing the labels clears the table)."""
-        from workbench import labels as labelling
+        from workbench.label import frame as labelling
 
         run = self.on_show()
         est, problem = run.estimator, run.problem
