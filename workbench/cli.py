@@ -17,6 +17,7 @@ from workbench.evaluation.pool import check_run_memory, check_workers
 from workbench.inference.config import MAX_ITERATIONS, MAX_PARTICLES, METHODS, EstimatorConfig, check_seed
 from workbench.inference.search.moves.registry import PROPOSALS
 from workbench.inference.smc.particles import STATES, Sigma
+from workbench.label.config import LabelConfig
 from workbench.physics import BACKENDS, PhysicsConfig, check_backend
 from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
@@ -24,6 +25,7 @@ from workbench.track.config import TrackConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
 TRACK_DEFAULTS = TrackConfig()
+LABEL_DEFAULTS = LabelConfig()
 # Upper bounds of the other counts, each with its reason (the estimator's own: inference.config).
 MAX_RETRIES = 100  # a worker that died 100 times will die again: out of memory, or a broken install
 MAX_TRACK_ITERATIONS = 1000  # a tracked frame runs 2 (6 with an object lost); 1000 take many minutes per frame
@@ -280,6 +282,53 @@ def _cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_label(args: argparse.Namespace) -> int:
+    from workbench.label import run as labelling
+    from workbench.label.sequence import _read_keyed, label_files, write_sequence
+    from workbench.track.frames import sequence_frames, sequence_world
+
+    # Every setting, the frames and the files written are checked before anything is loaded or started.
+    config, problem = estimator_config(args), problem_config(args)
+    config.validate("")
+    problem.validate()
+    check_workers(args.workers)
+    check_run_memory(config.particles, problem.max_render_pixels)
+    track = TrackConfig(motion=args.motion)
+    label = LabelConfig(fit_frames=args.fit_frames, snap=not args.no_snap, ends=_ends(args.end))
+    label.validate()
+    frames = sequence_frames(args.dataset, args.scene, args.split, args.frames)
+    sequence_world(args.dataset, args.scene, args.split, args.motion, frames)
+    files = label_files(args.dataset, args.scene, args.split, args.out_labels, args.overwrite_gt)
+    for path in (files.labels, files.info):
+        _read_keyed(path)  # a file the labels cannot be merged into is refused now, not after the work
+    run = labelling.label_sequence(args.dataset, args.scene, frames, config, track, label, problem, args.workers,
+                                   args.split, args.objects, not args.no_early_stop)
+    written = write_sequence(files, run.labels, run.infos, run.checks)
+    table = labelling.flag_table(run)
+    if table:
+        print("flagged frames (review them in `workbench serve`):", file=sys.stderr)
+        print("\n".join(table), file=sys.stderr)
+    for obj_id, start in labelling.gone_from(run).items():
+        print(f"object {obj_id} is seen through from frame {start} to the end: taken out? End its label there "
+              f"with --end {obj_id}:{start - 1}", file=sys.stderr)
+    print(labelling.summary(run), file=sys.stderr)
+    print(f"wrote {', '.join(str(p) for p in written)}", file=sys.stderr)
+    return 0
+
+
+def _ends(values: list[str] | None) -> dict[int, int]:
+    """``--end OBJ:FRAME`` values -> object id -> the last frame of its label."""
+    out = {}
+    for v in values or []:
+        try:
+            obj_id, last = (int(x) for x in v.split(":"))
+        except ValueError:
+            raise InputError("--end", f"must be OBJ:FRAME, an object id and its label's last frame (e.g. 5:10), "
+                                      f"got {v!r}") from None
+        out[obj_id] = last
+    return out
+
+
 def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
@@ -453,10 +502,11 @@ def _make_sequences(args: argparse.Namespace, t0: float) -> int:
     take_out = None
     if args.take_out is not None:
         try:
-            k, j = (int(v) for v in args.take_out.split(":"))
+            k, j = args.take_out.split(":")
+            take_out = TakeOut(int(k), int(j) if j.strip() else None)
         except ValueError:
-            raise InputError("--take-out", f"must be K:J, two frames (e.g. 3:5), got {args.take_out!r}") from None
-        take_out = TakeOut(k, j)
+            raise InputError("--take-out", f"must be K:J, two frames (e.g. 3:5), or K: (never back), got "
+                                           f"{args.take_out!r}") from None
     scenes = make_sequences(args.out, [c.strip() for c in args.categories.split(",")], args.per_category,
                             args.sequence, args.seed, arc_deg=args.arc, push=push, force=args.force,
                             take_out=take_out, handle=args.handle)
@@ -602,6 +652,31 @@ def build_parser() -> argparse.ArgumentParser:
                         "--engine ray, per sequence (tracked again from its first frame; default 3)")
     p.set_defaults(func=_cmd_track)
 
+    p = sub.add_parser("label", help="pre-label a sequence: track it, fit every still object to all frames, check "
+                                     "each frame against its depth, write BOP labels with the flagged frames")
+    p.add_argument("dataset", type=Path, help="BOP dataset folder (root or split folder)")
+    p.add_argument("--split", default=None, help="split folder (default: test, or the only one)")
+    p.add_argument("--scene", type=int, required=True, help="scene id: the sequence to label")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="image ids A to B, both included, every one present (default: all of the scene's)")
+    p.add_argument("--objects", type=int, nargs="+", default=None,
+                   help="object ids present (default: the first frame's scene_gt.json)")
+    p.add_argument("--out-labels", type=Path, default=None, metavar="FILE",
+                   help="the labels, in scene_gt.json form (default: scene_gt_labels.json in the scene's folder); "
+                        "FILE_info.json and FILE_provenance.json beside it")
+    p.add_argument("--overwrite-gt", action="store_true",
+                   help="write the scene's own scene_gt.json and scene_gt_info.json (backups kept)")
+    p.add_argument("--fit-frames", type=int, default=LABEL_DEFAULTS.fit_frames,
+                   help=f"frames, spread over the sequence, each still object is fitted to at once (0: none; "
+                        f"default {LABEL_DEFAULTS.fit_frames})")
+    p.add_argument("--no-snap", action="store_true", help="keep the fitted labels as fitted (no physics)")
+    p.add_argument("--end", nargs="+", default=None, metavar="OBJ:FRAME",
+                   help="object OBJ's label ends at FRAME (taken out after it)")
+    p.add_argument("--motion", choices=("auto", "given", "depth"), default="auto",
+                   help="the camera's motion between frames, as track's (default auto)")
+    _add_estimator_args(p)
+    p.set_defaults(func=_cmd_label)
+
     p = sub.add_parser("score", help="score a BOP results CSV against the dataset's scene_gt.json")
     p.add_argument("dataset", type=Path, help="BOP dataset folder (root or split folder)")
     p.add_argument("results", type=Path, help="BOP results CSV (e.g. from `workbench estimate`)")
@@ -664,7 +739,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--push-distance", type=float, default=0.05, metavar="M", help="how far, metres (default 0.05)")
     p.add_argument("--take-out", default=None, metavar="K:J",
                    help="with --sequence: on frames K to J-1 one object standing on the table is out of the scene "
-                   "(lifted away: not in the depth nor in scene_gt.json), from J on back where it was")
+                   "(lifted away: not in the depth nor in scene_gt.json), from J on back where it was (K: never back)")
     p.add_argument("--handle", type=int, default=None, metavar="K",
                    help="with --sequence and --categories handle_hidden: the mug's handle, hidden behind its body on "
                    "the first frames, comes into view from frame K on as the camera moves (the arc is chosen for "
