@@ -45,6 +45,7 @@ FLY_MARGIN = 0.005  # m: a flying reading is this far from both sides at least (
 GRAZING_DEG = 70.0  # beyond this angle of incidence a pixel counts as grazing
 OUTLIER = 0.03  # m: residuals beyond are not the sensor's noise (occluder, pose off) and left out
 TABLE_BAND = 0.02  # m: readings this close to the plane are the table's
+MIN_BIN = 20000  # px: a depth or angle bin with fewer pixels is not reported (a few frames' corner)
 MAX_LAG = 40  # px
 MAX_LAG_SLOW = 200  # px
 SLOW_MRAD = 15.0  # the slow part of a residual: its mean within this angle (16 px at fx 1067, 8 px at 525)
@@ -134,6 +135,7 @@ def frame_samples(a: dict) -> dict:
         fast = res - slow
         o = out[name]
         o["res"], o["fast"], o["z"], o["angle"] = res[region], fast[region], ref[region], angle[region]
+        o["fast_z2"] = fast[region] / ref[region] ** 2  # m per m^2: comparable between sets seen from other distances
         o["slow"] = st.detrend(slow, region)[region]  # the plane or the pose leaves a ramp: not the sensor's
         o["acf_fast"] = st.autocorrelation(np.where(region, fast, 0.0), region, MAX_LAG)
         o["acf_slow"] = st.autocorrelation(st.detrend(slow, region), region, MAX_LAG_SLOW)
@@ -161,20 +163,23 @@ def summarise(samples: list[dict]) -> dict:
     focal = float(np.mean([x["focal"] for x in samples]))
     mm = lambda bins: [dict(b, robust_std=1e3 * b["robust_std"]) for b in bins]  # noqa: E731
     for name in ("objects", "table"):
-        cat = {k: np.concatenate([x[name][k] for x in samples]) for k in ("res", "fast", "slow", "z", "angle")}
+        cat = {k: np.concatenate([x[name][k] for x in samples])
+               for k in ("res", "fast", "fast_z2", "slow", "z", "angle")}
         acf_fast, acf_slow = pooled_acf(samples, name, "acf_fast"), pooled_acf(samples, name, "acf_slow")
         fast_len, slow_len = st.correlation_length(acf_fast), st.correlation_length(acf_slow)
         s[name] = {"n": int(cat["res"].size), "robust_std_mm": 1e3 * st.robust_std(cat["res"]),
                    "tail3": st.tail_fraction(cat["res"]), "median_z": float(np.median(cat["z"])),
-                   "fast_std_mm": 1e3 * st.robust_std(cat["fast"]), "slow_std_mm": 1e3 * float(np.std(cat["slow"])),
+                   "fast_std_mm": 1e3 * st.robust_std(cat["fast"]),
+                   "fast_z2_mm": 1e3 * st.robust_std(cat["fast_z2"]), "fast_z2_tail3": st.tail_fraction(cat["fast_z2"]),
+                   "slow_std_mm": 1e3 * float(np.std(cat["slow"])),
                    "fast_corr_px": fast_len, "fast_corr_mrad": 1e3 * fast_len / focal,
                    "slow_corr_px": slow_len, "slow_corr_mrad": 1e3 * slow_len / focal,
                    "acf_fast": acf_fast.tolist(), "acf_slow": acf_slow.tolist(),
                    "by_depth": mm(st.binned_spread(cat["res"], cat["z"], DEPTH_BINS)),
                    "fast_by_depth": mm(st.binned_spread(cat["fast"], cat["z"], DEPTH_BINS)),
                    "slow_by_depth": mm(st.binned_spread(cat["slow"], cat["z"], DEPTH_BINS)),
-                   "fast_by_angle": mm(st.binned_spread(cat["fast"], np.nan_to_num(cat["angle"], nan=-1.0),
-                                                        ANGLE_BINS))}
+                   "fast_by_angle": mm(st.binned_spread(cat["fast_z2"], np.nan_to_num(cat["angle"], nan=-1.0),
+                                                        ANGLE_BINS))}  # fast / z^2, mm per m^2
     for region in ("objects", "table", "all"):
         counts = {}
         for g in ("edge", "grazing", "elsewhere"):
@@ -211,23 +216,23 @@ def measure(dataset: Path, max_frames: int | None = None) -> dict:
 
 
 def headline(s: dict) -> dict[str, float]:
-    """The statistics a sensor model must reproduce, flat (name -> value): lengths mm, shares %, angles mrad."""
+    """The statistics a sensor model must reproduce, flat (name -> value): lengths mm, shares %, angles mrad.
+    Only those that do not depend on how far the camera stands: spreads per depth bin (of at least
+    ``MIN_BIN`` pixels) or divided by z^2, lengths as angles, shares."""
     row = {}
     for name in ("objects", "table"):
         o = s[name]
-        row[f"{name} robust std mm"] = o["robust_std_mm"]
-        row[f"{name} tail >3 std %"] = 100 * o["tail3"]
-        row[f"{name} fast std mm"] = o["fast_std_mm"]
+        row[f"{name} fast std / z^2, mm/m^2"] = o["fast_z2_mm"]
+        row[f"{name} fast / z^2 tail >3 std %"] = 100 * o["fast_z2_tail3"]
         row[f"{name} fast corr length mrad"] = o["fast_corr_mrad"]
-        row[f"{name} slow std mm"] = o["slow_std_mm"]
         row[f"{name} slow corr length mrad"] = o["slow_corr_mrad"]
     for key in ("by_depth", "fast_by_depth", "slow_by_depth"):
         for b in s["table"][key]:
-            if b["n"] >= 2000:
+            if b["n"] >= MIN_BIN:
                 row[f"table {key.replace('by_depth', '')}std mm, z {b['lo']:.2f}-{b['hi']:.2f}"] = b["robust_std"]
     for b in s["objects"]["fast_by_angle"]:
-        if b["n"] >= 2000:
-            row[f"objects fast std mm, {b['lo']:.0f}-{b['hi']:.0f} deg"] = b["robust_std"]
+        if b["n"] >= MIN_BIN:
+            row[f"objects fast/z^2 mm/m^2, {b['lo']:.0f}-{b['hi']:.0f} deg"] = b["robust_std"]
     for g in ("edge", "grazing", "elsewhere"):
         row[f"holes at {g} %"] = 100 * s["holes_all"][g]
     row["flying pixels at edges %"] = 100 * s["flying"]
