@@ -155,3 +155,13 @@ def test_xtion_model_shows_its_measured_statistics_on_a_plane():
     assert 0.3 * model.flying < share < 2 * model.flying
     with pytest.raises(ValueError, match="intrinsics"):
         apply_sensor(clean, np.random.default_rng(0), model)
+
+
+def test_make_scenes_takes_the_sensor_by_name_and_keeps_kinect_like_by_default():
+    from workbench.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["make-scenes", "out"]).sensor == "kinect-like"
+    assert parser.parse_args(["make-scenes", "out", "--sensor", "xtion"]).sensor == "xtion"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["make-scenes", "out", "--sensor", "sonar"])
