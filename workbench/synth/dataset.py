@@ -20,6 +20,7 @@ from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, SHAPE_CA
 from workbench.synth.distractors import Distractor, distractor_mesh
 from workbench.synth.objects import BOXES, ROUND, MeshItem, box_mesh, item_mesh
 from workbench.synth.scenes import SceneSample, generate_scene
+from workbench.synth.sensor import SensorName, check_sensor, sensor_model
 from workbench.synth.shape_layouts import check_models
 from workbench.synth.sim import Sim
 
@@ -181,7 +182,7 @@ def model_items(models: Path) -> tuple[MeshItem, ...]:
 
 def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, width: int = 640,
                 height: int = 480, distractors: int | None = None, table_pose: float | None = None,
-                force: bool = False, models: Path | None = None) -> list[dict]:
+                force: bool = False, models: Path | None = None, sensor: SensorName = "kinect-like") -> list[dict]:
     """Write ``per_category`` scenes of each category as a BOP dataset in ``out`` (split "test", one image each).
 
     Scene ids run over ``categories`` in order; each scene's random draw depends only on (seed, category,
@@ -192,8 +193,10 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     from the paper's set-up, "table_size", "table_pose", "distractors" (also in scenes.json).
     ``models``: a BOP dataset (or models folder) whose models the scenes draw from instead of the built-in
     objects (only ``MODEL_CATEGORIES``; ``SHAPE_CATEGORIES`` need it); copied into ``out`` with their symmetries.
+    ``sensor``: the depth sensor's model (``synth.sensor.sensor_model``).
     ``out`` must be new or empty unless ``force``.
     """
+    check_sensor(sensor)
     unknown = [c for c in categories if c not in CATEGORIES]
     if unknown:
         raise InputError("categories", f"unknown {unknown}; choose from {list(CATEGORIES)}")
@@ -213,7 +216,7 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     pool = model_items(models) if models is not None else ()
     for category in dict.fromkeys(c for c in categories if c in SHAPE_CATEGORIES):
         check_models(category, pool)
-    cfg = SynthConfig(width=width, height=height, objects=pool)
+    cfg = SynthConfig(width=width, height=height, objects=pool, sensor=sensor_model(sensor))
     if models is not None:
         bop.copy_models(models, out, [o.obj_id for o in pool])
     else:

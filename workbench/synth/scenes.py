@@ -154,7 +154,7 @@ def generate_scene(sim: Sim, category: str, rng: np.random.Generator, cfg: Synth
             if not (_views_ok(cfg, layout, visib) and _handle_ok(cfg, category, T_cam_world, layout[0], clean,
                                                                   mask_visib[0])):
                 continue
-            depth = apply_sensor(clean, rng, cfg.sensor)
+            depth = apply_sensor(clean, rng, cfg.sensor, K)
             table_pose = bool(rng.random() < desk.table_pose) if 0.0 < desk.table_pose < 1.0 else desk.table_pose >= 1
             return SceneSample(category, layout, T_cam_world, clean, depth, mask_visib, mask_all, tries,
                                distractors, table_pose, cfg.table_size)

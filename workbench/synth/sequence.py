@@ -24,7 +24,7 @@ from workbench.synth.config import CATEGORIES, DESKS, SHAPE_CATEGORIES, DeskSpec
 from workbench.synth.dataset import _scene_meta, _write_camera_json, check_out_folder, save_object_models
 from workbench.synth.layout import Placed
 from workbench.synth.scenes import SceneSample, generate_scene
-from workbench.synth.sensor import apply_sensor
+from workbench.synth.sensor import SensorName, apply_sensor, check_sensor, sensor_model
 from workbench.synth.sim import Sim
 from workbench.synth.views import handle_pixels, in_view, render_clean
 
@@ -141,7 +141,7 @@ def write_sequence(out: Path, scene_id: int, sample: SceneSample, cfg: SynthConf
             layout = [p for k, p in enumerate(layout) if k != gone]
         clean, _ = render_clean(cfg, T, layout, sample.distractors)
         gt = [(p.item.obj_id, T @ p.T) for p in layout]
-        bop.save_frame(out, scene_id, i, apply_sensor(clean, rng, cfg.sensor), cfg.K(),
+        bop.save_frame(out, scene_id, i, apply_sensor(clean, rng, cfg.sensor, cfg.K()), cfg.K(),
                        T if sample.table_pose else None, gt, split=split)
         T_c_w = T @ WORLD_FROM_TABLE
         world[str(i)] = {"R_w2c": T_c_w[:3, :3].ravel().tolist(), "t_w2c": (T_c_w[:3, 3] / readers.MM).tolist()}
@@ -151,13 +151,15 @@ def write_sequence(out: Path, scene_id: int, sample: SceneSample, cfg: SynthConf
 
 def make_sequences(out: Path, categories: list[str], per_category: int, frames: int, seed: int, width: int = 640,
                    height: int = 480, arc_deg: float = 10.0, push: Push | None = None, force: bool = False,
-                   take_out: TakeOut | None = None, handle: int | None = None, max_tries: int = 20) -> list[dict]:
+                   take_out: TakeOut | None = None, handle: int | None = None, max_tries: int = 20,
+                   sensor: SensorName = "kinect-like") -> list[dict]:
     """``per_category`` sequences of ``frames`` frames per category, each a generated scene (as ``make_scenes``
     draws it, same seed) seen on an arc of ``arc_deg`` degrees, with an optional ``push`` or ``take_out``. With
     ``handle`` (a frame; category ``handle_hidden`` only) the arc is instead chosen for each scene so that the mug's
     handle, hidden on the first frames, shows from that frame on (``handle_arc``; scenes drawn again, up to
     ``max_tries``, until one has such an arc). -> per scene the metadata ``make_scenes`` gives, with "frames", "arc_deg"
     and the events ("push", "take_out": the object's obj_id and frames; "handle_shown": the frame) added."""
+    check_sensor(sensor)
     unknown = [c for c in categories if c not in CATEGORIES]
     if unknown:
         raise InputError("categories", f"unknown {unknown}; choose from {list(CATEGORIES)}")
@@ -183,7 +185,7 @@ def make_sequences(out: Path, categories: list[str], per_category: int, frames: 
                                          f"handle_hidden only, not {', '.join(others)}")
     out = Path(out)
     check_out_folder(out, force)
-    cfg = SynthConfig(width=width, height=height)
+    cfg = SynthConfig(width=width, height=height, sensor=sensor_model(sensor))
     save_object_models(out)
     _write_camera_json(out, cfg)
     meta, sim = [], Sim(cfg)
