@@ -40,12 +40,12 @@ def main() -> int:
     p.add_argument("--frames", default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fit-frames", type=int, default=LabelConfig().fit_frames)
-    p.add_argument("--no-snap", action="store_true")
+    p.add_argument("--snap", action="store_true")
     args = p.parse_args()
     for scene in args.scene:
         frames = sequence_frames(args.dataset, scene, None, args.frames)
         run = label_sequence(args.dataset, scene, frames, EstimatorConfig(seed=args.seed), TrackConfig(),
-                             LabelConfig(fit_frames=args.fit_frames, snap=not args.no_snap))
+                             LabelConfig(fit_frames=args.fit_frames, snap=args.snap))
         first = min(run.tracked)
         ids = run.labels.obj_ids
         models = [m for m in (bop.load_models(args.dataset, ids)[i] for i in ids)]

@@ -295,7 +295,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
     check_workers(args.workers)
     check_run_memory(config.particles, problem.max_render_pixels)
     track = TrackConfig(motion=args.motion)
-    label = LabelConfig(fit_frames=args.fit_frames, snap=not args.no_snap, ends=_ends(args.end))
+    label = LabelConfig(fit_frames=args.fit_frames, snap=args.snap, ends=_ends(args.end))
     label.validate()
     frames = sequence_frames(args.dataset, args.scene, args.split, args.frames)
     sequence_world(args.dataset, args.scene, args.split, args.motion, frames)
@@ -304,7 +304,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
         _read_keyed(path)  # a file the labels cannot be merged into is refused now, not after the work
     run = labelling.label_sequence(args.dataset, args.scene, frames, config, track, label, problem, args.workers,
                                    args.split, args.objects, not args.no_early_stop)
-    written = write_sequence(files, run.labels, run.infos, run.checks)
+    written = write_sequence(files, run.labels, run.infos, run.checks, run.rest_shift)
     table = labelling.flag_table(run)
     if table:
         print("flagged frames (review them in `workbench serve`):", file=sys.stderr)
@@ -670,7 +670,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fit-frames", type=int, default=LABEL_DEFAULTS.fit_frames,
                    help=f"frames, spread over the sequence, each still object is fitted to at once (0: none; "
                         f"default {LABEL_DEFAULTS.fit_frames})")
-    p.add_argument("--no-snap", action="store_true", help="keep the fitted labels as fitted (no physics)")
+    p.add_argument("--snap", action="store_true",
+                   help="put the fitted labels at rest with physics, then fit them to the depth again within the "
+                        "settling region (default: as fitted; physics says how far it would move each)")
     p.add_argument("--end", nargs="+", default=None, metavar="OBJ:FRAME",
                    help="object OBJ's label ends at FRAME (taken out after it)")
     p.add_argument("--motion", choices=("auto", "given", "depth"), default="auto",

@@ -3,7 +3,8 @@
 1. track: every frame estimated as ``workbench track`` does (the first from scratch, each next one from the one
    before), each frame's problem and answer kept in the sequence's world frame (the tracked table frame);
 2. fit to all frames: each still object's pose chosen among the frames' answers and fitted on a spread of the
-   frames at once (``multiview``), then snapped to rest with physics (in the first frame's world);
+   frames at once (``multiview``); physics says how far it would move each label to rest (and, asked to, snaps
+   them: ``LabelConfig.snap``);
 3. carry and check: the labels carried to every frame by its camera pose and checked against its depth
    (``check``); an object flagged in a frame where that frame's own answer passes has moved there: its label takes
    that pose from that frame on;
@@ -37,14 +38,16 @@ from workbench.track.sequence import Tracker
 @dataclass
 class LabelRun:
     """What ``label_sequence`` made: the ``labels``, each frame's ``checks`` and scene_gt_info entries
-    (``infos``), each frame's own tracked answer (``tracked``: image id -> (K, 4, 4) world), and the wall
-    ``seconds`` of each stage (track, fit, check)."""
+    (``infos``), each frame's own tracked answer (``tracked``: image id -> (K, 4, 4) world), the wall
+    ``seconds`` of each stage (track, fit, check) and how far physics moves each fitted label to rest
+    (``rest_shift`` (K,) metres)."""
 
     labels: SequenceLabels
     checks: dict[int, list[ObjectCheck]]
     infos: dict[int, list[dict | None]]
     tracked: dict[int, np.ndarray]
     seconds: dict[str, float]
+    rest_shift: np.ndarray | None = None
 
     @property
     def flagged(self) -> list[int]:
@@ -70,34 +73,39 @@ def track_all(tracker: Tracker, frames: list[int], keep: set[int], echo: bool = 
     return cams, answers, problems
 
 
-def fitted_labels(problems: dict[int, Problem], answers: dict[int, np.ndarray], config: LabelConfig) -> np.ndarray:
+def fitted_labels(problems: dict[int, Problem], answers: dict[int, np.ndarray], config: LabelConfig
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """The still labels (K, 4, 4) world: the first frame's answer, each object's pose chosen among every frame's
-    answer and fitted on ``problems``' frames at once; then (``config.snap``) put at rest by physics and fitted
-    again within ``config.settle_shift`` and ``settle_turn`` of the rest, as the estimator settles its answer:
-    physics decides how an object can rest (its face, its support), the depth decides the last millimetres, where
-    our meshes and the table's plane are a few millimetres off the real ones (physics alone moved a real can's
-    label by a centimetre)."""
+    answer and fitted on ``problems``' frames at once within ``config.settle_shift`` and ``settle_turn`` of it; with
+    ``config.snap``, then put at rest by physics and fitted again within that region of the rest, as the estimator
+    settles its answer.
+    -> (the labels, how far physics moves each label to put the scene at rest (K,) metres: its plausibility).
+
+    Physics is off by default: on the real sequences it lifts every label 7-16 mm (the table's plane, fitted to the
+    depth, lies above the real support), and fitting again within the settling region brings most of it back but
+    not all, so the snapped labels were further from the truth than the fitted ones (docs/journal/2026-12.md,
+    "Sequence labels")."""
     first = min(answers)
     T = answers[first]
     if not problems:
-        return T
+        return T, np.zeros(len(T))
     used = sorted(problems)
-    models = problems[used[0]].models
-    view = MultiView([problems[i] for i in used], np.ones((len(used), len(models)), dtype=bool))
+    problem = problems[used[0]]
+    view = MultiView([problems[i] for i in used], np.ones((len(used), len(problem.models)), dtype=bool))
+    evaluator = LocalEvaluator(problem)
     try:
-        candidates = [[answers[i][k] for i in sorted(answers)] for k in range(len(models))]
-        T = choose(view, T, candidates, [m.symmetries for m in models])
-        T = fit(view, T)
+        candidates = [[answers[i][k] for i in sorted(answers)] for k in range(len(problem.models))]
+        T = choose(view, T, candidates, [m.symmetries for m in problem.models])
+        # Within the settling region of the chosen pose: the fit refines, it does not relocate (an object taken out
+        # on some frames would otherwise be pushed where those frames see nothing of it).
+        T = fit(view, T, max_shift_m=config.settle_shift, max_turn_deg=config.settle_turn)
+        rested, moved, _ = snap_to_plausible(problem, T, evaluator)
         if config.snap:
-            evaluator = LocalEvaluator(problems[used[0]])
-            try:
-                T, _, _ = snap_to_plausible(problems[used[0]], T, evaluator)
-            finally:
-                evaluator.close()
-            T = fit(view, T, max_shift_m=config.settle_shift, max_turn_deg=config.settle_turn)
+            T = fit(view, rested, max_shift_m=config.settle_shift, max_turn_deg=config.settle_turn)
     finally:
         view.close()
-    return T
+        evaluator.close()
+    return T, moved
 
 
 class FrameChecker:
@@ -181,7 +189,7 @@ def label_sequence(dataset: Path, scene_id: int, frames: list[int], config: Esti
     models = tracker.models
     seconds["track"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    T = fitted_labels(problems, answers, label)
+    T, rest_shift = fitted_labels(problems, answers, label)
     seconds["fit"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     objects = [ObjectLabel(obj_id, T[k].copy(), last=label.ends.get(obj_id)) for k, obj_id in enumerate(object_ids)]
@@ -192,7 +200,7 @@ def label_sequence(dataset: Path, scene_id: int, frames: list[int], config: Esti
     finally:
         checker.close()
     seconds["check"] = time.perf_counter() - t0
-    return LabelRun(labels, checks, infos, answers, seconds)
+    return LabelRun(labels, checks, infos, answers, seconds, rest_shift)
 
 
 def flag_table(run: LabelRun) -> list[str]:
@@ -227,7 +235,8 @@ def summary(run: LabelRun) -> str:
     """One line: frames labelled, flagged, the worst agreement, the stages' seconds."""
     worsts = [w for i in run.labels.frames if (w := worst(run.checks[i])) is not None]
     s = run.seconds
+    rest = "" if run.rest_shift is None else f"; physics would move a label up to {1000 * max(run.rest_shift):.0f} mm"
     return (f"labelled {len(run.labels.frames)} frame(s) of scene {run.labels.scene_id}: {len(run.flagged)} "
             f"flagged; worst agreement {min(worsts):.0%}" if worsts else "no object could be checked") + \
-        f" (track {s['track']:.1f} s, fit {s['fit']:.1f} s, check {s['check']:.1f} s)"
+        f"{rest} (track {s['track']:.1f} s, fit {s['fit']:.1f} s, check {s['check']:.1f} s)"
 

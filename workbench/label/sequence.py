@@ -202,9 +202,10 @@ _UNKNOWN_INFO = {"bbox_obj": [-1, -1, -1, -1], "bbox_visib": [-1, -1, -1, -1], "
 
 
 def write_sequence(files: LabelFiles, labels: SequenceLabels, infos: dict[int, list[dict | None]],
-                   checks: dict[int, list[ObjectCheck]]) -> list[Path]:
+                   checks: dict[int, list[ObjectCheck]], rest_shift: np.ndarray | None = None) -> list[Path]:
     """Write every frame's labels, their scene_gt_info entries (``infos``: image id -> per object an entry or None)
-    and the provenance with each frame's ``checks`` -> the files written. Nothing is written when an existing file
+    and the provenance with each frame's ``checks`` and how far physics would move each label to rest
+    (``rest_shift`` (K,) metres, if known) -> the files written. Nothing is written when an existing file
     cannot be merged into (InputError naming it); the originals are backed up before they are replaced."""
     gt, info = _read_keyed(files.labels), _read_keyed(files.info)
     for i in labels.frames:
@@ -217,19 +218,22 @@ def write_sequence(files: LabelFiles, labels: SequenceLabels, infos: dict[int, l
                 _backup(path)
     for path, content in ((files.labels, gt), (files.info, info)):
         write_file(path, json.dumps({k: content[k] for k in sorted(content, key=int)}, indent=1).encode())
-    write_file(files.provenance, json.dumps(provenance(labels, checks), indent=1).encode())
+    write_file(files.provenance, json.dumps(provenance(labels, checks, rest_shift), indent=1).encode())
     return [files.labels, files.info, files.provenance]
 
 
-def provenance(labels: SequenceLabels, checks: dict[int, list[ObjectCheck]]) -> dict:
+def provenance(labels: SequenceLabels, checks: dict[int, list[ObjectCheck]], rest_shift: np.ndarray | None = None
+               ) -> dict:
     """The provenance file's content: per frame whether a person checked it or it was propagated, whether it is
-    flagged and each object's check; per object the frames its label holds and the frames where it moves."""
+    flagged and each object's check; per object the frames its label holds, the frames where it moves and how far
+    physics would move it to rest (``rest_shift_mm``, null where not known)."""
     frames = {}
     for i in labels.frames:
         rows = checks.get(i, [])
         frames[str(i)] = {"source": "checked" if i in labels.checked else "propagated",
                           "flagged": any(c.flagged for c in rows), "objects": [c.to_dict() for c in rows]}
-    objects = [{"obj_id": o.obj_id, "first": o.first, "last": o.last, "moves_at": sorted(o.moves)}
-               for o in labels.objects]
+    shifts = [None] * len(labels.objects) if rest_shift is None else [round(1000 * float(m), 1) for m in rest_shift]
+    objects = [{"obj_id": o.obj_id, "first": o.first, "last": o.last, "moves_at": sorted(o.moves),
+                "rest_shift_mm": m} for o, m in zip(labels.objects, shifts)]
     return {"format": PROVENANCE_FORMAT, "scene_id": labels.scene_id,
             "written": datetime.now(timezone.utc).isoformat(timespec="seconds"), "objects": objects, "frames": frames}
