@@ -34,6 +34,7 @@ from workbench.app import protocol as p
 from workbench.app.engine.labels import FrameLabels, movement_table, turned
 from workbench.app.engine.on_show import RunOnShow
 from workbench.app.engine.sequence import EngineSequence, HeldRun
+from workbench.app.engine.sequence_cameras import sequence_cameras
 from workbench.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -42,40 +43,94 @@ TOPIC = "sequence labels"
 PROGRESS_EVERY_S = 1.0  # how often a long check tells the server how far it got
 
 
-def sequence_cameras(dataset: Path, scene_id: int, split: str | None, frames: list[int],
-                     known: dict[int, np.ndarray], region: tuple[np.ndarray, np.ndarray]) -> dict[int, np.ndarray]:
-    """Each of ``frames``' camera pose ``T_cam_world`` (4, 4) in the sequence's table frame: ``known``'s (the
-    processed frames', image id -> (4, 4), at least one), else the table pose the dataset gives the frame, else the
-    known frame's moved by the camera's motion between them (``scene_camera_world.json``), else registered from the
-    depth to the nearest frame whose pose is found (``track.motion.depth_motion``, ``region`` the object region
-    (lo, hi) (2,) m of the table frame)."""
-    from workbench.io import bop
-    from workbench.track.motion import depth_motion, given_motion, read_world_poses
+def carried_labels(scene_id: int, cams: dict[int, np.ndarray], obj_ids: list[int], current: list[np.ndarray],
+                   shown: int, P: np.ndarray):
+    """The labels ``current`` (per object (4, 4)) of frame ``shown``, whose problem's camera is ``P`` (4, 4), as
+    the sequence's still labels on the frames of ``cams`` (image id -> T_cam_world (4, 4)): a person checked that
+    frame."""
+    from workbench.geometry import invert_pose
+    from workbench.label.sequence import ObjectLabel, SequenceLabels
 
-    if not known:
-        raise InputError("sequence", "no frame of the sequence is processed: load one of its frames")
-    world = read_world_poses(bop.scene_folder(dataset, scene_id, split))
-    out = {i: np.asarray(T, dtype=np.float64) for i, T in known.items() if i in frames}
-    anchor = min(known, key=lambda i: (i not in frames, i))
-    loaded: dict[int, object] = {}
+    to_sequence = invert_pose(cams.get(shown, P)) @ P  # the identity, unless the frame's support fit moved it
+    labels = SequenceLabels(scene_id, cams, [ObjectLabel(i, to_sequence @ T) for i, T in zip(obj_ids, current)])
+    labels.checked = {shown} & set(cams)
+    return labels
 
-    def frame(i: int):
-        if i not in loaded:
-            loaded[i] = bop.load_frame(dataset, scene_id, i, split)
-        return loaded[i]
 
-    # Outward from the processed frames, so that a registered pose always has a found neighbour.
-    todo = sorted((i for i in frames if i not in out), key=lambda i: min(abs(i - j) for j in known))
-    for i in todo:
-        given = frame(i).camera.T_cam_world
-        if given is not None:
-            out[i] = np.asarray(given, dtype=np.float64)
-        elif world is not None and anchor in world and i in world:
-            out[i] = given_motion(world[anchor], world[i]) @ known[anchor]
-        else:
-            j = min(out, key=lambda j: abs(i - j))
-            out[i] = depth_motion(frame(j), frame(i), out[j], region) @ out[j]
-    return {i: out[i] for i in frames}
+def check_frames(labels, checker, tell: Callable[[object], None]) -> tuple[dict[int, list], dict[int, list]]:
+    """Every frame of ``labels`` (``SequenceLabels``) checked by ``checker`` (``run.FrameChecker``) -> (per image id
+    its ``ObjectCheck``s, its scene_gt_info entries). A long check ``tell``s how far it got, every second. The
+    frames' own answers do not move labels here (``run.carry_and_check`` would): the person decides."""
+    checks, infos = {}, {}
+    told = time.monotonic()
+    for n, im in enumerate(labels.frames):
+        if time.monotonic() - told > PROGRESS_EVERY_S:
+            tell(p.SequenceLabelProgress(f"Checking frame {im} ({n + 1} of {len(labels.frames)}) …"))
+            told = time.monotonic()
+        checks[im], infos[im] = checker.check(im, labels.camera_poses(im))
+    return checks, infos
+
+
+def fit_still(problems: list, present: np.ndarray, T: np.ndarray, snap: Callable[[np.ndarray], np.ndarray],
+              config, tell: Callable[[object], None]) -> np.ndarray:
+    """``run.fitted_labels``' steps from given labels: the scene ``T`` (K, 4, 4) fitted to ``problems`` (one per
+    frame, the sequence's table frame; ``present`` (F, K) the labels each draws) at once, ``snap``ped by physics,
+    and fitted again within ``config.settle_shift`` m and ``settle_turn`` degrees of the rest -> (K, 4, 4)."""
+    from workbench.label.multiview import MultiView, fit
+
+    view = MultiView(problems, present)
+    try:
+        tell(p.SequenceLabelProgress(f"Fitting the labels to {len(problems)} frames at once …"))
+        T = fit(view, T)
+        tell(p.SequenceLabelProgress("Snapping the fitted labels with physics, fitting again …"))
+        return fit(view, snap(T), max_shift_m=config.settle_shift, max_turn_deg=config.settle_turn)
+    finally:
+        view.close()
+
+
+def state_message(labels, checks: dict[int, list], infos: dict[int, list], note: str) -> p.SequenceLabelState:
+    """What the server is sent of ``labels`` (``SequenceLabels``) and each frame's ``checks``: per frame its worst
+    agreement and checks, the objects seen through to the end (``run.gone_from``), and ``note``."""
+    from workbench.label.check import worst
+    from workbench.label.run import LabelRun, gone_from
+
+    frames = [p.LabelledFrame(i, worst(checks[i]), any(c.flagged for c in checks[i]),
+                              [{**c.to_dict(), "reason": c.reason} for c in checks[i]], i in labels.checked)
+              for i in labels.frames]
+    gone = gone_from(LabelRun(labels, checks, infos, {}, {}))
+    ids = labels.obj_ids
+    return p.SequenceLabelState(labels.scene_id, frames, [(ids.index(o), o, f) for o, f in sorted(gone.items())],
+                                note)
+
+
+def guarded(results, action: Callable[[], object]) -> object:
+    """Do ``action`` -> what it returns: bad input is told beside the sequence labels' buttons and changes nothing
+    (None); anything else is told with its type and logged. The run on show goes on either way."""
+    try:
+        return action()
+    except InputError as err:
+        results.put(p.Failure("Sequence labels: not done", err.problem, err.path, topic=TOPIC))
+    except Exception as err:  # noqa: BLE001 - a failed check or fit must leave the frame on show usable
+        log.error("sequence labels\n%s", traceback.format_exc())
+        results.put(p.Failure(f"Sequence labels failed ({type(err).__name__})", str(err) or repr(err), topic=TOPIC))
+    return None
+
+
+def save_labels(labels, checks: dict[int, list], infos: dict[int, list], dataset: Path, split: str | None,
+                overwrite_original: bool) -> p.Saved:
+    """``write_sequence`` to the scene's default files (scene_gt_labels.json and the two beside it), or with
+    ``overwrite_original`` its own scene_gt.json and scene_gt_info.json, backed up first -> what to tell."""
+    from workbench.label.sequence import label_files, write_sequence
+
+    files = label_files(dataset, labels.scene_id, split, overwrite_original=overwrite_original)
+    started = time.time()
+    written = write_sequence(files, labels, infos, checks)
+    note = f"{len(labels.frames)} frames; also `{written[1].name}`, `{written[2].name}`"
+    if overwrite_original:
+        kept = sorted(b.name for b in files.labels.parent.glob(f"{files.labels.name}.bak-*")
+                      if b.stat().st_mtime >= started - 1)
+        note += f"; the original was kept as `{kept[-1]}`" if kept else "; there was no original to keep"
+    return p.Saved("sequence labels", str(files.labels), note)
 
 
 class SequenceLabelling:
@@ -99,17 +154,7 @@ class SequenceLabelling:
     # -- guarding
 
     def guarded(self, action: Callable[[], object]) -> object:
-        """Do ``action``: bad input is told beside the sequence labels' buttons and changes nothing; anything else
-        is told with its type and logged. The run on show goes on either way."""
-        try:
-            return action()
-        except InputError as err:
-            self.results.put(p.Failure("Sequence labels: not done", err.problem, err.path, topic=TOPIC))
-        except Exception as err:  # noqa: BLE001 - a failed check or fit must leave the frame on show usable
-            log.error("sequence labels\n%s", traceback.format_exc())
-            self.results.put(p.Failure(f"Sequence labels failed ({type(err).__name__})", str(err) or repr(err),
-                                       topic=TOPIC))
-        return None
+        return guarded(self.results, action)
 
     def forget(self) -> None:
         """Another sequence (or none) was loaded: its labels start again."""
@@ -176,7 +221,7 @@ class SequenceLabelling:
         """Start the labels (``cmd.start``) on ``cmd.frames`` and check every frame. Everything is read before the
         labels on hand are replaced: bad input leaves them as they were."""
         from workbench.label import frame as labelling
-        from workbench.label.sequence import ObjectLabel, SequenceLabels, from_frame_poses, label_files
+        from workbench.label.sequence import from_frame_poses, label_files
         from workbench.track.frames import sequence_frames
 
         dataset, scene_id, split = self.where()
@@ -201,12 +246,7 @@ class SequenceLabelling:
                                 (t.region_min, t.region_max))
         if cmd.start == "current":
             shown = self.on_show_im()
-            C = cams.get(shown, run.problem.camera.T_cam_world)
-            from workbench.geometry import invert_pose
-
-            to_seq = invert_pose(C) @ run.problem.camera.T_cam_world
-            labels = SequenceLabels(scene_id, cams, [ObjectLabel(i, to_seq @ T) for i, T in zip(obj_ids, current)])
-            labels.checked = {shown} & set(frames)
+            labels = carried_labels(scene_id, cams, obj_ids, current, shown, run.problem.camera.T_cam_world)
             note = f"Started from the labels of frame {shown}, carried to {len(frames)} frames"
         else:
             poses = {i: labelling.load_labels(dataset, scene_id, i, cams[i], obj_ids, path=path, split=split)
@@ -254,7 +294,7 @@ class SequenceLabelling:
         sequence at once, snapped by physics on the frame on show's table, and fitted again within the settling's
         reach of the rest (``run.fitted_labels``' steps, from the labels instead of the frames' answers)."""
         from workbench.label import frame as labelling
-        from workbench.label.multiview import MultiView, fit, spread
+        from workbench.label.multiview import spread
 
         labels = self.started()
         still = [k for k, o in enumerate(labels.objects) if not o.moves]
@@ -266,19 +306,15 @@ class SequenceLabelling:
         problems = [self.problem_for(i) for i in used]
         present = np.array([labels.world_poses(i)[1] for i in used])
         before = np.array([o.T_world_obj for o in labels.objects])
-        view = MultiView(problems, present)
-        try:
-            self.results.put(p.SequenceLabelProgress(f"Fitting the labels to {len(used)} frames at once …"))
-            T = fit(view, before)
-            self.results.put(p.SequenceLabelProgress("Snapping the fitted labels with physics, fitting again …"))
+        run = self.on_show()
+
+        def snap(T: np.ndarray) -> np.ndarray:
             # Physics on the frame on show's table: the sequence's table frame, the same table in every frame.
-            run = self.on_show()
             shown = np.array([self.to_shown(U) for U in T])
             snapped, _, _ = labelling.snap_to_plausible(run.problem, shown, self.frame_labels.evaluators.local())
-            T = np.array([self.to_sequence(U) for U in snapped])
-            T = fit(view, T, max_shift_m=self.config.settle_shift, max_turn_deg=self.config.settle_turn)
-        finally:
-            view.close()
+            return np.array([self.to_sequence(U) for U in snapped])
+
+        T = fit_still(problems, present, before, snap, self.config, self.results.put)
         for k in still:
             labels.objects[k].T_world_obj = T[k].copy()
         moved = np.linalg.norm(T[:, :3, 3] - before[:, :3, 3], axis=-1)
@@ -291,19 +327,10 @@ class SequenceLabelling:
         """Write the labels -> the frame on show with its ground truth read again where scene_gt.json was
         overwritten (for the engine to put on show), else None."""
         from workbench.app.engine.label_files import reread_truth
-        from workbench.label.sequence import label_files, write_sequence
 
         labels = self.started()
-        dataset, scene_id, split = self.where()
-        files = label_files(dataset, scene_id, split, overwrite_original=cmd.overwrite_original)
-        started = time.time()
-        written = write_sequence(files, labels, self.infos, self.checks)
-        note = f"{len(labels.frames)} frames; also `{written[1].name}`, `{written[2].name}`"
-        if cmd.overwrite_original:
-            kept = sorted(b.name for b in files.labels.parent.glob(f"{files.labels.name}.bak-*")
-                          if b.stat().st_mtime >= started - 1)
-            note += f"; the original was kept as `{kept[-1]}`" if kept else "; there was no original to keep"
-        self.results.put(p.Saved("sequence labels", str(files.labels), note))
+        dataset, _, split = self.where()
+        self.results.put(save_labels(labels, self.checks, self.infos, dataset, split, cmd.overwrite_original))
         if cmd.overwrite_original and self.frame_labels.frame_ref is not None:
             return reread_truth(self.frame_labels, self.on_show(), dataset, split)
         return None
@@ -343,14 +370,7 @@ class SequenceLabelling:
             models = {m.obj_id: m for m in self.on_show().problem.models}
             self.checker = FrameChecker(dataset, scene_id, split, labels.obj_ids, models, self.config.check)
             self.checker_key = key
-        checks, infos = {}, {}
-        told = time.monotonic()
-        for n, im in enumerate(labels.frames):
-            if time.monotonic() - told > PROGRESS_EVERY_S:
-                self.results.put(p.SequenceLabelProgress(f"Checking frame {im} ({n + 1} of {len(labels.frames)}) …"))
-                told = time.monotonic()
-            checks[im], infos[im] = self.checker.check(im, labels.camera_poses(im))
-        self.checks, self.infos = checks, infos
+        self.checks, self.infos = check_frames(labels, self.checker, self.results.put)
         self.publish(note)
 
     def show_on_frame(self) -> None:
@@ -366,20 +386,8 @@ class SequenceLabelling:
         self.results.put(p.Labels(list(fl.labels), "sequence", f"The sequence's labels on frame {im}"))
 
     def publish(self, note: str = "") -> None:
-        from workbench.label.check import worst
-        from workbench.label.run import LabelRun, gone_from
-
-        labels = self.labels
-        if labels is None:
-            self.results.put(p.SequenceLabelState(None))
-            return
-        frames = [p.LabelledFrame(i, worst(self.checks[i]), any(c.flagged for c in self.checks[i]),
-                                  [{**c.to_dict(), "reason": c.reason} for c in self.checks[i]], i in labels.checked)
-                  for i in labels.frames]
-        gone = gone_from(LabelRun(labels, self.checks, self.infos, {}, {}))
-        ids = labels.obj_ids
-        self.results.put(p.SequenceLabelState(labels.scene_id, frames,
-                                              [(ids.index(o), o, f) for o, f in sorted(gone.items())], note))
+        self.results.put(p.SequenceLabelState(None) if self.labels is None
+                         else state_message(self.labels, self.checks, self.infos, note))
 
     # -- small parts
 
