@@ -201,9 +201,62 @@ class ShowFrame:
     im_id: int
 
 
+# Sequence labels: one label per object for the whole sequence, checked against every frame's depth
+# (``engine.label_sequence``). Object ``index``es are positions in the frames' object list.
+
+
+@dataclass(frozen=True)
+class CheckSequenceLabels:
+    """Start the sequence's labels and check every frame: from the Label tab's labels on the frame on show
+    (``start`` "current", every object labelled), carried by each frame's camera pose, or from the labels saved
+    before (``start`` "saved", scene_gt_labels.json); ``frames``: "A:B" (image ids, inclusive), "" for all."""
+
+    start: str = "current"
+    frames: str = ""
+
+
+@dataclass(frozen=True)
+class PropagateLabel:
+    """Object ``index``'s label on the frame on show becomes its pose on every frame of the sequence, or
+    (``from_here``) from this frame on; every frame is checked again."""
+
+    index: int
+    from_here: bool = False
+
+
+@dataclass(frozen=True)
+class EndSequenceLabel:
+    """Object ``index``'s label ends on frame ``last`` (it was taken out after it); every frame checked again."""
+
+    index: int
+    last: int
+
+
+@dataclass(frozen=True)
+class FitSequenceLabels:
+    """Fit the still labels to a spread of the frames at once, snap them with physics and fit again; re-check."""
+
+
+@dataclass(frozen=True)
+class SaveSequenceLabels:
+    """Write the sequence's labels (scene_gt_labels.json, its info and provenance files), or with
+    ``overwrite_original`` the scene's own scene_gt.json and scene_gt_info.json after backups."""
+
+    overwrite_original: bool = False
+
+
+@dataclass(frozen=True)
+class ShowLabelledFrame:
+    """Show frame ``im_id`` of the sequence's labels: its run where it was processed, else the frame with a fresh
+    run, its labels those of the sequence."""
+
+    im_id: int
+
+
 Command = (Load | Step | Run | Pause | Shown | Reset | SetConfig | Select | SetDisplay | Shutdown | SetLabels
            | SnapLabels | FitLabels | UseBestAsLabel | SaveLabels | ListBackups | RestoreBackup | SaveSession
-           | LoadSession | NextFrame | ShowFrame)
+           | LoadSession | NextFrame | ShowFrame | CheckSequenceLabels | PropagateLabel
+           | EndSequenceLabel | FitSequenceLabels | SaveSequenceLabels | ShowLabelledFrame)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -488,5 +541,39 @@ class SequenceState:
     run_config: EstimatorConfig | None = None
 
 
+@dataclass(frozen=True)
+class LabelledFrame:
+    """One frame of the sequence's labels: ``im_id``; ``worst``: its worst checked object's agreement (None when
+    none could be checked); ``flagged``; ``checks``: per object ``ObjectCheck.to_dict()`` with its ``reason``;
+    ``checked``: a person looked at it (it was shown, or a label propagated from it)."""
+
+    im_id: int
+    worst: float | None
+    flagged: bool
+    checks: list[dict]
+    checked: bool = False
+
+
+@dataclass
+class SequenceLabelState:
+    """The sequence's labels and their checks, sent whenever they change (``scene_id`` None: none started).
+    ``frames``: the labelled frames in order; ``gone``: (object index, obj_id, frame) per object seen through on
+    every frame from that frame to the last (taken out: its label may end on the frame before); ``note``: what the
+    last action did (markdown); ``fitted_frames``: the frames the last fit summed."""
+
+    scene_id: int | None
+    frames: list[LabelledFrame] = field(default_factory=list)
+    gone: list[tuple[int, int, int]] = field(default_factory=list)
+    note: str = ""
+
+
+@dataclass
+class SequenceLabelProgress:
+    """The engine is at work on the sequence's labels (a long check or fit): ``text`` says what it does."""
+
+    text: str
+
+
 Message = (Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready | Labels | LabelHeatmap | LabelErrors
-           | TruthErrors | Saved | Backups | TruthReloaded | SessionQuestion | SessionRestored | SequenceState)
+           | TruthErrors | Saved | Backups | TruthReloaded | SessionQuestion | SessionRestored | SequenceState
+           | SequenceLabelState | SequenceLabelProgress)

@@ -237,3 +237,31 @@ def provenance(labels: SequenceLabels, checks: dict[int, list[ObjectCheck]], res
                 "rest_shift_mm": m} for o, m in zip(labels.objects, shifts)]
     return {"format": PROVENANCE_FORMAT, "scene_id": labels.scene_id,
             "written": datetime.now(timezone.utc).isoformat(timespec="seconds"), "objects": objects, "frames": frames}
+
+
+def from_frame_poses(scene_id: int, T_cam_world: dict[int, np.ndarray], obj_ids: list[int],
+                     poses: dict[int, list[np.ndarray | None]], tol_m: float = 1e-3, tol_deg: float = 0.5
+                     ) -> SequenceLabels:
+    """Labels read back frame by frame (``poses``: image id -> per object a (4, 4) world pose or None, as
+    ``frame.load_labels`` reads a saved file) as one ``SequenceLabels``: each object's label from the first frame
+    that has it to the last, its pose where it starts, and a move wherever its world pose changes by more than
+    ``tol_m`` metres or ``tol_deg`` degrees (a saved file's millimetres round the poses). A frame without the
+    object's entry inside that span keeps the pose before it. InputError when no frame labels an object."""
+    frames = sorted(T_cam_world)
+    objects = []
+    for k, obj_id in enumerate(obj_ids):
+        held = [(i, np.asarray(poses[i][k], dtype=np.float64)) for i in frames
+                if i in poses and poses[i][k] is not None]
+        if not held:
+            raise InputError(f"object {obj_id}", f"no frame of scene {scene_id} (frames {frames[0]}..{frames[-1]}) "
+                                                 "has a saved label for it")
+        first, last = held[0][0], held[-1][0]
+        label = ObjectLabel(int(obj_id), held[0][1], None if first == frames[0] else first,
+                            None if last == frames[-1] else last)
+        current = held[0][1]
+        for i, T in held[1:]:
+            cos = np.clip((np.trace(current[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+            if np.linalg.norm(T[:3, 3] - current[:3, 3]) > tol_m or np.degrees(np.arccos(cos)) > tol_deg:
+                label.moves[i], current = T, T
+        objects.append(label)
+    return SequenceLabels(scene_id, {i: np.asarray(T_cam_world[i], dtype=np.float64) for i in frames}, objects)

@@ -28,6 +28,7 @@ from typing import Callable
 from workbench.app import protocol as p
 from workbench.app.engine import label_files
 from workbench.app.engine.evaluators import CRASH_ERRORS, Evaluators
+from workbench.app.engine.label_sequence import SequenceLabelling
 from workbench.app.engine.labels import FrameLabels
 from workbench.app.engine.on_show import RunOnShow
 from workbench.app.engine.sequence import EngineSequence, HeldRun
@@ -39,6 +40,8 @@ from workbench.physics.config import PhysicsConfig
 
 log = logging.getLogger(__name__)
 
+SEQUENCE_LABEL_COMMANDS = (p.CheckSequenceLabels, p.PropagateLabel, p.EndSequenceLabel, p.FitSequenceLabels,
+                           p.SaveSequenceLabels, p.ShowLabelledFrame)
 DEMO_DIR = Path(__file__).resolve().parents[3] / "assets" / "demo"
 
 
@@ -183,6 +186,7 @@ class Engine:
         self.display = ParticleDisplay()
         self.labels = FrameLabels(results, self.evaluators, self.on_show)
         self.sequence = EngineSequence(results, self.evaluators, self.on_show, self.pause)
+        self.sequence_labels = SequenceLabelling(results, self.labels, self.sequence, self.on_show)
         self.problem = self.frame = self.estimator = self.config = None
         self.running = False
         self.unshown: int | None = None  # the iteration last published and not yet Shown by the server
@@ -231,6 +235,21 @@ class Engine:
             self.sequence.guarded(lambda: self.put_on_show(self.sequence.next()))
         elif isinstance(cmd, p.ShowFrame):
             self.sequence.guarded(lambda: self.put_on_show(self.sequence.show(cmd.im_id)))
+        elif isinstance(cmd, SEQUENCE_LABEL_COMMANDS):
+            self.sequence_labels_command(cmd)
+
+    def sequence_labels_command(self, cmd) -> None:
+        """A command of the sequence's labels (``label_sequence``): a Run is paused first, as Next pauses it, since
+        showing another frame replaces the run and a fit holds the engine for a while."""
+        self.pause()
+        s = self.sequence_labels
+        if isinstance(cmd, p.ShowLabelledFrame):
+            s.guarded(lambda: self.put_on_show(s.held_for(cmd.im_id)))
+        elif isinstance(cmd, p.SaveSequenceLabels):
+            s.guarded(lambda: self.reload_truth(s.save(cmd)))
+        else:
+            act = {p.CheckSequenceLabels: s.check, p.PropagateLabel: s.propagate, p.EndSequenceLabel: s.end}
+            s.guarded(lambda: act[type(cmd)](cmd) if type(cmd) in act else s.fit())
 
     def on_show(self) -> RunOnShow:
         """The run on show, read-only, as the helpers (``labels``, ``sequence``) see it."""
@@ -251,6 +270,7 @@ class Engine:
         self.new_estimator()
         self.labels.adopt_frame(dataset)
         self.sequence.start(cmd.source, dataset, None, view)
+        self.sequence_labels.forget()
 
     def replace_frame(self, source: p.Source, view: p.ObservationView, frame, problem, config) -> None:
         """Put ``frame`` in place of the loaded one and show it; the run on it is started by the caller."""
@@ -391,6 +411,7 @@ class Engine:
         self.display.forget()
         self.results.put(p.Loaded(held.source, held.view, keep_camera=True))
         self.labels.adopt_frame(self.sequence.dataset)
+        self.sequence_labels.show_on_frame()  # the sequence's labels, where they are started, over the saved ones
         self.sequence.publish(reports=[r.as_dict() for r in held.estimator.history])
         self.send_state("shown")
         self.publish()
@@ -414,15 +435,18 @@ class Engine:
             self.new_estimator()  # a fresh run on the session's frame: the server shows that frame already
             self.labels.adopt_frame(opened.dataset)
             self.sequence.start(source, opened.dataset, state.frame.split, view)
+            self.sequence_labels.forget()
             raise
         est = self.estimator
         self.labels.adopt_frame(opened.dataset, labels=state.labels)
         self.results.put(p.SessionRestored(opened.name, opened.path, config, problem.config.likelihood.model,
                                            [r.as_dict() for r in est.history], opened.warnings))
         self.sequence.start(source, opened.dataset, state.frame.split, view, opened.sequence)
+        self.sequence_labels.forget()
         self.send_state("restored")
         if est.iteration >= 0:
             self.publish()
 
     def close(self) -> None:
+        self.sequence_labels.close()
         self.evaluators.close()

@@ -191,6 +191,42 @@ class EngineSequence:
         self.at = i
         return self.frames[i].held
 
+    def frame_problem(self, im_id: int, T_cam_world: np.ndarray) -> tuple[object, object]:
+        """Frame ``im_id`` of the scene and its problem in the sequence's table frame, its camera at
+        ``T_cam_world`` (4, 4) (kept where the dataset gives the frame a table pose: the same table's), with the
+        frame on show's objects and problem settings."""
+        from workbench.io import bop
+        from workbench.problem.build import problem_for_frame
+
+        e = self.on_show()
+        frame = bop.load_frame(self.dataset, self.scene_id, im_id, self.split, list(e.frame.object_ids))
+        if frame.camera.T_cam_world is None:
+            frame = replace(frame, camera=frame.camera.with_pose(np.asarray(T_cam_world, dtype=np.float64)))
+        models = {m.obj_id: m for m in e.problem.models}
+        return frame, problem_for_frame(frame, models, e.problem.config)
+
+    def visit(self, im_id: int, T_cam_world: np.ndarray) -> HeldRun:
+        """Show frame ``im_id``, which the timeline has not processed, to label it: a fresh run on it (no
+        iteration yet; Step or Run estimates it from scratch), its camera at ``T_cam_world`` (4, 4) in the
+        sequence's table frame, joins the timeline in image-id order, status "labelling". It holds no tracked run:
+        a Next from the frame before it tracks that frame anew, dropping this one as any frame after it -> the run
+        to put on show."""
+        from workbench.app.engine.observation import build_view
+        from workbench.inference.estimator import Estimator
+
+        e, here = self.on_show(), self.here()
+        frame, problem = self.frame_problem(im_id, T_cam_world)
+        source = replace(here.held.source, im_id=im_id)
+        view = build_view(frame, problem, source.title(self.scene_id, im_id), self.dataset, here.held.view.meshes)
+        # The pool is given this frame's problem when the run is put on show (Engine.put_on_show).
+        held = HeldRun(source, view, frame, problem, Estimator(problem, e.config, self.evaluators.evaluator()))
+        self.leave()
+        entry = p.SequenceFrame(im_id, "labelling", 0.0, "", *run_summary(held.estimator))
+        at = sum(f.entry.im_id < im_id for f in self.frames)
+        self.frames.insert(at, Processed(entry, held))
+        self.at = at
+        return held
+
     # -- the frame on show
 
     def here(self) -> Processed:

@@ -84,8 +84,9 @@ class App:
                                           names=lambda: self.display.names)
         self.sessions = Sessions(gui, tab["Sessions"], sessions_dir, self.send, self.ui, self.quiet,
                                  iteration=lambda: self.state.iteration)
-        self.reporter.topics.update(session=self.sessions.on_failure, labels=self.labelling.show_failure,
-                                    sequence=self.sequence.on_failure)
+        self.reporter.topics.update({"session": self.sessions.on_failure, "labels": self.labelling.show_failure,
+                                     "sequence": self.sequence.on_failure,
+                                     "sequence labels": self.labelling.sequence.on_failure})
         self._wire()
         self.engine = EngineClient(workers, lambda msg: self.ui.call(self.on_message, msg),
                                    lambda code, gave_up: self.ui.call(self.on_engine_died, code, gave_up), ray=ray,
@@ -135,7 +136,7 @@ class App:
         self.view_box.truth.content = truth_markdown(msg.iteration, msg.rows, self.display.names)
 
     def on_failure(self, failure: p.Failure) -> None:
-        if failure.topic not in ("labels", "session"):
+        if failure.topic not in ("labels", "session", "sequence labels"):
             self.buttons.done()
         self.reporter.report(failure)
 
@@ -191,7 +192,9 @@ class App:
             p.Saved: self.on_saved,
             p.SessionQuestion: self.sessions.on_question,
             p.SessionRestored: self.on_session_restored,
-            p.SequenceState: self.sequence.show,
+            p.SequenceState: self.on_sequence,
+            p.SequenceLabelState: self.labelling.sequence.show,
+            p.SequenceLabelProgress: self.labelling.sequence.show_progress,
         }[type(msg)]
         try:
             handler(msg)
@@ -205,8 +208,13 @@ class App:
         self.reporter.on_workers(msg)
         self.data.show_workers(msg.pids, self.state.restarts)
 
+    def on_sequence(self, msg: p.SequenceState) -> None:
+        self.sequence.show(msg)
+        self.labelling.sequence.show_sequence(msg)
+
     def on_saved(self, msg: p.Saved) -> None:
-        (self.sessions.on_saved if msg.kind == "session" else self.labelling.show_saved)(msg)
+        show = {"session": self.sessions.on_saved, "sequence labels": self.labelling.sequence.show_saved}
+        show.get(msg.kind, self.labelling.show_saved)(msg)
         self.reporter.on_saved(msg)
 
     def on_loaded(self, msg: p.Loaded) -> None:

@@ -17,6 +17,7 @@ from workbench.app.ui.labelling.backups import Backups
 from workbench.app.ui.labelling.controls import LabelTab, build_label_tab
 from workbench.app.ui.labelling.editor import LabelEditor
 from workbench.app.ui.labelling.mode_choice import ModeChoice
+from workbench.app.ui.labelling.sequence_labels import SequenceLabelsPanel
 from workbench.app.ui.run.views import HeatmapLayer
 from workbench.app.ui.ui_thread import UiThread
 from workbench.app.ui.widgets.colors import named
@@ -58,12 +59,16 @@ class Labelling:
     heatmap: HeatmapLayer = field(init=False)
     modes: ModeChoice = field(init=False)
     backups: Backups = field(init=False)
+    sequence: SequenceLabelsPanel = field(init=False)  # the whole sequence's labels, shown with a sequence
 
     def __post_init__(self) -> None:
         with self.container:
             self.tab = build_label_tab(self.server.gui)
             with self.tab.backups:
                 self.backups = Backups(self.server.gui, self.send, self.ui)
+            # Above the backups: next to the frame's own Save labels, whose labels it starts from.
+            self.sequence = SequenceLabelsPanel(self.server.gui, self.ui, self.send, lambda: self.editor.selected(),
+                                                lambda: self.editor.names, order=self.tab.backups.order - 0.5)
         self.heatmap = HeatmapLayer(self.server, path="/label_heatmap")
         self.editor = LabelEditor(self.server, self.tab, self.send, self.ui, self.quiet, self.reporter,
                                   on_unlabelled=self.clear_heatmap)
