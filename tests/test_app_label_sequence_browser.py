@@ -58,10 +58,14 @@ def move_x(page, app, cm: float) -> np.ndarray:
     before = editor.labels[0].copy()
     x = gui_input(page, "x (cm)")
     # The field shows the label once the browser has the frame's labels (after a new frame, its place before them).
-    for _ in range(100):
+    # Waited for as long as any other step (a loaded machine takes seconds to show a new frame): typing into a field
+    # that still shows the frame before would move the label from the wrong place.
+    for _ in range(TIMEOUT_MS // 100):
         if abs(float(x.input_value()) - before[0, 3] * 100) < 0.01:
             break
         page.wait_for_timeout(100)
+    else:
+        raise AssertionError(f"the x field shows {x.input_value()}, not the label's {before[0, 3] * 100:.2f} cm")
     x.fill(f"{float(x.input_value()) + cm:.2f}")
     x.press("Enter")
     assert app.wait_for(lambda s: editor.labels[0] is not None
