@@ -136,7 +136,7 @@ class LabelEditor:
     def set_labels(self, labels) -> None:
         """The labels the engine holds."""
         self.labels = [None if T is None else np.array(T, dtype=np.float64) for T in labels]
-        self.redraw()
+        self.redraw(confirmed=True)
 
     def show_estimate(self, best: np.ndarray | None) -> None:
         """The latest most likely scene: an unlabelled selected object (gizmo and fields) follows it. Only that one:
@@ -164,8 +164,9 @@ class LabelEditor:
             return self.estimate[k]
         return self.homes[k]
 
-    def redraw(self) -> None:
-        """Gizmo, meshes and fields from the labels (the server writing: no callback may echo this back)."""
+    def redraw(self, confirmed: bool = False) -> None:
+        """Gizmo, meshes and fields from the labels (the server writing: no callback may echo this back);
+        ``confirmed``: the labels are the engine's answer (``PoseFields.show``)."""
         sel = self.selected()
         with self.server.atomic(), self.quiet:
             for k, (gizmo, mesh) in enumerate(zip(self.gizmos, self.meshes)):
@@ -174,7 +175,7 @@ class LabelEditor:
                 gizmo.visible = k == sel and self.tab.show_gizmo.value
                 mesh.wxyz, mesh.position = q, t
                 mesh.visible = self.labels[k] is not None and self.shown
-            self.show_fields(sel)
+            self.show_fields(sel, confirmed)
 
     def set_shown(self, shown: bool) -> None:
         """Show or hide the labels' outlines (the View box's visibility bar)."""
@@ -183,12 +184,12 @@ class LabelEditor:
             for k, mesh in enumerate(self.meshes):
                 mesh.visible = self.labels[k] is not None and shown
 
-    def show_fields(self, sel: int | None) -> None:
+    def show_fields(self, sel: int | None, confirmed: bool = False) -> None:
         t = self.tab
         if sel is None:
             t.state.content = "Load a frame to label its objects."
             return
-        self.fields.show(self.pose(sel))
+        self.fields.show(self.pose(sel), confirmed)
         pitch = self.fields.values[4]
         if abs(pitch) > GIMBAL_DEG:
             gimbal = (f" Pitch is {pitch:.0f}°: roll and yaw now turn about nearly the same axis, so use **Turn**, "

@@ -10,7 +10,7 @@ import numpy as np
 
 from workbench.app.ui.labelling.controls import ANGLE_RULES, POSITION_RULES, LabelTab
 from workbench.app.ui.ui_thread import UiThread
-from workbench.app.ui.widgets.numeric import Refusals
+from workbench.app.ui.widgets.numeric import Refusals, resend
 from workbench.app.ui.widgets.quiet import Quiet
 from workbench.errors import InputError
 from workbench.geometry import matrix_to_euler
@@ -36,15 +36,24 @@ class PoseFields:
     def ids(self) -> dict[str, str]:
         return {r.label: h._impl.uuid for r, h in zip(RULES, self.handles)}
 
-    def show(self, T: np.ndarray) -> None:
+    def show(self, T: np.ndarray, confirmed: bool = False) -> None:
         """Show pose ``T`` (4, 4; table frame) in the fields (call inside ``Quiet``). A field that already reads as
         its value keeps its text: rewriting "1." as "1.00" would fight the user typing "1.5"; so does one being
         typed into ("-" on its way to "-3", refused until then: ``Refusals`` puts the value back once the typing
-        pauses), though the run's estimate moves an unlabelled object's fields every iteration."""
+        pauses), though the run's estimate moves an unlabelled object's fields every iteration.
+
+        ``confirmed``: ``T`` is the engine's answer to a change; a field the server already holds at its value is
+        sent again. viser sends only changed values, and a value the server wrote (an earlier answer) can reach the
+        browser after the user's typing reached the server: the server then holds what was typed while the browser
+        shows the older value, which no later equal write would correct."""
         self.values = np.concatenate([T[:3, 3] * 100.0, np.degrees(matrix_to_euler(T[:3, :3]))])
         for rule, h, v in zip(RULES, self.handles, self.values):
-            if rule.label not in self.refusals.refused and not rule.shows(h.value, v):
+            if rule.label in self.refusals.refused:
+                continue
+            if not rule.shows(h.value, v):
                 h.value = rule.show(v)
+            elif confirmed:
+                resend(h)
 
     def angles_with(self, i: int, value: float) -> np.ndarray:
         """The angles shown (roll, pitch, yaw; degrees), angle field ``i`` (3-5) set to ``value``."""

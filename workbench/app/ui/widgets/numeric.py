@@ -152,3 +152,12 @@ class NumberField:
         if not self.rule.shows(self.handle.value, value):
             with self.quiet:
                 self.handle.value = self.rule.show(value)
+
+
+def resend(handle) -> None:
+    """Send a GUI input's value to the browser again, unchanged (viser's setter sends only changed values): where
+    the browser may show an older value than the server holds (see ``PoseFields.show``)."""
+    from viser._messages import GuiUpdateMessage
+
+    impl = handle._impl
+    impl.gui_api._websock_interface.queue_message(GuiUpdateMessage(impl.uuid, {"value": impl.value}))
