@@ -1,8 +1,16 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from workbench.errors import InputError
-from workbench.render.likelihood import LikelihoodConfig, clutter_segments, pixel_loglik, scene_loglik
+from workbench.render.likelihood import (
+    LikelihoodConfig,
+    clutter_segments,
+    drawn_over_loglik,
+    pixel_loglik,
+    scene_loglik,
+)
 
 
 def _scene():
@@ -93,16 +101,17 @@ def test_a_free_space_violation_costs_more_than_an_occluding_reading():
 def test_an_object_gains_on_unmodelled_clutter_only_by_explaining_all_of_it():
     """A 10 cm distractor nobody modelled, and hypotheses: nothing drawn on it; an object whose top fits all of it
     within 5 mm; one that fits a third of it (a thin object laid on part of a box); one drawn behind it, hidden by
-    it. Without the clutter floor, covering part of the distractor beats leaving it (an unexplained reading is an
-    outlier). With it, the bare distractor scores the floor and a piece the objects claim part of loses it: only
-    explaining all of it gains, and an object hidden behind clutter costs nothing there."""
+    it (the distractor shows beside it too). Without the clutter floor, covering part of the distractor beats
+    leaving it (an unexplained reading is an outlier). With it, the bare distractor scores the floor and a piece
+    the objects claim part of loses it: only explaining all of it gains, and an object hidden behind clutter costs
+    nothing there."""
     observed = np.full((30, 30), 1.0, np.float32)
     observed[5:15, 5:15] = 0.9  # the distractor
     background = np.full((30, 30), 1.0, np.float32)
     rendered = np.zeros((4, 30, 30), np.float32)
     rendered[1, 5:15, 5:15] = 0.905
     rendered[2, 5:8, 5:15] = 0.905
-    rendered[3, 5:15, 5:15] = 0.95
+    rendered[3, 5:15, 5:9] = 0.95  # behind 40 readings of its 100
     plain_cfg, cfg = LikelihoodConfig(clutter_floor=None), LikelihoodConfig(clutter_floor=2.0)
     plain = scene_loglik(observed, background, rendered, plain_cfg)
     floor = scene_loglik(observed, background, rendered, cfg)
@@ -134,6 +143,55 @@ def test_an_object_gains_nothing_by_fitting_a_few_readings_of_a_large_piece_of_c
     assert ll[1] < ll[2] - 75 * 3
     pixels = pixel_loglik(observed, background, rendered, cfg)
     assert np.allclose(pixels[0], pixels[2])  # what the bare table scores there (above the floor), though it fits
+
+
+def test_an_object_behind_its_own_visible_face_gets_no_clutter_floor():
+    """A box's face seen 10 cm in front of the table (100 readings), and the box drawn: at its face; 4 cm behind it
+    but still touching its top row (it claims 20 readings, the piece keeps no floor); 8 cm behind it, over 80 of its
+    readings and claiming none. The readings the box lies behind are its own face, not clutter in front of it:
+    they keep no floor, so backing further away from what the sensor sees never gains (it gained 5.4 a reading,
+    a basin that held estimates 6-10 cm behind their faces). An object hidden behind clutter that also shows
+    beside it still costs nothing there (``test_an_object_gains_on_unmodelled_clutter_only_...``)."""
+    observed = np.full((30, 30), 1.0, np.float32)
+    observed[5:15, 5:15] = 0.9  # the face
+    background = np.full((30, 30), 1.0, np.float32)
+    rendered = np.zeros((4, 30, 30), np.float32)
+    rendered[0, 5:15, 5:15] = 0.9
+    rendered[1, 5:15, 5:15] = 0.94
+    rendered[1, 5:7, 5:15] = 0.9  # its top edge still meets the readings
+    rendered[2, 7:15, 5:15] = 0.98
+    cfg = LikelihoodConfig(clutter_floor=2.0)
+    at_face, nearer, farther, bare = scene_loglik(observed, background, rendered, cfg)
+    assert at_face > nearer >= farther
+    pixels = pixel_loglik(observed, background, rendered, cfg)
+    assert np.allclose(pixels[3, 5:15, 5:15], 2.0)  # nothing drawn there: the face is clutter
+    plain = pixel_loglik(observed, background, rendered, replace(cfg, clutter_floor=None))
+    assert np.allclose(pixels[2], plain[2])  # the box behind it: its readings outliers, as without the floor
+
+
+def test_drawing_over_a_base_scores_as_the_composite():
+    """``drawn_over_loglik`` of objects drawn over a base scene equals the composite's ``scene_loglik`` less the
+    base's, with the clutter floor's claims and cover counted over both."""
+    rng = np.random.default_rng(3)
+    observed = np.full((24, 32), 1.0, np.float32)
+    observed[3:12, 4:14] = 0.9  # pieces of clutter
+    observed[14:22, 16:30] = 0.85
+    observed += rng.normal(0.0, 0.002, observed.shape).astype(np.float32)
+    observed[rng.random(observed.shape) < 0.05] = 0.0
+    background = np.full((24, 32), 1.0, np.float32)
+    base = np.zeros((24, 32), np.float32)
+    base[4:10, 4:9] = 0.95  # behind part of the first piece
+    own = np.zeros((6, 24, 32), np.float32)
+    own[0, 3:12, 4:14] = 0.97  # behind all of the first piece
+    own[1, 14:22, 16:30] = 0.85  # the second piece explained
+    own[2, 14:22, 16:23] = 0.9  # behind half of the second
+    own[3, 2:6, 2:20] = 0.92  # over part of the first, partly claiming it
+    own[4] = np.where(rng.random(observed.shape) < 0.3, rng.uniform(0.8, 1.0, observed.shape), 0.0)
+    cfg = LikelihoodConfig(clutter_floor=2.0)
+    composite = np.where((own > 0) & ((base == 0) | (own < base)), own, base[None])
+    expected = scene_loglik(observed, background, composite, cfg) - scene_loglik(observed, background, base[None],
+                                                                                  cfg)[0]
+    assert np.allclose(drawn_over_loglik(observed, background, base, own, cfg), expected, atol=1e-3)
 
 
 def test_clutter_pieces_are_joined_readings_in_front_of_the_table():
