@@ -74,16 +74,20 @@ def check_frames(labels, checker, tell: Callable[[object], None]) -> tuple[dict[
 def fit_still(problems: list, present: np.ndarray, T: np.ndarray, snap: Callable[[np.ndarray], np.ndarray],
               config, tell: Callable[[object], None]) -> np.ndarray:
     """``run.fitted_labels``' steps from given labels: the scene ``T`` (K, 4, 4) fitted to ``problems`` (one per
-    frame, the sequence's table frame; ``present`` (F, K) the labels each draws) at once, ``snap``ped by physics,
-    and fitted again within ``config.settle_shift`` m and ``settle_turn`` degrees of the rest -> (K, 4, 4)."""
+    frame, the sequence's table frame; ``present`` (F, K) the labels each draws) at once, with no bound (unlike
+    ``workbench label``'s, which refines the frames' own answers: a label moved by hand may be centimetres off);
+    with ``config.snap``, then ``snap``ped by physics and fitted again within ``config.settle_shift`` m and
+    ``settle_turn`` degrees of the rest -> (K, 4, 4)."""
     from workbench.label.multiview import MultiView, fit
 
     view = MultiView(problems, present)
     try:
         tell(p.SequenceLabelProgress(f"Fitting the labels to {len(problems)} frames at once …"))
         T = fit(view, T)
-        tell(p.SequenceLabelProgress("Snapping the fitted labels with physics, fitting again …"))
-        return fit(view, snap(T), max_shift_m=config.settle_shift, max_turn_deg=config.settle_turn)
+        if config.snap:
+            tell(p.SequenceLabelProgress("Snapping the fitted labels with physics, fitting again …"))
+            T = fit(view, snap(T), max_shift_m=config.settle_shift, max_turn_deg=config.settle_turn)
+        return T
     finally:
         view.close()
 
