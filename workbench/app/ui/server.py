@@ -149,7 +149,8 @@ class App:
 
     @on_ui_thread
     def reset(self) -> None:
-        self.reporter.guarded(lambda: self.send(self.settings.for_reset()))
+        # The settings are read first: a refused one is reported and nothing is sent (nor said to wait).
+        self.reporter.guarded(lambda: self.buttons.press_reset(self.settings.for_reset()))
 
     @on_ui_thread
     def load(self, source: p.Source) -> None:
