@@ -12,21 +12,12 @@ import shutil
 
 import numpy as np
 import pytest
+from inbox import Inbox
 
 from workbench.app import protocol as p
 from workbench.errors import InputError
 from workbench.geometry import make_pose, rot_z
 from workbench.label.sequence import from_frame_poses
-
-
-class Inbox(list):
-    """Stands in for the engine's results pipe: every message, in order."""
-
-    def put(self, msg) -> None:
-        self.append(msg)
-
-    def of(self, kind) -> list:
-        return [m for m in self if isinstance(m, kind)]
 
 
 @pytest.fixture(scope="module")

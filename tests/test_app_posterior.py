@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from headless import free_port
+from inbox import Inbox
 
 from workbench.app import protocol as p
 from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
@@ -18,16 +19,6 @@ from workbench.inference.config import EstimatorConfig
 pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
 
 CONFIG = EstimatorConfig(particles=16, iterations=2)  # three steps: the mug's hidden handle leaves modes open
-
-
-class Inbox(list):
-    """Stands in for the engine's results pipe: every message, in order."""
-
-    def put(self, msg) -> None:
-        self.append(msg)
-
-    def of(self, kind) -> list:
-        return [m for m in self if isinstance(m, kind)]
 
 
 def posterior_by_hand() -> Posterior:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from inbox import Inbox
 
 from workbench.app import protocol as p
 from workbench.geometry import invert_pose
@@ -16,16 +17,6 @@ from workbench.score.metrics import position_error
 pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
 
 CONFIG = dict(particles=16, iterations=2)
-
-
-class Inbox(list):
-    """Stands in for the engine's results pipe: every message, in order."""
-
-    def put(self, msg) -> None:
-        self.append(msg)
-
-    def of(self, kind) -> list:
-        return [m for m in self if isinstance(m, kind)]
 
 
 @pytest.fixture(scope="module")

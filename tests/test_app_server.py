@@ -9,6 +9,7 @@ import signal
 import numpy as np
 import pytest
 from headless import free_port, image_stats
+from inbox import Inbox
 
 from workbench.app import protocol as p
 from workbench.app.ui.run.views import wxyz_from_matrices
@@ -89,16 +90,6 @@ def test_dead_worker_and_dead_engine_are_restarted_and_the_run_goes_on(capfd, ca
     # in the server's own log.
     assert "an evaluation worker died" in capfd.readouterr().err
     assert any(r.levelno == logging.WARNING and "estimator process died" in r.getMessage() for r in caplog.records)
-
-
-class Inbox(list):
-    """Stands in for the engine's results pipe: every message, in order."""
-
-    def put(self, msg) -> None:
-        self.append(msg)
-
-    def of(self, kind) -> list:
-        return [m for m in self if isinstance(m, kind)]
 
 
 def test_engine_session_continues_bit_for_bit_with_its_labels(tmp_path):

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from inbox import Inbox
 
 from workbench.app.engine.engine import DEMO_DIR
 from workbench.errors import InputError
@@ -331,10 +332,6 @@ def test_demo_labels_are_saved_into_a_copy_never_into_the_package(workbench_home
     from workbench.app import protocol as p
     from workbench.app.engine.engine import Engine
     from workbench.inference.config import EstimatorConfig
-
-    class Inbox(list):
-        def put(self, msg):
-            self.append(msg)
 
     before = _digests(DEMO_DIR)
     inbox = Inbox()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from inbox import Inbox
 
 from workbench.errors import InputError
 from workbench.geometry import invert_pose, pose_from_xyz_rpy, rotation_angle
@@ -263,9 +264,6 @@ def test_the_workbench_engine_simulates_in_mujoco_and_its_sessions_say_so(tmp_pa
     from workbench.app import protocol as p
     from workbench.app.engine.engine import DEMO_DIR, Engine
     from workbench.inference.config import EstimatorConfig
-
-    class Inbox(list):
-        put = list.append
 
     dataset = tmp_path / "demo"
     shutil.copytree(DEMO_DIR, dataset)
