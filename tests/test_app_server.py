@@ -430,6 +430,11 @@ def test_plots_columns_and_acceptance_by_move_kind():
     assert list(x) == [0, 1, 2] and list(truth) == [-90.0] * 3 and list(labels) == [-95.0] * 3
     assert [ln.label for ln in charts["loglik"].lines(plain)] == ["best", "mean", "truth", "labels"]
     assert [ln.label for ln in charts["loglik"].lines(plain[:2])] == ["best", "mean", "truth"]
+    # The clutter floor weighed in from iteration 2: the best before it as a level, named with that iteration.
+    floored = [{**r, "floor_in": r["iteration"] >= 2} for r in plain]
+    x, best, mean, truth, labels, floor = charts["loglik"].columns(floored, ctx)
+    assert list(floor) == [-99.0] * 3
+    assert charts["loglik"].lines(floored)[-1].label == "best before the clutter floor (in from iteration 2)"
     # The convergence ratio on a log scale: a move of nothing sits at the floor, not at zero.
     x, position, angle, rule = charts["move"].columns(plain, ctx)
     assert position[0] > 0 and np.isclose(position[1], 2.0) and list(rule) == [1.0] * 3

@@ -45,6 +45,9 @@ TRUTH_COLOR = "#212529"  # the ground truth's level: near-black as its outline i
 LABEL_LEVEL_COLOR = "#c2255c"  # the labels' level: magenta as their outline
 
 
+FLOOR_COLOR = "#868e96"  # the level of the best scene before the clutter floor was weighed in
+
+
 @dataclass(frozen=True)
 class Line:
     label: str
@@ -110,8 +113,25 @@ def _levels(reports: list[dict]) -> list[tuple[str, str, str]]:
     return [lv for lv in LEVELS if np.isfinite(column(reports, lv[0])).any()]
 
 
+def floor_level(reports: list[dict]) -> tuple[int, float] | None:
+    """Where the clutter floor was weighed in: (the first iteration with it, after one without it; the best
+    log-likelihood of the iteration before), None where the run has no such step. The log-likelihood jumps there:
+    every scene's unexplained readings start to score the floor."""
+    for i in range(1, len(reports)):
+        before = reports[i - 1].get("best_loglik")
+        if reports[i].get("floor_in", True) and not reports[i - 1].get("floor_in", True) and before is not None \
+                and np.isfinite(before):
+            return int(reports[i]["iteration"]), float(before)
+    return None
+
+
 def _loglik_lines(reports: list[dict]) -> tuple[Line, ...]:
     extra = tuple(Line(label, color, dashed=True) for _, label, color in _levels(reports))
+    floor = floor_level(reports)
+    # The jump marked as a level: where the best stood before the floor counted, named with the iteration it did
+    # (uPlot takes no gaps here: a NaN breaks its auto-range, so a marker at one iteration cannot be drawn).
+    if floor is not None:
+        extra += (Line(f"best before the clutter floor (in from iteration {floor[0]})", FLOOR_COLOR, True),)
     return (Line("best", "#e8590c"), Line("mean", "#1c7ed6"), *extra)
 
 
@@ -123,6 +143,9 @@ def _loglik_columns(reports: list[dict], ctx: dict) -> tuple[np.ndarray, ...] | 
     for key, _, _ in _levels(reports):
         ref = column(reports, key)
         levels.append(np.full_like(it, ref[np.isfinite(ref)][-1]))
+    floor = floor_level(reports)
+    if floor is not None:
+        levels.append(np.full_like(it, floor[1]))
     return finite_rows(it, best, mean, *levels)
 
 
