@@ -33,6 +33,8 @@ def run_first_frame(engine, dataset) -> None:
     from workbench.inference.config import EstimatorConfig
 
     engine.handle(p.Load(p.Source(dataset=dataset, scene_id=0, im_id=0), EstimatorConfig(**CONFIG), "robust"))
+    # Loaded, not yet run: the timeline does not call the frame estimated.
+    assert [f.status for f in engine.results.of(p.SequenceState)[-1].frames] == ["not run yet"]
     while not engine.finished():
         engine.step()
 

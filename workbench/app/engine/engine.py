@@ -357,6 +357,8 @@ class Engine:
         self.publish(report)
         if self.finished():
             self.sequence.finished()
+        else:
+            self.sequence.stepped()
         if not self.running:
             self.send_state("converged" if report.converged else "done" if self.finished()
                             else "budget spent" if out_of_time else "paused")

@@ -33,6 +33,10 @@ from workbench.sessions.sequence_record import SequenceRecord
 
 log = logging.getLogger(__name__)
 
+# The first frame's status on the timeline: before its run has an iteration, then once it has (it is the frame
+# estimated from scratch; the frames after it say how they were tracked).
+NOT_RUN, ESTIMATED = "not run yet", "estimated"
+
 
 @dataclass
 class HeldRun:
@@ -110,7 +114,7 @@ class EngineSequence:
             self.scene_id, self.dataset, self.split, self.frame_ids = e.frame.scene_id, Path(dataset), split, ids
             held = HeldRun(source, view, e.frame, e.problem, e.estimator)
             if record is None:
-                self.frames = [Processed(p.SequenceFrame(e.frame.im_id, "estimated", 0.0, "",
+                self.frames = [Processed(p.SequenceFrame(e.frame.im_id, NOT_RUN, 0.0, "",
                                                          *run_summary(e.estimator)), held)]
             else:
                 self.frames = [Processed(f, None) for f in record.frames]
@@ -251,11 +255,20 @@ class EngineSequence:
         """The entry of the frame on show, from its run now: its answer and, for the first frame, its seconds (its
         iterations')."""
         est = self.on_show().estimator
-        seconds = here.entry.seconds
-        if here.entry.status == "estimated":
+        seconds, status = here.entry.seconds, here.entry.status
+        if status in (NOT_RUN, ESTIMATED):
             seconds = float(sum(r.timings.get("total", 0.0) for r in est.history))
+            status = ESTIMATED if est.history else NOT_RUN
         positions, confidences = run_summary(est)
-        here.entry = replace(here.entry, seconds=seconds, positions=positions, confidences=confidences)
+        here.entry = replace(here.entry, status=status, seconds=seconds, positions=positions,
+                             confidences=confidences)
+
+    def stepped(self) -> None:
+        """The run on show made an iteration: a first frame not run yet says it is estimated (once; its numbers
+        follow when it finishes or is left)."""
+        if self.scene_id is not None and self.frames[self.at].entry.status == NOT_RUN:
+            self.update_entry(self.frames[self.at])
+            self.publish()
 
     def finished(self) -> None:
         """The run on show finished (settled): its entry follows, for the timeline and the plots."""
