@@ -111,7 +111,7 @@ def build_sequence_labels_tab(gui: viser.GuiApi, order: float | None = None) -> 
         end = gui.add_button_group("End label", ("–",), visible=False,
                                    hint="the depth sees through this object from that frame to the end: taken out")
         fit = gui.add_button("Fit to all frames", icon=viser.Icon.TARGET,
-                             hint="the still labels fitted to a spread of frames at once, snapped, fitted again")
+                             hint="the still labels fitted to the depth of a spread of frames at once")
         overwrite = gui.add_checkbox("Overwrite the scene's ground truth", False,
                                      hint="write the scene's own scene_gt.json and scene_gt_info.json (backups "
                                           "kept); otherwise scene_gt_labels.json")
