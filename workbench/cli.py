@@ -285,7 +285,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 def _cmd_label(args: argparse.Namespace) -> int:
     from workbench.label import run as labelling
-    from workbench.label.sequence import _read_keyed, label_files, write_sequence
+    from workbench.label.sequence import label_files, read_keyed, write_sequence
     from workbench.track.frames import sequence_frames, sequence_world
 
     # Every setting, the frames and the files written are checked before anything is loaded or started.
@@ -301,7 +301,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
     sequence_world(args.dataset, args.scene, args.split, args.motion, frames)
     files = label_files(args.dataset, args.scene, args.split, args.out_labels, args.overwrite_gt)
     for path in (files.labels, files.info):
-        _read_keyed(path)  # a file the labels cannot be merged into is refused now, not after the work
+        read_keyed(path)  # a file the labels cannot be merged into is refused now, not after the work
     run = labelling.label_sequence(args.dataset, args.scene, frames, config, track, label, problem, args.workers,
                                    args.split, args.objects, not args.no_early_stop)
     written = write_sequence(files, run.labels, run.infos, run.checks, run.rest_shift)

@@ -212,6 +212,16 @@ def merge_entries(old: list[dict], obj_ids: list[int], new: list[dict | None]) -
     return out
 
 
+def check_scene_gt(content, path: Path) -> dict:
+    """``content`` read from ``path`` as scene_gt.json's form -> itself: keyed by image ids, each a list of objects;
+    InputError naming ``path`` and the first image that is not."""
+    bop.image_ids(content, path)
+    for key, entries in content.items():
+        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+            raise InputError(path, f"image {key}: expected a list of objects")
+    return content
+
+
 def _backup(path: Path) -> Path:
     """Copy ``path`` to <name>.bak-<timestamp>, never replacing an earlier backup."""
     stamp = datetime.now().strftime(STAMP_FORMAT)
@@ -255,11 +265,7 @@ def restore_backup(dataset: Path, scene_id: int, name: str, split: str | None = 
     if Path(str(name)).name != str(name) or not str(name).startswith(BACKUP_PREFIX) or not backup.is_file():
         raise InputError(backup, f"not a backup of {scene_dir / ORIGINAL_FILE} (list the backups again)")
     data = backup.read_bytes()
-    content = readers.read_json(backup)
-    bop.image_ids(content, backup)
-    for key, entries in content.items():
-        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
-            raise InputError(backup, f"image {key}: expected a list of objects")
+    check_scene_gt(readers.read_json(backup), backup)
     original = scene_dir / ORIGINAL_FILE
     kept = _backup(original) if original.exists() else None
     write_file(original, data)

@@ -118,17 +118,21 @@ class FrameChecker:
         self.config = config
         self.renderer: DepthRenderer | None = None
         self.models = [models[i] for i in object_ids]
+        self._depth: tuple[int, np.ndarray] | None = None  # the last frame read: checked again after a move
 
-    def depth(self, im_id: int) -> tuple[np.ndarray, object]:
-        frame = bop.load_frame(self.dataset, self.scene_id, im_id, self.split, self.object_ids)
-        if self.renderer is None:
-            self.renderer = DepthRenderer(frame.camera.with_pose(np.eye(4)), [m.mesh for m in self.models])
-        return frame.depth, frame
+    def depth(self, im_id: int) -> np.ndarray:
+        """Frame ``im_id``'s observed depth (H, W) metres, read once however often the frame is checked in a row."""
+        if self._depth is None or self._depth[0] != im_id:
+            frame = bop.load_frame(self.dataset, self.scene_id, im_id, self.split, self.object_ids)
+            if self.renderer is None:
+                self.renderer = DepthRenderer(frame.camera.with_pose(np.eye(4)), [m.mesh for m in self.models])
+            self._depth = im_id, frame.depth
+        return self._depth[1]
 
     def check(self, im_id: int, T_cam_obj: list[np.ndarray | None]) -> tuple[list[ObjectCheck], list[dict | None]]:
         """Frame ``im_id``'s labels (per object T_cam_obj (4, 4) or None) -> (their checks, scene_gt_info
         entries)."""
-        depth, _ = self.depth(im_id)
+        depth = self.depth(im_id)
         present = np.array([T is not None for T in T_cam_obj])
         poses = np.array([np.eye(4) if T is None else T for T in T_cam_obj])
         alone = render_alone(self.renderer, poses, present)

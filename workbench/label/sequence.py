@@ -25,18 +25,17 @@ from pathlib import Path
 import numpy as np
 
 from workbench.errors import InputError
-from workbench.geometry import check_rigid
-from workbench.io import bop, readers
+from workbench.geometry import check_rigid, rotation_angle
+from workbench.io import readers
 from workbench.io.outputs import write_file
 from workbench.io.readers import MM
 from workbench.label.check import ObjectCheck
-from workbench.label.frame import ORIGINAL_FILE, _backup, _scene_dir, merge_entries
+from workbench.label.frame import ORIGINAL_FILE, _backup, _scene_dir, check_scene_gt, merge_entries
 
 LABELS_FILE = "scene_gt_labels.json"
 INFO_FILE, INFO_LABELS_FILE = "scene_gt_info.json", "scene_gt_info_labels.json"
 PROVENANCE_FILE = "label_provenance.json"
 PROVENANCE_FORMAT = 1
-Source = str  # "checked" (a person looked at the frame) or "propagated"
 
 
 @dataclass
@@ -169,16 +168,13 @@ def label_files(dataset: Path, scene_id: int, split: str | None = None, path: Pa
     return LabelFiles(path, path.with_name(f"{path.stem}_info.json"), path.with_name(f"{path.stem}_provenance.json"))
 
 
-def _read_keyed(path: Path) -> dict:
-    """A scene_gt-form file (image id -> list of objects), empty when missing; InputError naming it otherwise."""
+def read_keyed(path: Path) -> dict:
+    """A scene_gt-form file (image id -> list of objects), empty when missing; InputError naming it otherwise (the
+    check ``write_sequence`` makes before it writes, which ``workbench label`` makes before it tracks)."""
     content = readers.read_json(path) if path.is_file() else {}
     if not isinstance(content, dict):
         raise InputError(path, "expected a JSON object keyed by image id")
-    bop.image_ids(content, path)
-    for key, entries in content.items():
-        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
-            raise InputError(path, f"image {key}: expected a list of objects")
-    return content
+    return check_scene_gt(content, path)
 
 
 def merged_frame(old_gt: list[dict], old_info: list[dict], obj_ids: list[int], gt: list[dict | None],
@@ -207,7 +203,7 @@ def write_sequence(files: LabelFiles, labels: SequenceLabels, infos: dict[int, l
     and the provenance with each frame's ``checks`` and how far physics would move each label to rest
     (``rest_shift`` (K,) metres, if known) -> the files written. Nothing is written when an existing file
     cannot be merged into (InputError naming it); the originals are backed up before they are replaced."""
-    gt, info = _read_keyed(files.labels), _read_keyed(files.info)
+    gt, info = read_keyed(files.labels), read_keyed(files.info)
     for i in labels.frames:
         empty = [None] * len(labels.objects)
         gt[str(i)], info[str(i)] = merged_frame(gt.get(str(i), []), info.get(str(i), []), labels.obj_ids,
@@ -260,8 +256,8 @@ def from_frame_poses(scene_id: int, T_cam_world: dict[int, np.ndarray], obj_ids:
                             None if last == frames[-1] else last)
         current = held[0][1]
         for i, T in held[1:]:
-            cos = np.clip((np.trace(current[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-            if np.linalg.norm(T[:3, 3] - current[:3, 3]) > tol_m or np.degrees(np.arccos(cos)) > tol_deg:
+            turn_deg = np.degrees(rotation_angle(current[:3, :3].T @ T[:3, :3]))
+            if np.linalg.norm(T[:3, 3] - current[:3, 3]) > tol_m or turn_deg > tol_deg:
                 label.moves[i], current = T, T
         objects.append(label)
     return SequenceLabels(scene_id, {i: np.asarray(T_cam_world[i], dtype=np.float64) for i in frames}, objects)
