@@ -231,6 +231,14 @@ def _backup(path: Path) -> Path:
     return backup
 
 
+def kept_note(path: Path, since: float) -> str:
+    """What a save that replaced ``path`` kept of it, in words: its newest backup (``<name>.bak-<stamp>``) written
+    at or after ``since`` (``time.time()``; a second's slack for file systems' coarse times), or that there was no
+    original to keep."""
+    backups = [b for b in path.parent.glob(f"{path.name}.bak-*") if b.stat().st_mtime >= since - 1]
+    return f"the original was kept as `{max(backups).name}`" if backups else "there was no original to keep"
+
+
 @dataclass(frozen=True)
 class Backup:
     """A backup of a scene's scene_gt.json (``path``) and when it was made (``time``: from its name's stamp, else

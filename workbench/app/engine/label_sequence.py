@@ -6,8 +6,8 @@ The labels start from the Label tab's labels on the frame on show, or from the l
 - *Propagate*: the label edited on the frame on show becomes that object's pose on every frame, or from that frame
   on (``SequenceLabels.moved_to``);
 - *End label*: an object seen through from some frame on (``run.gone_from``) ends on the frame before;
-- *Fit to all frames*: the still labels fitted to a spread of frames at once, snapped by physics and fitted again,
-  as ``workbench label`` fits them (``multiview``);
+- *Fit to all frames*: the still labels fitted to a spread of frames at once, as ``workbench label`` fits them
+  (``multiview``; physics only with ``LabelConfig.snap``, off as there);
 - *Save*: ``write_sequence`` to scene_gt_labels.json and its info and provenance files (the scene's own files only
   when the user ticks overwrite; backups kept).
 After each change every frame is checked again (``FrameChecker``: full resolution) and the server is sent the
@@ -22,9 +22,7 @@ Like the other helpers it changes none of the engine's fields: showing a frame r
 
 from __future__ import annotations
 
-import logging
 import time
-import traceback
 from pathlib import Path
 from typing import Callable
 
@@ -33,11 +31,9 @@ import numpy as np
 from workbench.app import protocol as p
 from workbench.app.engine.labels import FrameLabels, movement_table, turned
 from workbench.app.engine.on_show import RunOnShow
-from workbench.app.engine.sequence import EngineSequence, HeldRun
+from workbench.app.engine.sequence import EngineSequence, HeldRun, told
 from workbench.app.engine.sequence_cameras import sequence_cameras
 from workbench.errors import InputError
-
-log = logging.getLogger(__name__)
 
 TOPIC = "sequence labels"
 PROGRESS_EVERY_S = 1.0  # how often a long check tells the server how far it got
@@ -107,23 +103,11 @@ def state_message(labels, checks: dict[int, list], infos: dict[int, list], note:
                                 note)
 
 
-def guarded(results, action: Callable[[], object]) -> object:
-    """Do ``action`` -> what it returns: bad input is told beside the sequence labels' buttons and changes nothing
-    (None); anything else is told with its type and logged. The run on show goes on either way."""
-    try:
-        return action()
-    except InputError as err:
-        results.put(p.Failure("Sequence labels: not done", err.problem, err.path, topic=TOPIC))
-    except Exception as err:  # noqa: BLE001 - a failed check or fit must leave the frame on show usable
-        log.error("sequence labels\n%s", traceback.format_exc())
-        results.put(p.Failure(f"Sequence labels failed ({type(err).__name__})", str(err) or repr(err), topic=TOPIC))
-    return None
-
-
 def save_labels(labels, checks: dict[int, list], infos: dict[int, list], dataset: Path, split: str | None,
                 overwrite_original: bool) -> p.Saved:
     """``write_sequence`` to the scene's default files (scene_gt_labels.json and the two beside it), or with
     ``overwrite_original`` its own scene_gt.json and scene_gt_info.json, backed up first -> what to tell."""
+    from workbench.label.frame import kept_note
     from workbench.label.sequence import label_files, write_sequence
 
     files = label_files(dataset, labels.scene_id, split, overwrite_original=overwrite_original)
@@ -131,9 +115,7 @@ def save_labels(labels, checks: dict[int, list], infos: dict[int, list], dataset
     written = write_sequence(files, labels, infos, checks)
     note = f"{len(labels.frames)} frames; also `{written[1].name}`, `{written[2].name}`"
     if overwrite_original:
-        kept = sorted(b.name for b in files.labels.parent.glob(f"{files.labels.name}.bak-*")
-                      if b.stat().st_mtime >= started - 1)
-        note += f"; the original was kept as `{kept[-1]}`" if kept else "; there was no original to keep"
+        note += f"; {kept_note(files.labels, started)}"
     return p.Saved("sequence labels", str(files.labels), note)
 
 
@@ -158,7 +140,8 @@ class SequenceLabelling:
     # -- guarding
 
     def guarded(self, action: Callable[[], object]) -> object:
-        return guarded(self.results, action)
+        """Do ``action``: bad input is told beside the sequence labels' buttons and changes nothing (None)."""
+        return told(self.results, action, TOPIC, "Sequence labels: not done", "Sequence labels failed")
 
     def forget(self) -> None:
         """Another sequence (or none) was loaded: its labels start again."""
@@ -295,8 +278,9 @@ class SequenceLabelling:
 
     def fit(self) -> None:
         """The still labels (objects that never move) fitted to ``config.fit_frames`` frames spread over the
-        sequence at once, snapped by physics on the frame on show's table, and fitted again within the settling's
-        reach of the rest (``run.fitted_labels``' steps, from the labels instead of the frames' answers)."""
+        sequence at once; with ``config.snap``, snapped by physics on the frame on show's table and fitted again
+        within the settling's reach of the rest (``fit_still``: ``run.fitted_labels``' steps, from the labels
+        instead of the frames' answers)."""
         from workbench.label import frame as labelling
         from workbench.label.multiview import spread
 
@@ -323,8 +307,9 @@ class SequenceLabelling:
             labels.objects[k].T_world_obj = T[k].copy()
         moved = np.linalg.norm(T[:, :3, 3] - before[:, :3, 3], axis=-1)
         table = movement_table(self.names(), still, moved, turned(before, T))
-        self.recheck(f"**Fitted** the still labels to frames {', '.join(map(str, used))} at once, snapped and "
-                     f"fitted again\n\n{table}")
+        snapped = ", snapped and fitted again" if self.config.snap else ""
+        self.recheck(f"**Fitted** the still labels to frames {', '.join(map(str, used))} at once{snapped}"
+                     f"\n\n{table}")
         self.show_on_frame()
 
     def save(self, cmd: p.SaveSequenceLabels):

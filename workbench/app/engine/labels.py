@@ -227,10 +227,7 @@ class FrameLabels:
         path = labelling.save_labels(Path(ref.dataset), frame.scene_id, frame.im_id, problem.camera.T_cam_world,
                                      self.labels, list(frame.object_ids), overwrite_original=overwrite_original,
                                      split=ref.split)
-        note = ""
-        if overwrite_original:
-            backups = [b for b in path.parent.glob(f"{path.name}.bak-*") if b.stat().st_mtime >= started - 1]
-            note = f"the original was kept as `{max(backups).name}`" if backups else "there was no original to keep"
+        note = labelling.kept_note(path, started) if overwrite_original else ""
         self.results.put(p.Saved("labels", str(path), note))
 
     def publish_errors(self, always: bool = False) -> None:

@@ -60,6 +60,20 @@ class Processed:
     handed: tuple[object, int] | None = None
 
 
+def told(results, action: Callable[[], object], topic: str, not_done: str, failed: str) -> object:
+    """Do ``action`` -> what it returns; where it fails, None, and the failure is told under ``topic`` (beside that
+    part's buttons): bad input as it is, titled ``not_done``; anything else titled ``failed`` with its type, and
+    logged. The run on show goes on either way: a failed Next, check or fit must leave it usable."""
+    try:
+        return action()
+    except InputError as err:
+        results.put(p.Failure(not_done, err.problem, err.path, topic=topic))
+    except Exception as err:  # noqa: BLE001 - see the docstring
+        log.error("%s error\n%s", topic, traceback.format_exc())
+        results.put(p.Failure(f"{failed} ({type(err).__name__})", str(err) or repr(err), topic=topic))
+    return None
+
+
 def scene_frame_ids(dataset: Path, scene_id: int, split: str | None) -> tuple[int, ...]:
     """The image ids of the scene's ``scene_camera.json``, in order."""
     from workbench.io import bop, readers
@@ -125,16 +139,8 @@ class EngineSequence:
     # -- commands
 
     def guarded(self, action: Callable[[], None]) -> None:
-        """Next or a jump: whatever fails is told beside the sequence's buttons (bad input as it is, anything else
-        with its type, and logged); the frame on show stays."""
-        try:
-            action()
-        except InputError as err:
-            self.results.put(p.Failure("Sequence: not done", err.problem, err.path, topic="sequence"))
-        except Exception as err:  # noqa: BLE001 - a failed Next must leave the frame on show usable
-            log.error("sequence error\n%s", traceback.format_exc())
-            self.results.put(p.Failure(f"Next frame failed ({type(err).__name__})", str(err) or repr(err),
-                                       topic="sequence"))
+        """Next or a jump: whatever fails is told beside the sequence's buttons; the frame on show stays."""
+        told(self.results, action, "sequence", "Sequence: not done", "Next frame failed")
 
     def next(self) -> HeldRun:
         """Go to the scene's frame after the one on show (module docstring) -> its run, to put on show."""
