@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workbench.geometry import backproject
 from workbench.io import bop
 from workbench.problem.support import ransac_plane
 from workbench.score.vsd import render_alone
@@ -65,18 +66,13 @@ def plane_depth(K: np.ndarray, shape: tuple[int, int], n: np.ndarray, d: float) 
 
 def box_mean(mask: np.ndarray, radius: int) -> np.ndarray:
     """Share of True in each pixel's (2 radius + 1)^2 window, (H, W) bool -> (H, W) float."""
-    c = np.pad(mask.astype(np.float64), radius).cumsum(0).cumsum(1)
-    c = np.pad(c, ((1, 0), (1, 0)))
-    k = 2 * radius + 1
-    h, w = mask.shape
-    s = c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]
-    return s / k**2
+    return st.box_sum(mask.astype(np.float64), radius) / (2 * radius + 1) ** 2
 
 
 def fit_table(observed: np.ndarray, K: np.ndarray, off_objects: np.ndarray, seed: int = 0
               ) -> tuple[np.ndarray, float]:
     """The dominant plane (unit normal (3,), offset) of the observed readings off the objects."""
-    pts = st.back_project(observed, K)[off_objects & (observed > 0)]
+    pts = backproject(observed, K)[off_objects & (observed > 0)]
     rng = np.random.default_rng(seed)
     n, d = ransac_plane(pts, 0.01, 400, rng)
     inl = pts[np.abs(pts @ n + d) < 0.01]

@@ -24,6 +24,8 @@ from typing import Literal, get_args
 
 import numpy as np
 
+from workbench.geometry import backproject
+
 SensorName = Literal["ideal", "kinect-like", "xtion"]
 SENSOR_NAMES: tuple[str, ...] = get_args(SensorName)
 
@@ -88,13 +90,6 @@ def discontinuities(depth: np.ndarray, jump: float, width: int = 1) -> np.ndarra
     return edge
 
 
-def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(H, W) camera-z depth metres, (3, 3) -> (H, W, 3) points in the camera frame, metres."""
-    d = np.asarray(depth, dtype=np.float64)
-    v, u = np.mgrid[0:d.shape[0], 0:d.shape[1]].astype(np.float64)
-    return np.stack([(u - K[0, 2]) / K[0, 0] * d, (v - K[1, 2]) / K[1, 1] * d, d], axis=-1)
-
-
 def incidence_angle(depth: np.ndarray, K: np.ndarray, jump: float = 0.02) -> np.ndarray:
     """Angle between the viewing ray and the surface normal, from central differences of the back-projected
     ``depth`` (H, W) metres, (3, 3) -> (H, W) radians in [0, pi/2]; NaN where a neighbour is missing (0 or NaN)
@@ -103,7 +98,7 @@ def incidence_angle(depth: np.ndarray, K: np.ndarray, jump: float = 0.02) -> np.
     angle = np.full(d.shape, np.nan)
     if d.shape[0] < 3 or d.shape[1] < 3:
         return angle
-    p = back_project(np.nan_to_num(d), K)
+    p = backproject(np.nan_to_num(d), K)
     ok = np.isfinite(d) & (d > 0)
     n = np.cross(p[1:-1, 2:] - p[1:-1, :-2], p[2:, 1:-1] - p[:-2, 1:-1])
     ray = p[1:-1, 1:-1]
@@ -175,9 +170,11 @@ def apply_sensor(depth: np.ndarray, rng: np.random.Generator, model: SensorModel
     if model.outlier_share > 0:
         noise = noise * np.where(rng.random(clean.shape) < model.outlier_share, model.outlier_scale, 1.0)
     sigma = axial_sigma(clean, model)
+    # Incidence (radians, 0 where unknown), computed once for the angular noise and the grazing holes alike.
+    angle = (np.nan_to_num(incidence_angle(clean, K, model.edge_jump), nan=0.0)
+             if model.sigma_angle > 0 or model.grazing_drop > 0 else None)
     if model.sigma_angle > 0:
-        theta = np.minimum(np.nan_to_num(incidence_angle(clean, K, model.edge_jump), nan=0.0),
-                           np.radians(model.max_angle_deg))
+        theta = np.minimum(angle, np.radians(model.max_angle_deg))
         sigma = sigma + model.sigma_angle * clean**1.5 * theta**2 / (np.pi / 2 - theta) ** 2
     noisy = clean + noise * sigma
     noisy = quantise(noisy, model)
@@ -190,7 +187,7 @@ def apply_sensor(depth: np.ndarray, rng: np.random.Generator, model: SensorModel
     if model.bias_sigma > 0:
         noisy = quantise(noisy + rng.normal() * model.bias_sigma, model)
     if model.grazing_drop > 0:
-        grazing = np.nan_to_num(np.degrees(incidence_angle(clean, K, model.edge_jump)), nan=0.0) > model.grazing_deg
+        grazing = np.degrees(angle) > model.grazing_deg
         drop |= grazing & (rng.random(clean.shape) < model.grazing_drop)
     if model.flying > 0:
         jumps = discontinuities(clean, model.edge_jump, 1) & (rng.random(clean.shape) < model.flying)

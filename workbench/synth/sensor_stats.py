@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.synth.sensor import back_project, discontinuities, incidence_angle  # noqa: F401 (re-exported)
+from workbench.synth.sensor import discontinuities, incidence_angle  # noqa: F401 (re-exported)
 
 MAD_TO_STD = 1.4826  # the MAD of a normal distribution times this is its standard deviation
 
@@ -153,15 +153,19 @@ def flying_fraction(observed: np.ndarray, reference: np.ndarray, edge: np.ndarra
     return (float(flying.sum() / n) if n else float("nan")), n
 
 
+def box_sum(a: np.ndarray, radius: int) -> np.ndarray:
+    """Sum of ``a`` (H, W) over each pixel's (2 radius + 1)^2 window (zeros beyond the image) -> (H, W), by a
+    summed-area table."""
+    c = np.pad(np.pad(a, radius).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    k, (h, w) = 2 * radius + 1, a.shape
+    return c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]
+
+
 def local_mean(x: np.ndarray, mask: np.ndarray, radius: int) -> np.ndarray:
     """Mean of ``x`` (H, W) over the ``mask`` (H, W) bool pixels of each (2 radius + 1)^2 window -> (H, W), NaN
     where the window holds none. Splits a residual into its slow part (this) and its fast part (the rest)."""
-    def box(a: np.ndarray) -> np.ndarray:
-        c = np.pad(np.pad(a, radius).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-        k, (h, w) = 2 * radius + 1, a.shape
-        return c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]
     m = np.asarray(mask, dtype=np.float64)
-    total, count = box(np.where(mask, x, 0.0).astype(np.float64)), box(m)
+    total, count = box_sum(np.where(mask, x, 0.0).astype(np.float64), radius), box_sum(m, radius)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(count > 0.5, total / count, np.nan)
 
