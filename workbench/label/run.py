@@ -74,12 +74,13 @@ def track_all(tracker: Tracker, frames: list[int], keep: set[int], echo: bool = 
 
 
 def fitted_labels(problems: dict[int, Problem], answers: dict[int, np.ndarray], config: LabelConfig
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """The still labels (K, 4, 4) world: the first frame's answer, each object's pose chosen among every frame's
     answer and fitted on ``problems``' frames at once within ``config.settle_shift`` and ``settle_turn`` of it; with
     ``config.snap``, then put at rest by physics and fitted again within that region of the rest, as the estimator
     settles its answer.
-    -> (the labels, how far physics moves each label to put the scene at rest (K,) metres: its plausibility).
+    -> (the labels, how far physics moves each label to put the scene at rest (K,) metres: its plausibility; None
+    without frames to fit to, where nothing was simulated).
 
     Physics is off by default: on the real sequences it lifts every label 7-16 mm (the table's plane, fitted to the
     depth, lies above the real support), and fitting again within the settling region brings most of it back but
@@ -88,7 +89,7 @@ def fitted_labels(problems: dict[int, Problem], answers: dict[int, np.ndarray], 
     first = min(answers)
     T = answers[first]
     if not problems:
-        return T, np.zeros(len(T))
+        return T, None
     used = sorted(problems)
     problem = problems[used[0]]
     view = MultiView([problems[i] for i in used], np.ones((len(used), len(problem.models)), dtype=bool))
@@ -240,7 +241,7 @@ def summary(run: LabelRun) -> str:
     worsts = [w for i in run.labels.frames if (w := worst(run.checks[i])) is not None]
     s = run.seconds
     rest = "" if run.rest_shift is None else f"; physics would move a label up to {1000 * max(run.rest_shift):.0f} mm"
+    worst_text = f"worst agreement {min(worsts):.0%}" if worsts else "no object could be checked"
     return (f"labelled {len(run.labels.frames)} frame(s) of scene {run.labels.scene_id}: {len(run.flagged)} "
-            f"flagged; worst agreement {min(worsts):.0%}" if worsts else "no object could be checked") + \
-        f"{rest} (track {s['track']:.1f} s, fit {s['fit']:.1f} s, check {s['check']:.1f} s)"
+            f"flagged; {worst_text}{rest} (track {s['track']:.1f} s, fit {s['fit']:.1f} s, check {s['check']:.1f} s)")
 
