@@ -138,6 +138,16 @@ def clutter_floor_arg(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"a log-density or 'none', got {text!r}") from None
 
 
+def run_settings(args: argparse.Namespace) -> tuple[EstimatorConfig, ProblemConfig]:
+    """The estimator's and the problem's settings of a command that runs the estimator (estimate, track, label),
+    checked with its --workers before anything is loaded or started."""
+    config, problem = estimator_config(args), problem_config(args)
+    config.validate("")
+    problem.validate()
+    check_workers(args.workers)
+    return config, problem
+
+
 def problem_config(args: argparse.Namespace) -> ProblemConfig:
     likelihood = LikelihoodConfig(model=args.likelihood, clutter_floor=args.clutter_floor)
     return ProblemConfig(max_render_pixels=args.max_render_pixels, likelihood=likelihood, physics=physics_config(args))
@@ -147,10 +157,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     if args.dataset is None:
         raise InputError(None, "name a BOP dataset folder (or use `workbench estimate assets/demo`)")
     # Every setting and the output path are checked before anything is loaded or started.
-    config, problem = estimator_config(args), problem_config(args)
-    config.validate("")
-    problem.validate()
-    check_workers(args.workers)
+    config, problem = run_settings(args)
     check_count(args.max_retries, "--max-retries", low=0, high=MAX_RETRIES)
     check_run_memory(config.particles, problem.max_render_pixels)
     ray = ray_config(args)
@@ -233,10 +240,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from workbench.track.frames import sequence_frames, sequence_world
 
     # Every setting, the frames and the output paths are checked before anything is loaded or started.
-    config, problem = estimator_config(args), problem_config(args)
-    config.validate("")
-    problem.validate()
-    check_workers(args.workers)
+    config, problem = run_settings(args)
     check_count(args.max_retries, "--max-retries", low=0, high=MAX_RETRIES)
     check_count(args.track_particles, "--track-particles", low=1, high=MAX_PARTICLES)
     check_count(args.track_iterations, "--track-iterations", low=1, high=MAX_TRACK_ITERATIONS)
@@ -289,10 +293,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
     from workbench.track.frames import sequence_frames, sequence_world
 
     # Every setting, the frames and the files written are checked before anything is loaded or started.
-    config, problem = estimator_config(args), problem_config(args)
-    config.validate("")
-    problem.validate()
-    check_workers(args.workers)
+    config, problem = run_settings(args)
     check_run_memory(config.particles, problem.max_render_pixels)
     track = TrackConfig(motion=args.motion)
     label = LabelConfig(fit_frames=args.fit_frames, snap=args.snap, ends=_ends(args.end))
