@@ -383,8 +383,9 @@ def test_an_assembly_that_nearly_beats_the_estimate_is_fitted_to_the_depth(frame
 
 
 def test_the_assemblies_fitted_and_the_last_polish_are_saved_with_the_search_state(frame_and_problem):
-    """A restored run must not fit an assembly again, nor judge the next polish stuck otherwise: both travel in the
-    state's JSON search entry; a fitted assembly naming an object the problem lacks is refused."""
+    """A restored run must not fit an assembly again, nor judge the next polish stuck otherwise, nor offer again
+    what the last polish offered for the same estimate: all travel in the state's JSON search entry; a fitted
+    assembly naming an object the problem lacks, or an offered scene that is no digest, is refused."""
     import json
 
     from workbench.inference.estimator import parse_search
@@ -397,6 +398,7 @@ def test_the_assemblies_fitted_and_the_last_polish_are_saved_with_the_search_sta
         pose = tuple(np.round(np.eye(4) + 1e-7 / 3, 6).ravel().tolist())
         search.fitted = {((0, pose), (1, pose))}
         search.polished_at = 1234.5678
+        search.offered_for, search.offered = "an estimate", {"0123456789abcdef", "fedcba9876543210"}
         state = estimator.state_dict()
         state["search"] = json.loads(json.dumps(state["search"]))
         restored = Estimator(problem, EstimatorConfig(particles=24, seed=7), evaluator)
@@ -404,9 +406,39 @@ def test_the_assemblies_fitted_and_the_last_polish_are_saved_with_the_search_sta
     finally:
         evaluator.close()
     assert restored.search.fitted == search.fitted and restored.search.polished_at == 1234.5678
+    assert restored.search.offered == search.offered and restored.search.offered_for == "an estimate"
+    state["search"]["offered"].append(3)
+    with pytest.raises(ValueError, match="offered"):
+        parse_search(state["search"], problem.n_objects)
+    state["search"]["offered"].pop()
+    state["search"]["clusters"] = ["not base64!"]
+    with pytest.raises(ValueError, match="clusters"):
+        parse_search(state["search"], problem.n_objects)
+    state["search"]["clusters"] = []
     state["search"]["fitted"][0][1][0] = problem.n_objects
     with pytest.raises(ValueError, match="fitted"):
         parse_search(state["search"], problem.n_objects)
+
+
+def test_a_polish_of_an_unchanged_estimate_evaluates_nothing_it_offered_before(frame_and_problem):
+    """Polish offers the same variants of an estimate that has not moved; once offered, they lose to it again, so
+    they are not evaluated again: a third polish of the same estimate (the second was stuck, with its wider beam and
+    leaning starts) projects nothing. Once the estimate changes, polish offers its variants again."""
+    _, problem = frame_and_problem
+    evaluator = LocalEvaluator(problem)
+    try:
+        estimator = _run(problem, evaluator, 1)
+        filt, search = estimator.filter, estimator.search
+        search.polish(filt)
+        search.polish(filt)  # stuck: leaning starts, a wider beam
+        before = filt.evaluations
+        assert search.polish(filt).offered is None and filt.evaluations == before
+        filt.estimate = filt.estimate.copy()
+        filt.estimate[0, 0, 3] += 0.001
+        search.polish(filt)
+        assert filt.evaluations > before
+    finally:
+        evaluator.close()
 
 
 def test_the_paper_search_keeps_the_objects_on_the_fitted_plane(frame_and_problem):

@@ -15,6 +15,8 @@ the paper.
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import time
 from collections.abc import Iterator
 from functools import partial
@@ -140,10 +142,15 @@ class DefaultSearch:
         self.unexplained: datadriven.Library | None = None
         self._geometry: SearchGeometry | None = None
         self._leaning: datadriven.Library | None = None
-        self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
+        self._cluster_memo = datadriven.ClusterMemo()  # candidates per cluster already fitted
         self._base_memo: dict = {}  # polish.stacked's bases found under each top so far
         self.fitted: set[tuple[tuple[int, tuple[float, ...]], ...]] = set()
         self.polished_at = -np.inf
+        # What polish offered for the estimate as it stands (``offered_for``: ``polish_key``): the digests of the
+        # scenes, and of the library its assemblies were made from. An estimate that has not changed since the last
+        # polish loses to them again; offered once, they are not evaluated again.
+        self.offered_for: str | None = None
+        self.offered: set[str] = set()
         self._map_wait = 0.0  # seconds this iteration's proposals waited for fits on the workers
 
     def geometry(self, filt: ParticleFilter) -> SearchGeometry:
@@ -257,20 +264,27 @@ class DefaultSearch:
     # ------------------------------------------------------------------------------------------------ sessions
     def state_dict(self) -> dict:
         """What the search remembers between steps, as plain JSON values: the candidate ``library`` (None before
-        the first fit), the scenes already ``fitted`` (each a list of [object, 16 pose entries]) and ``polished_at``
-        (None before the first polish). The caches are made again on use."""
+        the first fit), the scenes already ``fitted`` (each a list of [object, 16 pose entries]), ``polished_at``
+        (None before the first polish), what polish ``offered`` for the estimate (``offered_for``) and the
+        ``clusters`` fitted so far (each its ``ClusterMemo`` mask, base64; their candidates are fitted again at their
+        first use). The other caches are made again on use."""
         lib = self.library
         return {
             "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
                                                  "weights": [w.tolist() for w in lib.weights]},
             "fitted": [[[k, list(pose)] for k, pose in key] for key in sorted(self.fitted)],
             "polished_at": float(self.polished_at) if np.isfinite(self.polished_at) else None,
+            "offered_for": self.offered_for,
+            "offered": sorted(self.offered),
+            "clusters": [base64.b64encode(m.tobytes()).decode("ascii") for m in self._cluster_memo.masks],
         }
 
     def load_state(self, search: dict) -> None:
         """Continue from a parsed ``search`` entry (``estimator.parse_search``)."""
         self.library = search["library"]
         self.fitted, self.polished_at = search["fitted"], search["polished_at"]
+        self.offered_for, self.offered = search["offered_for"], search["offered"]
+        self._cluster_memo = datadriven.ClusterMemo(list(search["clusters"]), [None] * len(search["clusters"]))
 
     # -------------------------------------------------------------------------------------------------- parts
     @staticmethod
@@ -355,16 +369,23 @@ class DefaultSearch:
         # send the search elsewhere.
         stuck = filt.estimate_loglik - self.polished_at < STUCK
         self.polished_at = filt.estimate_loglik
+        key = polish_key(filt)
+        if key != self.offered_for:
+            self.offered_for, self.offered = key, set()
         parts = [polish.variants(estimate, self.library, g, self.unexplained, hiding.hider(self.problem, g),
                                  polish.gains(self.problem, estimate, g.samples),
                                  self.leaning_starts(filt) if stuck else None),
                  polish.stacked(self.problem, estimate, self.library, self.unexplained, g, self._base_memo,
                                 partial(self._run, filt))]
-        joint = self._assemblies(filt, estimate, assemble.WIDE_BEAM if stuck else assemble.BEAM)
-        parts.append(joint)
+        beam = assemble.WIDE_BEAM if stuck else assemble.BEAM
+        made = f"assemblies {digest(*self.library.poses, *self.library.weights)} {beam}"
+        joint = np.zeros((0, *estimate.shape)) if made in self.offered else self._assemblies(filt, estimate, beam)
+        self.offered.add(made)
+        parts = [new_scenes(p.reshape(-1, *estimate.shape), self.offered) for p in parts + [joint]]
+        joint = parts[-1]
         kinds = np.repeat(np.array([MoveKind.POLISH, MoveKind.BASE, MoveKind.ASSEMBLE], np.int8),
                           [len(p) for p in parts])
-        scenes = np.concatenate([p.reshape(-1, *estimate.shape) for p in parts])
+        scenes = np.concatenate(parts)
         if not len(scenes):
             return Update()
         ev = filt.evaluate(scenes)
@@ -384,3 +405,31 @@ class DefaultSearch:
         better = np.nonzero(ev.loglik > filt.estimate_loglik)[0]
         better = better[np.argsort(-ev.loglik[better], kind="stable")][: max(1, len(filt.particles) // 10)]
         return Update(offered=(ev, kinds), replacements=ParticleSet.evaluated(scenes, ev, kinds)[better])
+
+
+def digest(*arrays: np.ndarray) -> str:
+    """A short digest (16 hex digits) of the arrays' values and shapes: the same across processes and sessions."""
+    h = hashlib.blake2b(digest_size=8)
+    for a in arrays:
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def polish_key(filt: ParticleFilter) -> str:
+    """What a polish's evaluations depend on besides the scenes themselves: the estimate (K, 4, 4), the sink and
+    whether the clutter floor counts."""
+    return f"{digest(filt.estimate)} {filt.sink!r} {filt.floor_in}"
+
+
+def new_scenes(scenes: np.ndarray, offered: set[str]) -> np.ndarray:
+    """Of ``scenes`` (S, K, 4, 4), those whose ``digest`` is not in ``offered`` (nor an earlier one of them), in
+    their order -> (S', K, 4, 4); ``offered`` gets their digests."""
+    keep = []
+    for i, scene in enumerate(scenes):
+        d = digest(scene)
+        if d not in offered:
+            offered.add(d)
+            keep.append(i)
+    return scenes[keep]
