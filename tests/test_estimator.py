@@ -411,10 +411,6 @@ def test_the_assemblies_fitted_and_the_last_polish_are_saved_with_the_search_sta
     with pytest.raises(ValueError, match="offered"):
         parse_search(state["search"], problem.n_objects)
     state["search"]["offered"].pop()
-    state["search"]["clusters"] = ["not base64!"]
-    with pytest.raises(ValueError, match="clusters"):
-        parse_search(state["search"], problem.n_objects)
-    state["search"]["clusters"] = []
     state["search"]["fitted"][0][1][0] = problem.n_objects
     with pytest.raises(ValueError, match="fitted"):
         parse_search(state["search"], problem.n_objects)

@@ -8,8 +8,6 @@ search's answer (``settle``): for the default search the estimate fitted to the 
 
 from __future__ import annotations
 
-import base64
-import binascii
 from dataclasses import replace
 
 import numpy as np
@@ -210,9 +208,9 @@ def parse_search(search, K: int) -> dict:
     """The ``search`` entry of a ``state_dict`` (plain JSON lists) for K objects -> ``map`` (K, 4, 4) or None,
     ``map_loglik``, ``map_kind`` (MoveKind), ``floor_in`` (``ParticleFilter.floor_in``; true in states saved
     before it existed), ``sink`` (m), ``evaluations``, ``library`` (datadriven.Library or None), ``fitted``,
-    ``polished_at``, ``offered_for``, ``offered`` and ``clusters`` (``DefaultSearch``'s; none fitted, never
-    polished, nothing offered and no cluster remembered in states saved before they existed). None (a state saved
-    before the search existed) gives the neutral values. Raises ValueError naming what is malformed."""
+    ``polished_at``, ``offered_for`` and ``offered`` (``DefaultSearch``'s; none fitted, never polished and nothing
+    offered in states saved before they existed). None (a state saved before the search existed) gives the
+    neutral values. Raises ValueError naming what is malformed."""
     if search is None:
         search = {}
     if not isinstance(search, dict):
@@ -247,13 +245,6 @@ def parse_search(search, K: int) -> dict:
         if offered_for is not None and not isinstance(offered_for, str) \
                 or not isinstance(offered, list) or not all(isinstance(d, str) for d in offered):
             raise ValueError("search.offered_for must be text or null, and search.offered a list of texts")
-        clusters = search.get("clusters", [])
-        if not isinstance(clusters, list) or not all(isinstance(c, str) for c in clusters):
-            raise ValueError("search.clusters must be a list of texts (base64)")
-        try:
-            masks = [np.frombuffer(base64.b64decode(c, validate=True), np.uint8).copy() for c in clusters]
-        except binascii.Error as e:
-            raise ValueError(f"search.clusters must be base64 ({e})") from e
         return {
             "map": None if m is None else read.table_poses(m, (K, 4, 4), "search.map"),
             "map_loglik": float("-inf") if ll is None
@@ -268,7 +259,6 @@ def parse_search(search, K: int) -> dict:
             else float(read.finite_array(polished_at, (), np.float64, "search.polished_at")),
             "offered_for": offered_for,
             "offered": set(offered),
-            "clusters": masks,
         }
     except (TypeError, KeyError, IndexError, OverflowError) as e:
         raise ValueError(f"malformed search entry ({type(e).__name__}: {e})") from e

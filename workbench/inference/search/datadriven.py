@@ -14,8 +14,9 @@ whose density is a Gaussian mixture, so its log-q correction is exact.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -80,11 +81,6 @@ PLACE_M = 0.03  # m; candidates whose centres lie closer than this (horizontally
 # fit score rises (``slide``).
 SLIDE_STEPS = (0.02, 0.01, 0.005)  # m
 SLIDE_ROUNDS = 2
-# A cluster sharing at least this share of its points with one fitted before (intersection over union) is that
-# cluster again (``ClusterMemo``): as the estimate moves, the points at a cluster's rim are explained in one iteration
-# and not in the next, which moves its start places by millimetres, while its candidates, fitted to all observed
-# points near them, end where they ended before (docs/journal/2026-12.md, "Nothing fitted or offered twice").
-SAME_CLUSTER = 0.8
 
 
 
@@ -254,61 +250,8 @@ def _in_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (b[at] == a) if len(b) else np.zeros(len(a), dtype=bool)
 
 
-def _point_keys(points: np.ndarray) -> np.ndarray:
-    """A key per observed point (P, 3) m -> (P,) int64: its coordinates' bits mixed, so the same point has the same
-    key in every cluster it falls in."""
-    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.int64).reshape(-1, 3)
-    return bits[:, 0] * 1_000_003 ^ bits[:, 1] * 998_244_353 ^ bits[:, 2]
-
-
-def cluster_mask(everything: np.ndarray, cluster: np.ndarray) -> np.ndarray | None:
-    """Which of the observed points ``everything`` (P, 3) form ``cluster`` (C, 3), packed (``np.packbits`` of a (P,)
-    mask) -> (ceil(P / 8),) uint8; None where the cluster holds a point that is not among them."""
-    keys = _point_keys(everything)
-    order = np.argsort(keys, kind="stable")
-    wanted = _point_keys(cluster)
-    at = np.minimum(np.searchsorted(keys[order], wanted), len(keys) - 1)
-    if not len(keys) or np.any(keys[order][at] != wanted):
-        return None
-    mask = np.zeros(len(everything), dtype=bool)
-    mask[order[at]] = True
-    return np.packbits(mask)
-
-
-def _count(packed: np.ndarray) -> int:
-    return int(np.unpackbits(packed).sum())
-
-
-@dataclass
-class ClusterMemo:
-    """The clusters fitted so far, kept by the caller across ``build_library`` calls with the same problem, geometry
-    and models: per cluster, which observed points it holds (``masks``, ``cluster_mask``) and per object its
-    candidates (``fits``; None for a cluster restored from a session, fitted again at its first use: a cluster's
-    candidates depend on nothing but its points, so they come out the same)."""
-    masks: list[np.ndarray] = field(default_factory=list)
-    fits: list[list[list[Candidate]] | None] = field(default_factory=list)
-
-    def find(self, mask: np.ndarray) -> int | None:
-        """The remembered cluster that is the cluster of ``mask`` again (the most points in common, at least
-        SAME_CLUSTER of their union), or None."""
-        n, best, at = _count(mask), SAME_CLUSTER, None
-        for i, known in enumerate(self.masks):
-            m = _count(known)
-            if known.shape != mask.shape or min(n, m) < SAME_CLUSTER * max(n, m):
-                continue  # another frame's points, or too different in size to share that much
-            common = _count(mask & known)
-            if common / (n + m - common) >= best:
-                best, at = common / (n + m - common), i
-        return at
-
-    def add(self, mask: np.ndarray) -> int:
-        self.masks.append(mask)
-        self.fits.append(None)
-        return len(self.masks) - 1
-
-
 def build_library(problem: Problem, clusters: list[np.ndarray], geometry: SearchGeometry,
-                  memo: ClusterMemo | None = None, run: Callable | None = None) -> Library:
+                  memo: dict | None = None, run: Callable | None = None) -> Library:
     """Candidate poses for every object from the ``clusters`` (list of (P_i, 3), largest first); ICP against
     all observed points (``geometry.points``) near each start. -> Library.
 
@@ -316,38 +259,27 @@ def build_library(problem: Problem, clusters: list[np.ndarray], geometry: Search
     ``REFINED_PER_PLACE`` of each place go on to the full ICP. On the real dev frames this keeps as many right
     candidates as fitting every start fully (21 against 22 of 50 objects) at a sixth of the time.
 
-    ``memo``: a cluster's candidates depend on nothing but the cluster, so a cluster met before (``ClusterMemo``:
-    the same points, or nearly; unmodelled clutter that no estimate explains stays that cluster refit after refit)
-    is not fitted again. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default
-    ``evaluation.run_here``), the same library either way."""
+    ``memo``: a dict kept by the caller across calls with the same problem, geometry and models. A cluster's
+    candidates depend on nothing but the cluster, so a cluster seen before (unmodelled clutter that no estimate
+    explains stays the same cluster refit after refit) is not fitted again; the library is the same with or
+    without it. ``run(fn, calls)``: how the fits are run (``Evaluator.map``; default ``evaluation.run_here``), the
+    same library either way."""
     cloud, rest, samples, hulls = geometry.points, geometry.rest, geometry.samples, geometry.hulls
     K = len(rest)
     found: list[list[Candidate]] = [[] for _ in range(K)]
     clusters = fitted_clusters(clusters, K)
-    memo = ClusterMemo() if memo is None else memo
-    masks = [cluster_mask(cloud.points, c) for c in clusters]
-    at = [None if m is None else memo.find(m) for m in masks]
-    for i, m in enumerate(masks):
-        if m is not None and at[i] is None:
-            at[i] = memo.add(m)
-    # The clusters to fit: those not remembered, or remembered without their candidates; a remembered one as it
-    # was first met. All (cluster, object) fits at once: ``run`` may spread them over the workers.
-    todo = [i for i, a in enumerate(at) if a is None or memo.fits[a] is None]
-    everything = len(cloud.points)
-    fitted = [clusters[i] if at[i] is None
-              else cloud.points[np.unpackbits(memo.masks[at[i]], count=everything).astype(bool)] for i in todo]
-    fits = (run or run_here(problem))(cluster_candidates, [(c, cloud, rest[k], samples[k], hulls[k])
-                                                           for c in fitted for k in range(K)])
-    own: dict[int, list[list[Candidate]]] = {}  # the fits of clusters not remembered, by their place in ``clusters``
-    for j, i in enumerate(todo):
-        if at[i] is None:
-            own[i] = fits[j * K:(j + 1) * K]
-        else:
-            memo.fits[at[i]] = fits[j * K:(j + 1) * K]
-    per_cluster = [own[i] if a is None else memo.fits[a] for i, a in enumerate(at)]
-    for cluster_fits in per_cluster:
+    keys = [hashlib.sha1(np.ascontiguousarray(c, dtype=np.float64).tobytes()).hexdigest() for c in clusters]
+    memo = {} if memo is None else memo
+    # Every (cluster, object) fit not remembered, all at once: ``run`` may spread them over the workers.
+    new = list(dict.fromkeys(key for key in keys if key not in memo))
+    first = {key: clusters[keys.index(key)] for key in new}
+    fits = (run or run_here(problem))(cluster_candidates, [(first[key], cloud, rest[k], samples[k], hulls[k])
+                                                           for key in new for k in range(K)])
+    for i, key in enumerate(new):
+        memo[key] = fits[i * K:(i + 1) * K]
+    for key in keys:
         for k in range(K):
-            found[k] += cluster_fits[k]
+            found[k] += memo[key][k]
     poses, weights = [], []
     for k in range(K):
         # The best fits overall, then the best of each cluster's first PER_CLUSTER places: a small object fits a
@@ -355,7 +287,7 @@ def build_library(problem: Problem, clusters: list[np.ndarray], geometry: Search
         # fits overall can all lie on other objects: on generated clutter the gelatin box had none within 13 cm of
         # where it lay. The merge at the next refit keeps the best of each place (``place_order``).
         best = _distinct(sorted(found[k], key=lambda c: -c[0]), PER_OBJECT)
-        firsts = sorted([c for f in per_cluster for c in _places(f[k])], key=lambda c: -c[0])
+        firsts = sorted([c for key in keys for c in _places(memo[key][k])], key=lambda c: -c[0])
         kept = _distinct(best + firsts, len(best) + len(firsts))
         poses.append(np.stack([c[1] for c in kept]) if kept else np.zeros((0, 4, 4)))
         weights.append(candidate_weights(np.array([c[0] for c in kept])))

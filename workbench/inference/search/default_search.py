@@ -15,7 +15,6 @@ the paper.
 
 from __future__ import annotations
 
-import base64
 import hashlib
 import time
 from collections.abc import Iterator
@@ -142,7 +141,7 @@ class DefaultSearch:
         self.unexplained: datadriven.Library | None = None
         self._geometry: SearchGeometry | None = None
         self._leaning: datadriven.Library | None = None
-        self._cluster_memo = datadriven.ClusterMemo()  # candidates per cluster already fitted
+        self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
         self._base_memo: dict = {}  # polish.stacked's bases found under each top so far
         self.fitted: set[tuple[tuple[int, tuple[float, ...]], ...]] = set()
         self.polished_at = -np.inf
@@ -265,9 +264,8 @@ class DefaultSearch:
     def state_dict(self) -> dict:
         """What the search remembers between steps, as plain JSON values: the candidate ``library`` (None before
         the first fit), the scenes already ``fitted`` (each a list of [object, 16 pose entries]), ``polished_at``
-        (None before the first polish), what polish ``offered`` for the estimate (``offered_for``) and the
-        ``clusters`` fitted so far (each its ``ClusterMemo`` mask, base64; their candidates are fitted again at their
-        first use). The other caches are made again on use."""
+        (None before the first polish) and what polish ``offered`` for the estimate (``offered_for``). The caches
+        are made again on use."""
         lib = self.library
         return {
             "library": None if lib is None else {"poses": [p.tolist() for p in lib.poses],
@@ -276,7 +274,6 @@ class DefaultSearch:
             "polished_at": float(self.polished_at) if np.isfinite(self.polished_at) else None,
             "offered_for": self.offered_for,
             "offered": sorted(self.offered),
-            "clusters": [base64.b64encode(m.tobytes()).decode("ascii") for m in self._cluster_memo.masks],
         }
 
     def load_state(self, search: dict) -> None:
@@ -284,7 +281,6 @@ class DefaultSearch:
         self.library = search["library"]
         self.fitted, self.polished_at = search["fitted"], search["polished_at"]
         self.offered_for, self.offered = search["offered_for"], search["offered"]
-        self._cluster_memo = datadriven.ClusterMemo(list(search["clusters"]), [None] * len(search["clusters"]))
 
     # -------------------------------------------------------------------------------------------------- parts
     @staticmethod
