@@ -212,3 +212,52 @@ def test_check_propagate_show_end_fit_save_and_read_back(sequence, tmp_path):
         assert not failed(inbox, 0)[4:], failed(inbox, 0)
     finally:
         engine.close()
+
+
+@pytest.mark.slow
+def test_a_session_keeps_the_sequence_labels_written_or_not(sequence, tmp_path):
+    """Sequence labels are the user's work: a session saved while they are on hand (one moved from frame 2 on, none
+    written to the dataset) brings them back on load, every frame checked again; loading a session saved with
+    none leaves none. A corrupt labels entry is refused, naming the session file."""
+    from workbench.app.engine.engine import Engine
+    from workbench.inference.config import EstimatorConfig
+
+    data = tmp_path / "data"
+    shutil.copytree(sequence, data)
+    inbox = Inbox()
+    engine = Engine(inbox, workers=1)
+    try:
+        engine.handle(p.Load(p.Source(dataset=data, scene_id=0, im_id=0),
+                             EstimatorConfig(particles=32, iterations=2), "robust"))
+        while not engine.finished():
+            engine.step()
+        engine.handle(p.SaveSession(tmp_path / "sessions", "none"))
+        engine.handle(p.UseBestAsLabel())
+        start = [T.copy() for T in engine.labels.labels]
+        engine.handle(p.CheckSequenceLabels("current"))
+        engine.handle(p.SetLabels(tuple([moved(start[0], 0.03), start[1]])))
+        engine.handle(p.PropagateLabel(0))
+        kept = engine.sequence_labels.labels
+        assert flagged(inbox) == [0, 1, 2, 3]
+        engine.handle(p.SaveSession(tmp_path / "sessions", "labelled"))
+        assert [s.kind for s in inbox.of(p.Saved)] == ["session", "session"]
+
+        engine.handle(p.LoadSession(tmp_path / "sessions" / "none.json"))
+        assert engine.sequence_labels.labels is None
+        engine.handle(p.LoadSession(tmp_path / "sessions" / "labelled.json"))
+        back = engine.sequence_labels.labels
+        assert back is not None and back.frames == kept.frames and back.checked == kept.checked
+        assert all(np.allclose(o.T_world_obj, k.T_world_obj) for o, k in zip(back.objects, kept.objects))
+        assert flagged(inbox) == [0, 1, 2, 3] and "Restored from the session" in state(inbox).note
+
+        path = tmp_path / "sessions" / "labelled.json"
+        doc = json.loads(path.read_text())
+        doc["sequence"]["labels"]["objects"][0]["T_world_obj"] = [1.0] * 16
+        path.write_text(json.dumps(doc))
+        n = len(inbox.of(p.Failure))
+        engine.handle(p.LoadSession(path))
+        problems = [f.problem for f in inbox.of(p.Failure)[n:]]
+        assert problems and "sequence.labels.objects[0].T_world_obj" in problems[-1], problems
+        assert engine.sequence_labels.labels is back  # the labels on hand stay
+    finally:
+        engine.close()

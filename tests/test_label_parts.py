@@ -166,3 +166,26 @@ def test_an_object_seen_through_to_the_end_is_said_to_be_gone_from_there():
 def test_the_fit_spreads_over_the_sequence_with_both_ends():
     assert spread(list(range(1, 21)), 4) == [1, 7, 14, 20]
     assert spread([3, 4], 6) == [3, 4]
+
+
+def test_sequence_labels_keep_their_poses_moves_and_checks_through_json():
+    """``labels_json`` and ``parse_labels`` (a session keeps the labels this way): the same labels back; a pose
+    that is no rigid transform, or a frame key that is no image id, is refused naming its entry."""
+    from workbench.geometry import make_pose, rot_z
+    from workbench.label.sequence import ObjectLabel, SequenceLabels, labels_json, parse_labels
+
+    T = make_pose(rot_z(0.3), np.array([0.1, -0.2, 0.05]))
+    labels = SequenceLabels(3, {1: np.eye(4), 2: T}, [ObjectLabel(5, T, None, 2, {2: np.eye(4)}),
+                                                      ObjectLabel(7, np.eye(4), 1)], {2})
+    back = parse_labels(json.loads(json.dumps(labels_json(labels))))
+    assert back.scene_id == 3 and back.frames == [1, 2] and back.checked == {2} and back.obj_ids == [5, 7]
+    assert np.array_equal(back.objects[0].T_world_obj, T) and np.array_equal(back.objects[0].moves[2], np.eye(4))
+    assert (back.objects[0].first, back.objects[0].last, back.objects[1].first) == (None, 2, 1)
+    bad = labels_json(labels)
+    bad["objects"][1]["moves"] = {"x": np.eye(4).ravel().tolist()}
+    with pytest.raises(ValueError, match=r"objects\[1\]\.moves"):
+        parse_labels(bad)
+    bad = labels_json(labels)
+    bad["cameras"]["2"] = (2 * np.eye(4)).ravel().tolist()
+    with pytest.raises(ValueError, match=r"cameras\[2\]"):
+        parse_labels(bad)

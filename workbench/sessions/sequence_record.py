@@ -18,17 +18,20 @@ from workbench.app import protocol as p
 from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.moves.registry import MoveMix
+from workbench.label.sequence import SequenceLabels, labels_json, parse_labels
 from workbench.sessions.document import config_from_dict
 
 
 @dataclass(frozen=True)
 class SequenceRecord:
     """``frames``: the processed frames in order (``held`` False: their runs are not in the session);
-    ``current``: the image id on show, the session's frame; ``config``: the panel's settings."""
+    ``current``: the image id on show, the session's frame; ``config``: the panel's settings; ``labels``: the
+    sequence labels the Label tab holds, so that a session keeps them whether they were written or not."""
 
     frames: list[p.SequenceFrame]
     current: int
     config: EstimatorConfig
+    labels: SequenceLabels | None = None  # the sequence labels on hand (``label.sequence``), saved or not
 
 
 def record_json(record: SequenceRecord) -> dict:
@@ -39,6 +42,7 @@ def record_json(record: SequenceRecord) -> dict:
         "frames": [{"im_id": f.im_id, "status": f.status, "seconds": f.seconds, "motion": f.motion,
                     "positions": np.asarray(f.positions, dtype=np.float64).tolist(),
                     "confidences": np.asarray(f.confidences, dtype=np.float64).tolist()} for f in record.frames],
+        **({} if record.labels is None else {"labels": labels_json(record.labels)}),
     }
 
 
@@ -50,6 +54,7 @@ def parse_record(data: dict, path: Path, n_objects: int, im_id: int) -> Sequence
         config.validate("sequence.config.")
         frames = [_frame(f, n_objects, f"sequence.frames[{i}]") for i, f in enumerate(data["frames"])]
         current = data["current"]
+        labels = None if data.get("labels") is None else parse_labels(data["labels"])
     except InputError as err:
         raise InputError(path, f"{err.path}: {err.problem}" if err.path else err.problem) from err
     except (KeyError, TypeError, ValueError) as err:
@@ -57,10 +62,13 @@ def parse_record(data: dict, path: Path, n_objects: int, im_id: int) -> Sequence
     ids = [f.im_id for f in frames]
     if not ids or ids != sorted(set(ids)):
         raise InputError(path, f"sequence.frames must list processed frames in increasing order, got {ids}")
+    if labels is not None and len(labels.objects) != n_objects:
+        raise InputError(path, f"sequence.labels must label the frame's {n_objects} objects, got "
+                               f"{len(labels.objects)}")
     if current != im_id or current not in ids:
         raise InputError(path, f"sequence.current is {current!r}: it must be the session's frame {im_id}, one of "
                                f"the processed frames {ids}")
-    return SequenceRecord([replace(f, held=False) for f in frames], current, config)
+    return SequenceRecord([replace(f, held=False) for f in frames], current, config, labels)
 
 
 def _frame(f: dict, n_objects: int, where: str) -> p.SequenceFrame:

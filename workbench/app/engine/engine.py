@@ -228,7 +228,7 @@ class Engine:
             self.aside("labels", lambda: self.reload_truth(label_files.act(cmd, self.labels, self.on_show())))
         elif isinstance(cmd, p.SaveSession):
             self.aside("session", lambda: self.results.put(
-                save_session(cmd, self.estimator, self.labels, self.evaluators.describe(), self.sequence.record())))
+                save_session(cmd, self.estimator, self.labels, self.evaluators.describe(), self.record())))
         elif isinstance(cmd, p.LoadSession):
             self.aside("session", lambda: self.load_session(cmd))
         elif isinstance(cmd, p.NextFrame):
@@ -444,10 +444,15 @@ class Engine:
         self.results.put(p.SessionRestored(opened.name, opened.path, config, problem.config.likelihood.model,
                                            [r.as_dict() for r in est.history], opened.warnings))
         self.sequence.start(source, opened.dataset, state.frame.split, view, opened.sequence)
-        self.sequence_labels.forget()
+        self.sequence_labels.restore(None if opened.sequence is None else opened.sequence.labels)
         self.send_state("restored")
         if est.iteration >= 0:
             self.publish()
+
+    def record(self):
+        """The sequence position a session saves, with the sequence labels on hand (None outside a sequence)."""
+        record = self.sequence.record()
+        return None if record is None else replace(record, labels=self.sequence_labels.labels)
 
     def close(self) -> None:
         self.sequence_labels.close()

@@ -149,6 +149,14 @@ class SequenceLabelling:
         self.close()
         self.results.put(p.SequenceLabelState(None))
 
+    def restore(self, labels) -> None:
+        """A session's sequence labels (``label.sequence.SequenceLabels``; None: it kept none) on hand again, every
+        frame checked anew (a check that fails is told; the labels stay)."""
+        self.forget()
+        if labels is not None:
+            self.labels = labels
+            self.guarded(lambda: self.recheck("Restored from the session; every frame checked again"))
+
     def close(self) -> None:
         if self.checker is not None:
             self.checker.close()
