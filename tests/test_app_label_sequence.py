@@ -216,9 +216,10 @@ def test_check_propagate_show_end_fit_save_and_read_back(sequence, tmp_path):
 
 @pytest.mark.slow
 def test_a_session_keeps_the_sequence_labels_written_or_not(sequence, tmp_path):
-    """Sequence labels are the user's work: a session saved while they are on hand (one moved from frame 2 on, none
-    written to the dataset) brings them back on load, every frame checked again; loading a session saved with
-    none leaves none. A corrupt labels entry is refused, naming the session file."""
+    """Sequence labels are the user's work: loading another frame while they hold changes that nothing saved is
+    refused once; a session saved while they are on hand (none written to the dataset) brings them back on load,
+    every frame checked again; loading a session saved with none leaves none. A corrupt labels entry is refused,
+    naming the session file."""
     from workbench.app.engine.engine import Engine
     from workbench.inference.config import EstimatorConfig
 
@@ -239,8 +240,15 @@ def test_a_session_keeps_the_sequence_labels_written_or_not(sequence, tmp_path):
         engine.handle(p.PropagateLabel(0))
         kept = engine.sequence_labels.labels
         assert flagged(inbox) == [0, 1, 2, 3]
+        # Unsaved, they are not dropped by loading another frame unseen: refused once, with the way out.
+        with pytest.raises(InputError, match="not saved.*press Load again"):  # the engine's loop tells it
+            engine.handle(p.Load(p.Source(dataset=data, scene_id=0, im_id=1), EstimatorConfig(particles=32),
+                                 "robust"))
+        assert engine.frame.im_id == 0 and engine.sequence_labels.labels is kept
         engine.handle(p.SaveSession(tmp_path / "sessions", "labelled"))
         assert [s.kind for s in inbox.of(p.Saved)] == ["session", "session"]
+        engine.handle(p.Load(p.Source(dataset=data, scene_id=0, im_id=1), EstimatorConfig(particles=32), "robust"))
+        assert engine.frame.im_id == 1 and engine.sequence_labels.labels is None  # the session holds them
 
         engine.handle(p.LoadSession(tmp_path / "sessions" / "none.json"))
         assert engine.sequence_labels.labels is None

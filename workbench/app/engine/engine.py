@@ -227,8 +227,7 @@ class Engine:
         elif isinstance(cmd, (p.SaveLabels, p.ListBackups, p.RestoreBackup)):
             self.aside("labels", lambda: self.reload_truth(label_files.act(cmd, self.labels, self.on_show())))
         elif isinstance(cmd, p.SaveSession):
-            self.aside("session", lambda: self.results.put(
-                save_session(cmd, self.estimator, self.labels, self.evaluators.describe(), self.record())))
+            self.aside("session", lambda: self.save_session(cmd))
         elif isinstance(cmd, p.LoadSession):
             self.aside("session", lambda: self.load_session(cmd))
         elif isinstance(cmd, p.NextFrame):
@@ -265,6 +264,7 @@ class Engine:
 
     def load(self, cmd: p.Load) -> None:
         cmd.config.validate()
+        self.sequence_labels.refuse_to_drop()
         dataset, frame, problem, view = load(cmd.source, cmd.likelihood, self.physics)  # on failure the old run stays
         self.replace_frame(cmd.source, view, frame, problem, cmd.config)
         self.new_estimator()
@@ -448,6 +448,12 @@ class Engine:
         self.send_state("restored")
         if est.iteration >= 0:
             self.publish()
+
+    def save_session(self, cmd: p.SaveSession) -> None:
+        record = self.record()
+        self.results.put(save_session(cmd, self.estimator, self.labels, self.evaluators.describe(), record))
+        if record is not None:  # in a sequence, the session holds its labels
+            self.sequence_labels.unsaved = False
 
     def record(self):
         """The sequence position a session saves, with the sequence labels on hand (None outside a sequence)."""

@@ -136,6 +136,8 @@ class SequenceLabelling:
         self.infos: dict[int, list] = {}
         self.checker = None  # label.run.FrameChecker, for ``checker_key``'s frames
         self.checker_key: tuple | None = None
+        self.unsaved = False  # changed since the labels were last written or saved in a session
+        self.warned = False  # and a load was refused once for it (``refuse_to_drop``)
 
     # -- guarding
 
@@ -146,6 +148,7 @@ class SequenceLabelling:
     def forget(self) -> None:
         """Another sequence (or none) was loaded: its labels start again."""
         self.labels, self.checks, self.infos = None, {}, {}
+        self.unsaved = self.warned = False
         self.close()
         self.results.put(p.SequenceLabelState(None))
 
@@ -156,6 +159,17 @@ class SequenceLabelling:
         if labels is not None:
             self.labels = labels
             self.guarded(lambda: self.recheck("Restored from the session; every frame checked again"))
+            self.unsaved = False
+
+    def refuse_to_drop(self) -> None:
+        """Before a frame is loaded from the Data tab (which starts the labels anew): InputError, once, while the
+        labels have changes that neither a save nor a session holds; a second try drops them."""
+        if self.labels is not None and self.unsaved and not self.warned:
+            self.warned = True
+            raise InputError("sequence labels", f"the sequence labels of scene {self.labels.scene_id} are not saved, "
+                                                "and loading another frame starts them anew: save them (Label tab, "
+                                                "Save sequence labels) or a session first, or press Load again to "
+                                                "drop them")
 
     def close(self) -> None:
         if self.checker is not None:
@@ -328,6 +342,7 @@ class SequenceLabelling:
         labels = self.started()
         dataset, _, split = self.where()
         self.results.put(save_labels(labels, self.checks, self.infos, dataset, split, cmd.overwrite_original))
+        self.unsaved = False
         if cmd.overwrite_original and self.frame_labels.frame_ref is not None:
             return reread_truth(self.frame_labels, self.on_show(), dataset, split)
         return None
@@ -368,6 +383,7 @@ class SequenceLabelling:
             self.checker = FrameChecker(dataset, scene_id, split, labels.obj_ids, models, self.config.check)
             self.checker_key = key
         self.checks, self.infos = check_frames(labels, self.checker, self.results.put)
+        self.unsaved, self.warned = True, False  # every change of the labels is checked again here
         self.publish(note)
 
     def show_on_frame(self) -> None:
