@@ -111,10 +111,19 @@ def moved(T: np.ndarray, dx: float) -> np.ndarray:
     return out
 
 
+def run_first_frame(engine, data, iterations: int) -> None:
+    """Load frame 0 of the copied sequence ``data`` and run the estimator on it to the end."""
+    from workbench.inference.config import EstimatorConfig
+
+    engine.handle(p.Load(p.Source(dataset=data, scene_id=0, im_id=0),
+                         EstimatorConfig(particles=32, iterations=iterations), "robust"))
+    while not engine.finished():
+        engine.step()
+
+
 @pytest.mark.slow
 def test_check_propagate_show_end_fit_save_and_read_back(sequence, tmp_path):
     from workbench.app.engine.engine import Engine
-    from workbench.inference.config import EstimatorConfig
 
     data = tmp_path / "data"
     shutil.copytree(sequence, data)
@@ -122,10 +131,7 @@ def test_check_propagate_show_end_fit_save_and_read_back(sequence, tmp_path):
     inbox = Inbox()
     engine = Engine(inbox, workers=1)
     try:
-        engine.handle(p.Load(p.Source(dataset=data, scene_id=0, im_id=0),
-                             EstimatorConfig(particles=32, iterations=4), "robust"))
-        while not engine.finished():
-            engine.step()
+        run_first_frame(engine, data, 4)
         labels = engine.labels
 
         # Bad input first: told beside the buttons, nothing started.
@@ -228,10 +234,7 @@ def test_a_session_keeps_the_sequence_labels_written_or_not(sequence, tmp_path):
     inbox = Inbox()
     engine = Engine(inbox, workers=1)
     try:
-        engine.handle(p.Load(p.Source(dataset=data, scene_id=0, im_id=0),
-                             EstimatorConfig(particles=32, iterations=2), "robust"))
-        while not engine.finished():
-            engine.step()
+        run_first_frame(engine, data, 2)
         engine.handle(p.SaveSession(tmp_path / "sessions", "none"))
         engine.handle(p.UseBestAsLabel())
         start = [T.copy() for T in engine.labels.labels]
