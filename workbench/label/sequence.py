@@ -101,13 +101,13 @@ class SequenceLabels:
 
 
 def labels_json(labels: SequenceLabels) -> dict:
-    """-> the plain JSON object a session keeps (``SequenceRecord.labels``): poses as 16 numbers, row-major, m."""
-    flat = lambda T: np.asarray(T, dtype=np.float64).ravel().tolist()  # noqa: E731
+    """-> the plain JSON object a session keeps (``SequenceRecord.labels``): poses as 4 x 4 lists, m; frames keyed by
+    their image ids as text."""
     return {
         "scene_id": labels.scene_id,
-        "cameras": {str(i): flat(T) for i, T in sorted(labels.T_cam_world.items())},
-        "objects": [{"obj_id": o.obj_id, "T_world_obj": flat(o.T_world_obj), "first": o.first, "last": o.last,
-                     "moves": {str(i): flat(T) for i, T in sorted(o.moves.items())}} for o in labels.objects],
+        "cameras": {str(i): T.tolist() for i, T in sorted(labels.T_cam_world.items())},
+        "objects": [{"obj_id": o.obj_id, "T_world_obj": o.T_world_obj.tolist(), "first": o.first, "last": o.last,
+                     "moves": {str(i): T.tolist() for i, T in sorted(o.moves.items())}} for o in labels.objects],
         "checked": sorted(labels.checked),
     }
 
@@ -120,27 +120,25 @@ def parse_labels(data: dict, where: str = "sequence.labels") -> SequenceLabels:
             raise ValueError(f"{at}: {key!r} is no image id (a whole number >= 0)")
         return int(key)
 
-    def pose(v, at: str) -> np.ndarray:
-        return readers.pose(np.reshape(np.asarray(v, dtype=np.float64), (4, 4)), at)
+    def optional(v, at: str) -> int | None:
+        return None if v is None else readers.integer(v, at)
+
+    def label(o: dict, at: str) -> ObjectLabel:
+        moves = {frame(k, f"{at}.moves"): readers.pose(v, f"{at}.moves[{k}]") for k, v in o["moves"].items()}
+        return ObjectLabel(readers.integer(o["obj_id"], f"{at}.obj_id"),
+                           readers.pose(o["T_world_obj"], f"{at}.T_world_obj"),
+                           optional(o["first"], f"{at}.first"), optional(o["last"], f"{at}.last"), moves)
 
     try:
-        cams = {frame(k, f"{where}.cameras"): pose(v, f"{where}.cameras[{k}]") for k, v in data["cameras"].items()}
-        objects = []
-        for n, o in enumerate(data["objects"]):
-            at = f"{where}.objects[{n}]"
-            first, last = o["first"], o["last"]
-            if not all(b is None or (isinstance(b, int) and not isinstance(b, bool)) for b in (first, last)) \
-                    or not isinstance(o["obj_id"], int):
-                raise ValueError(f"{at}: obj_id, first and last must be whole numbers (first and last may be null)")
-            objects.append(ObjectLabel(o["obj_id"], pose(o["T_world_obj"], f"{at}.T_world_obj"), first, last,
-                                       {frame(k, f"{at}.moves"): pose(v, f"{at}.moves[{k}]")
-                                        for k, v in o["moves"].items()}))
+        cams = {frame(k, f"{where}.cameras"): readers.pose(v, f"{where}.cameras[{k}]")
+                for k, v in data["cameras"].items()}
+        objects = [label(o, f"{where}.objects[{n}]") for n, o in enumerate(data["objects"])]
         checked = {frame(i, f"{where}.checked") for i in data["checked"]}
-        scene_id = data["scene_id"]
+        scene_id = readers.integer(data["scene_id"], f"{where}.scene_id")
     except (KeyError, TypeError, AttributeError) as e:
         raise ValueError(f"{where} is malformed ({type(e).__name__}: {e})") from e
-    if not cams or not isinstance(scene_id, int):
-        raise ValueError(f"{where}: no frames, or a scene id that is not a whole number")
+    if not cams:
+        raise ValueError(f"{where}.cameras: no frames")
     return SequenceLabels(scene_id, cams, objects, checked)
 
 
