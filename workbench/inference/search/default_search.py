@@ -15,7 +15,6 @@ the paper.
 
 from __future__ import annotations
 
-import hashlib
 import time
 from collections.abc import Iterator
 from functools import partial
@@ -40,6 +39,7 @@ from workbench.inference.smc.filter import (
 )
 from workbench.inference.smc.particles import initial_particles
 from workbench.inference.smc.particleset import ParticleSet
+from workbench.meshes.cache import checksum
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
 
@@ -145,9 +145,9 @@ class DefaultSearch:
         self._base_memo: dict = {}  # polish.stacked's bases found under each top so far
         self.fitted: set[tuple[tuple[int, tuple[float, ...]], ...]] = set()
         self.polished_at = -np.inf
-        # What polish offered for the estimate as it stands (``offered_for``: ``polish_key``): the digests of the
-        # scenes, and of the library its assemblies were made from. An estimate that has not changed since the last
-        # polish loses to them again; offered once, they are not evaluated again.
+        # What polish offered for the estimate as it stands (``offered_for``: ``polish_key``): the checksums of the
+        # scenes (``meshes.cache.checksum``), and of the library its assemblies were made from. An estimate that has
+        # not changed since the last polish loses to them again; offered once, they are not evaluated again.
         self.offered_for: str | None = None
         self.offered: set[str] = set()
         self._map_wait = 0.0  # seconds this iteration's proposals waited for fits on the workers
@@ -374,7 +374,9 @@ class DefaultSearch:
                  polish.stacked(self.problem, estimate, self.library, self.unexplained, g, self._base_memo,
                                 partial(self._run, filt))]
         beam = assemble.WIDE_BEAM if stuck else assemble.BEAM
-        made = f"assemblies {digest(*self.library.poses, *self.library.weights)} {beam}"
+        lib = self.library
+        made = f"assemblies {beam} " + checksum({**{f"poses {k}": P for k, P in enumerate(lib.poses)},
+                                                 **{f"weights {k}": w for k, w in enumerate(lib.weights)}})
         joint = np.zeros((0, *estimate.shape)) if made in self.offered else self._assemblies(filt, estimate, beam)
         self.offered.add(made)
         parts = [new_scenes(p.reshape(-1, *estimate.shape), self.offered) for p in parts + [joint]]
@@ -403,28 +405,18 @@ class DefaultSearch:
         return Update(offered=(ev, kinds), replacements=ParticleSet.evaluated(scenes, ev, kinds)[better])
 
 
-def digest(*arrays: np.ndarray) -> str:
-    """A short digest (16 hex digits) of the arrays' values and shapes: the same across processes and sessions."""
-    h = hashlib.blake2b(digest_size=8)
-    for a in arrays:
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
 def polish_key(filt: ParticleFilter) -> str:
     """What a polish's evaluations depend on besides the scenes themselves: the estimate (K, 4, 4), the sink and
     whether the clutter floor counts."""
-    return f"{digest(filt.estimate)} {filt.sink!r} {filt.floor_in}"
+    return f"{checksum({'estimate': filt.estimate})} {filt.sink!r} {filt.floor_in}"
 
 
 def new_scenes(scenes: np.ndarray, offered: set[str]) -> np.ndarray:
-    """Of ``scenes`` (S, K, 4, 4), those whose ``digest`` is not in ``offered`` (nor an earlier one of them), in
-    their order -> (S', K, 4, 4); ``offered`` gets their digests."""
+    """Of ``scenes`` (S, K, 4, 4), those whose ``checksum`` is not in ``offered`` (nor an earlier one of them), in
+    their order -> (S', K, 4, 4); ``offered`` gets their checksums."""
     keep = []
     for i, scene in enumerate(scenes):
-        d = digest(scene)
+        d = checksum({"scene": scene})
         if d not in offered:
             offered.add(d)
             keep.append(i)
