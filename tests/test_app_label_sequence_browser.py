@@ -91,6 +91,13 @@ def expect_flagged(page, app, frames: list[int]) -> None:
         expect(page.get_by_role("button", name=f"{im} ✗", exact=True)).to_be_visible(timeout=TIMEOUT_MS)
 
 
+def press(page, name: str) -> None:
+    """Click the Sequence labels folder's button ``name`` once the folder's buttons are back (the engine is done
+    with the command before, ``SequenceLabelsPanel.act``)."""
+    expect(page.get_by_role("button", name="Check every frame")).to_be_enabled(timeout=TIMEOUT_MS)
+    page.get_by_role("button", name=name, exact="✓" in name).click()
+
+
 def test_label_a_sequence_once(page, workbench, dataset):
     app = workbench.app
     page.get_by_role("button", name="Run").click()
@@ -104,30 +111,30 @@ def test_label_a_sequence_once(page, workbench, dataset):
     start = [T.copy() for T in editor.labels]
 
     # Checked on every frame: the estimate agrees with each frame's depth.
-    page.get_by_role("button", name="Check every frame").click()
+    press(page, "Check every frame")
     expect_flagged(page, app, [])
     for im in range(4):
         expect(page.get_by_role("button", name=f"{im} ✓", exact=True)).to_be_visible(timeout=TIMEOUT_MS)
 
     # One label 3 cm off, propagated: every frame is flagged, and says why.
     move_x(page, app, 3.0)
-    page.get_by_role("button", name="to every frame").click()
+    press(page, "to every frame")
     expect_flagged(page, app, [0, 1, 2, 3])
     expect(page.get_by_text(re.compile(r"\d+% \((seen past|behind something)\)")).first).to_be_visible(
         timeout=TIMEOUT_MS)
 
     # Fitted to all frames at once: back on the boxes, no flag.
-    page.get_by_role("button", name="Fit to all frames").click()
+    press(page, "Fit to all frames")
     page.get_by_text(re.compile(r"Fitted.* the still labels to frames 0, 1, 2, 3")).wait_for(timeout=TIMEOUT_MS)
     expect_flagged(page, app, [])
     assert app.wait_for(lambda s: np.linalg.norm(editor.labels[0][:3, 3] - start[0][:3, 3]) < 0.01, 30)
 
     # Frame 2 shown from the timeline (a frame the timeline had not processed), its label moved from there on.
-    page.get_by_role("button", name="2 ✓", exact=True).click()
+    press(page, "2 ✓")
     assert app.wait_for(lambda s: s.view is not None and s.view.where[2] == 2, 60)
     assert app.wait_for(lambda s: all(T is not None for T in editor.labels), 30)
     move_x(page, app, 3.0)
-    page.get_by_role("button", name="from this frame on").click()
+    press(page, "from this frame on")
     expect_flagged(page, app, [2, 3])
     expect(page.get_by_role("button", name="0 ✓", exact=True)).to_be_visible(timeout=TIMEOUT_MS)
     # Seen past from frame 2 to the end, as a box taken out after frame 1 would be: ending its label is offered.
@@ -142,17 +149,17 @@ def test_label_a_sequence_once(page, workbench, dataset):
                                                "height": box["height"] + min(14.0, box["y"])})
 
     # Next flagged frame: frame 3; there the label put back, on every frame: no flag.
-    page.get_by_role("button", name="Next flagged frame").click()
+    press(page, "Next flagged frame")
     assert app.wait_for(lambda s: s.view is not None and s.view.where[2] == 3, 60)
     assert app.wait_for(lambda s: editor.labels[0] is not None, 30)
     move_x(page, app, -3.0)
-    page.get_by_role("button", name="to every frame").click()
+    press(page, "to every frame")
     expect_flagged(page, app, [])
 
     # Saved beside the dataset's ground truth, which is left alone.
     scene = dataset / "test" / "000000"
     truth = (scene / "scene_gt.json").read_bytes()
-    page.get_by_role("button", name="Save sequence labels").click()
+    press(page, "Save sequence labels")
     page.get_by_text(re.compile(r"Saved sequence labels to .*scene_gt_labels\.json")).first.wait_for(
         timeout=TIMEOUT_MS)
     saved = json.loads((scene / "scene_gt_labels.json").read_text())
@@ -163,10 +170,10 @@ def test_label_a_sequence_once(page, workbench, dataset):
 
     # Spoilt again, then the saved labels read back: no flag, the Label tab shows them.
     move_x(page, app, 3.0)
-    page.get_by_role("button", name="to every frame").click()
+    press(page, "to every frame")
     expect_flagged(page, app, [0, 1, 2, 3])
     choose(page, "Start from", "saved labels")
-    page.get_by_role("button", name="Check every frame").click()
+    press(page, "Check every frame")
     page.get_by_text(re.compile(r"Read the labels saved in .*scene_gt_labels\.json for 4 frames")).wait_for(
         timeout=TIMEOUT_MS)
     expect_flagged(page, app, [])

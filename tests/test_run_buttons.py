@@ -1,6 +1,7 @@
 """The run's buttons on a real viser server (no browser, no engine): a Step or a Reset that is out says so with a
 spinner and keeps the other buttons from queueing behind it; a Reset pressed during a Run says it waits for the
-iteration under way, is sent once however often it is pressed, and the buttons come back when the engine answers."""
+iteration under way, is sent once however often it is pressed, and the buttons come back when the engine answers.
+The sequence labels' buttons likewise wait while one of their commands is out."""
 
 from __future__ import annotations
 
@@ -53,6 +54,33 @@ def test_a_reset_during_a_run_says_it_waits_for_the_iteration_and_is_sent_once()
         assert not (buttons.busy.visible or buttons.reset.disabled or buttons.run.disabled or buttons.step.disabled)
         ui.call(buttons.press_reset, reset)  # with nothing under way
         assert "Resetting" in buttons.busy.content and len(sent) == 2
+    finally:
+        ui.stop()
+        server.stop()
+
+
+def test_the_sequence_labels_buttons_wait_for_the_engine_to_be_done_with_a_command():
+    import viser
+
+    from workbench.app.ui.labelling.sequence_labels import SequenceLabelsPanel
+    from workbench.app.ui.ui_thread import UiThread
+
+    server, ui, sent = viser.ViserServer(host="127.0.0.1", port=0, verbose=False), UiThread(), []
+    try:
+        panel = ui.call(SequenceLabelsPanel, server.gui, ui, sent.append, lambda: None, lambda: [])
+        t = panel.tab
+        buttons = (t.check, t.next_flagged, t.fit, t.save)
+        assert not any(b.disabled for b in buttons)
+        ui.call(panel.act, p.FitSequenceLabels(), "Fitting")
+        assert sent == [p.FitSequenceLabels()] and all(b.disabled for b in buttons)
+        ui.call(panel.show_progress, p.SequenceLabelProgress("frame 3 of 20"))  # still at work: still waiting
+        assert all(b.disabled for b in buttons)
+        ui.call(panel.show_frame, "2 ✓")  # a button group viser cannot disable: not sent, and says why
+        assert sent == [p.FitSequenceLabels()] and "wait for it to finish" in t.message.content
+        ui.call(panel.done, p.SequenceLabelsDone())
+        assert not any(b.disabled for b in buttons)
+        ui.call(panel.show_frame, "2 ✓")
+        assert sent[-1] == p.ShowLabelledFrame(2) and all(b.disabled for b in buttons)
     finally:
         ui.stop()
         server.stop()

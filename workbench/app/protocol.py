@@ -574,6 +574,12 @@ class SequenceLabelProgress:
     text: str
 
 
+@dataclass
+class SequenceLabelsDone:
+    """The engine has done with a command of the sequence's labels, whatever came of it (the folder's buttons, which
+    wait while one is out, are back)."""
+
+
 Message = (Loaded | Snapshot | Chosen | RunState | Failure | Workers | Ready | Labels | LabelHeatmap | LabelErrors
            | TruthErrors | Saved | Backups | TruthReloaded | SessionQuestion | SessionRestored | SequenceState
-           | SequenceLabelState | SequenceLabelProgress)
+           | SequenceLabelState | SequenceLabelProgress | SequenceLabelsDone)

@@ -239,16 +239,20 @@ class Engine:
 
     def sequence_labels_command(self, cmd) -> None:
         """A command of the sequence's labels (``label_sequence``): a Run is paused first, as Next pauses it, since
-        showing another frame replaces the run and a fit holds the engine for a while."""
+        showing another frame replaces the run and a fit holds the engine for a while. Done is said in any case:
+        the folder's buttons wait for it."""
         self.pause()
         s = self.sequence_labels
-        if isinstance(cmd, p.ShowLabelledFrame):
-            s.guarded(lambda: self.put_on_show(s.held_for(cmd.im_id)))
-        elif isinstance(cmd, p.SaveSequenceLabels):
-            s.guarded(lambda: self.reload_truth(s.save(cmd)))
-        else:
-            act = {p.CheckSequenceLabels: s.check, p.PropagateLabel: s.propagate, p.EndSequenceLabel: s.end}
-            s.guarded(lambda: act[type(cmd)](cmd) if type(cmd) in act else s.fit())
+        try:
+            if isinstance(cmd, p.ShowLabelledFrame):
+                s.guarded(lambda: self.put_on_show(s.held_for(cmd.im_id)))
+            elif isinstance(cmd, p.SaveSequenceLabels):
+                s.guarded(lambda: self.reload_truth(s.save(cmd)))
+            else:
+                act = {p.CheckSequenceLabels: s.check, p.PropagateLabel: s.propagate, p.EndSequenceLabel: s.end}
+                s.guarded(lambda: act[type(cmd)](cmd) if type(cmd) in act else s.fit())
+        finally:
+            self.results.put(p.SequenceLabelsDone())
 
     def on_show(self) -> RunOnShow:
         """The run on show, read-only, as the helpers (``labels``, ``sequence``) see it."""

@@ -196,6 +196,7 @@ class App:
             p.SequenceState: self.on_sequence,
             p.SequenceLabelState: self.labelling.sequence.show,
             p.SequenceLabelProgress: self.labelling.sequence.show_progress,
+            p.SequenceLabelsDone: self.labelling.sequence.done,
         }[type(msg)]
         try:
             handler(msg)
@@ -298,6 +299,7 @@ class App:
 
     def on_engine_died(self, exitcode: int | None, gave_up: bool) -> None:
         self.buttons.done()
+        self.labelling.sequence.done()
         self.state.restarts += 1
         self.reporter.engine_died(exitcode, gave_up, reloading=self.source is not None)
         if self.source is not None and not gave_up:

@@ -132,6 +132,7 @@ class SequenceLabelsPanel:
         self.send, self.selected, self.names = send, selected, names
         self.state: p.SequenceLabelState | None = None
         self.current = -1  # the image id on show
+        self.doing: str | None = None  # what the command out does, in words (None: none is out)
         self.ends: dict[str, tuple[int, int]] = {}  # the End label button -> (object index, last frame)
         on_ui = ui.callback
         t.check.on_click(on_ui(lambda _: self.act(p.CheckSequenceLabels(STARTS[t.start.value], t.frames.value),
@@ -147,8 +148,20 @@ class SequenceLabelsPanel:
     # -- actions
 
     def act(self, cmd, doing: str) -> None:
-        self.tab.message.content = doing
+        """Send ``cmd``, saying what it does (``doing``), unless another is out: the folder's buttons wait until the
+        engine is done with it (``done``), so that a click cannot queue behind a fit or a check that takes a while.
+        viser cannot disable a button group, so a click on one (a frame, Propagate, End label) says to wait."""
+        if self.doing is not None:
+            self.tab.message.content = f"{self.doing} · **wait for it to finish**"
+            return
+        self.tab.message.content = self.doing = doing
+        self.wait(True)
         self.send(cmd)
+
+    def wait(self, waiting: bool) -> None:
+        t = self.tab
+        for button in (t.check, t.next_flagged, t.fit, t.save):
+            button.disabled = waiting
 
     def show_frame(self, value: str) -> None:
         im = value.split(" ")[0]
@@ -220,6 +233,11 @@ class SequenceLabelsPanel:
     def show_saved(self, msg: p.Saved) -> None:
         note = f" · {msg.note}" if msg.note else ""
         self.tab.message.content = f"Saved sequence labels to `{msg.path}`{note}"
+
+    def done(self, _: p.SequenceLabelsDone | None = None) -> None:
+        """The engine has done with the command out (or restarted and lost it): the buttons are back."""
+        self.doing = None
+        self.wait(False)
 
     def on_failure(self, failure: p.Failure) -> None:
         where = f"`{failure.path}`: " if failure.path else ""
