@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from workbench.errors import InputError
 from workbench.evaluation import LocalEvaluator, PoolEvaluator
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
@@ -338,6 +339,29 @@ def test_the_clutter_floor_is_weighed_in_after_its_share_of_the_iterations(touch
         np.testing.assert_allclose(estimator.particles.loglik[ok], weighed[:-1], rtol=1e-5)
         best = evaluator.evaluate(estimator.estimate[None], project=False).loglik[0]
         assert estimator.estimate_loglik == pytest.approx(best, rel=1e-5) and best >= whole.loglik[:-1].max() - 1.0
+    finally:
+        evaluator.close()
+
+
+def test_the_clutter_floor_comes_in_once_the_estimate_is_calm(touching_dataset):
+    """``floor_calm``: once the estimate has been calm for that many iterations, the floor comes in at the next step,
+    long before ``floor_from``; with None it waits for ``floor_from``."""
+    with pytest.raises(InputError, match="floor_calm"):
+        EstimatorConfig(floor_calm=0).validate()
+    _, problem = load_bop_problem(touching_dataset, 0, 0,
+                                  config=ProblemConfig(likelihood=LikelihoodConfig(clutter_floor=2.0)))
+    evaluator = LocalEvaluator(problem)
+    try:
+        for floor_calm in (1, None):
+            estimator = Estimator(problem, EstimatorConfig(particles=12, iterations=8, seed=3, floor_from=1.0,
+                                                           floor_calm=floor_calm), evaluator)
+            estimator.step()
+            while estimator.filter.calm < 1 and estimator.filter.iteration < 6:
+                estimator.step()
+            assert estimator.filter.calm == 1 and not estimator.filter.floor_in
+            estimator.step()
+            assert estimator.filter.floor_in == (floor_calm is not None)
+            assert estimator.filter.iteration + 1 < estimator.filter.floor_at
     finally:
         evaluator.close()
 

@@ -335,6 +335,23 @@ def test_format_7_session_loads_with_bullet_and_a_bad_backend_is_refused(saved, 
         load_session(json_path)
 
 
+def test_format_8_session_loads_with_the_floor_at_floor_from_only(saved, tmp_path):
+    # Format 8 predates EstimatorConfig.floor_calm: its sessions weighed the clutter floor in at floor_from only.
+    json_path = _copied(saved, tmp_path)
+    doc = json.loads(json_path.read_text())
+    assert doc["estimator_config"]["floor_calm"] == 3  # today's default
+    del doc["estimator_config"]["floor_calm"]
+    json_path.write_text(json.dumps({**doc, "format_version": 8}))
+    assert load_session(json_path).estimator_config.floor_calm is None
+    json_path.write_text(json.dumps(doc))  # a format-9 file must carry the setting
+    with pytest.raises(InputError, match="floor_calm"):
+        load_session(json_path)
+    for bad in (0, "3", 2.5):
+        json_path.write_text(json.dumps({**doc, "estimator_config": {**doc["estimator_config"], "floor_calm": bad}}))
+        with pytest.raises(InputError, match="floor_calm"):
+            load_session(json_path)
+
+
 def test_serve_refuses_a_mujoco_session_without_mujoco_and_physics_beside_a_session(saved, tmp_path, monkeypatch,
                                                                                     capsys):
     from workbench.cli import main

@@ -32,19 +32,21 @@ from workbench.io import readers as read
 from workbench.problem.problem import ProblemConfig
 from workbench.problem.scene import Table
 
-FORMAT_VERSION = 8
+FORMAT_VERSION = 9
 # Settings a format lacked, with the values its sessions ran with (not today's defaults), so that a restored session
 # steps as it did when saved: the physics' since format 2, the likelihood's since format 4, the estimator's since 5
 # (a session with the clutter floor weighed it in from the start). Format 6 changed how the floor scores a reading an
 # object claims on unclaimed clutter (``render.likelihood._over_clutter``): older sessions' scores are redone. Format 7
 # added the estimator's leaning starts, which older sessions ran without. Format 8 added the physics backend (older
-# sessions ran in Bullet) and the estimator's budget (they ran without).
+# sessions ran in Bullet) and the estimator's budget (they ran without). Format 9 added the estimator's floor_calm:
+# older sessions weighed the clutter floor in at floor_from only.
 FORMAT_1_PHYSICS = {"sleep_calm": False}
 FORMAT_3_LIKELIHOOD = {"clutter_floor": None}
 FORMAT_4_ESTIMATOR = {"floor_from": 0.0}
 FORMAT_6_ESTIMATOR = {"leaning": False}
 FORMAT_7_PHYSICS = {"backend": "pybullet"}
 FORMAT_7_ESTIMATOR = {"budget_s": None}
+FORMAT_8_ESTIMATOR = {"floor_calm": None}
 KIND = "workbench-session"
 
 
@@ -179,6 +181,9 @@ def read_document(path: Path) -> dict:
         _fill_settings(document, ("problem_config", "physics"), FORMAT_7_PHYSICS)
         for at in (("estimator_config",), ("sequence", "config")):
             _fill_settings(document, at, FORMAT_7_ESTIMATOR)
+    if version <= 8:
+        for at in (("estimator_config",), ("sequence", "config")):
+            _fill_settings(document, at, FORMAT_8_ESTIMATOR)
     return document
 
 
@@ -370,6 +375,8 @@ def config_from_dict(cls, data, where: str):
             kwargs[name] = None if v is None else read.number(v, at)
         elif tp is int:
             kwargs[name] = read.integer(v, at)
+        elif tp == int | None:
+            kwargs[name] = None if v is None else read.integer(v, at)
         elif tp is str:
             kwargs[name] = read.string(v, at)
         elif typing.get_origin(tp) is typing.Literal:  # e.g. PhysicsConfig.backend: one of its choices

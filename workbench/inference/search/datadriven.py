@@ -62,6 +62,10 @@ PER_CENTRE = 2  # candidates per object and start place
 # a clamp, had a right fit in its cluster (74 explained pixels), second to one 5 cm off covering the clamp (98).
 PER_CLUSTER = 2
 FIT_POINTS = 200  # observed points per candidate fit: enough to rank candidates; moves refine further
+# Observed points of a cluster a refit fits candidates to. The first library fits every cluster; what a refit finds
+# under this many is the rim an estimate leaves beside an object it holds a few millimetres off, and fitting every
+# object to it costs as much as to a whole object's cluster (its starts do not shrink with it).
+REFIT_MIN_POINTS = 50
 MIN_TOP = 0.015  # m; lower clusters are table unevenness or flat clutter (paper, cables)
 # m; a face may stand this much taller than the cluster's 95th-percentile height. The top of a bottle is a narrow
 # cap that few points reach: YCB-Video's upright mustard bottle (19.1 cm) shows a cluster 17 cm high, and with

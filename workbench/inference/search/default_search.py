@@ -315,7 +315,8 @@ class DefaultSearch:
     def _refit_library(self, filt: ParticleFilter, scene: np.ndarray | None) -> None:
         g = self.geometry(filt)
         loose = unexplained(self.problem, g.points, filt.estimate if scene is None else scene, g.samples)
-        groups = clusters(g.points.points[loose])
+        least = 0 if self.library is None else datadriven.REFIT_MIN_POINTS
+        groups = [c for c in clusters(g.points.points[loose]) if len(c) >= least]
         fresh = datadriven.build_library(self.problem, groups, g, self._cluster_memo, partial(self._run, filt))
         self.library = fresh if self.library is None else self.library.merged(fresh)
         self.unexplained = fresh

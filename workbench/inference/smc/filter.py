@@ -345,7 +345,7 @@ class ParticleFilter:
         cfg = self.config
         t0 = time.perf_counter()
         accept_rate, accepted = float("nan"), None
-        if self.iteration + 1 >= self.floor_at:
+        if self.iteration + 1 >= self.floor_at or (cfg.floor_calm is not None and self.calm >= cfg.floor_calm):
             self.weigh_floor_in()
         if self.iteration < 0:
             with self.clock.stage("start"):
