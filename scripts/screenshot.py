@@ -94,8 +94,10 @@ def main() -> int:
             if not save(page, args.out, app):
                 return 1
             page.get_by_role("tab", name="Inspect").click()
-            app.panel.scene_mode.value = "before + after"  # shared GUI state: the page follows
-            app.display.toggle("particles")  # the chosen particle alone, over the observation
+            page.get_by_text("Legend", exact=True).click()  # folded again: the posterior's table in the picture
+            page.get_by_text("of the settled estimate").scroll_into_view_if_needed()
+            app.display.inspect.scene_mode.value = "before + after"  # shared GUI state: the page follows
+            app.toggle("particles")  # the chosen particle alone, over the observation
             app.pick(args.rank)
             app.wait_for(lambda s: s.chosen is not None and s.chosen.rank == args.rank, 60)
             if not save(page, args.inspect_out, app):
@@ -133,7 +135,7 @@ def real_frame(args) -> int:
             page = open_workbench(browser, handle.url, viewport={"width": 1600, "height": 1000})
             if not run_to_the_end(page, app, 1200):
                 return 1
-            app.display.toggle("particles")  # the estimate, the points and the truth, each told apart
+            app.toggle("particles")  # the estimate, the points and the truth, each told apart
             app.cameras.preset(app.state.view, FRAME_OBJECTS, None)
             if app.state.view.rgb_image is not None:
                 page.get_by_role("tab", name="Data").click()  # the colour image beside the 3D view

@@ -70,13 +70,14 @@ def posterior_markdown(posterior: Posterior | None, names: list[str], iteration:
                     f"({100 * o.seen_through:.0f} %) | {o.position_spread_m * 1000:.1f} | "
                     f"{yaw_text(o).removeprefix('heading open ') or '—'} |")
     return (f"**Posterior** of the settled estimate · iteration {iteration}\n\n"
-            "| object | p (estimate) | other modes | elsewhere (seen through) | spread (mm) | heading open |\n"
+            "| object | p | other modes | elsewhere | spread mm | heading |\n"
             "|---|---:|---|---:|---:|---|\n"
             + "\n".join(rows)
-            + f"\n\n<small>per object, the estimate, the other modes and *elsewhere* add up to 1; other modes are "
-              f"drawn as ghosts in the 3D view; probabilities at temperature {posterior.temperature:g}; *elsewhere*: "
-              f"the chance that it is none of its modes, from the share of its surface the sensor sees "
-              f"through</small>")
+            + f"\n\n<small>per object, the estimate (*p*), the other modes and *elsewhere* add up to 1; other modes "
+              f"are drawn as ghosts in the 3D view; probabilities at temperature {posterior.temperature:g}; "
+              f"*elsewhere*: the chance that it is none of its modes, from the share of its surface the sensor sees "
+              f"through (in brackets); *spread*: of its position; *heading*: the range of turns about the vertical "
+              f"left open</small>")
 
 
 def scene_with_modes(scene: np.ndarray, posterior: Posterior | None, modes: tuple[int, ...],
