@@ -228,9 +228,10 @@ def test_a_run_with_a_budget_stops_by_it_answers_and_says_what_it_cut():
         moved = {**snapshot.report, "best_move_m": 0.0, "best_move_deg": 0.0, "calm": 3, "converged": False,
                  "floor_in": False, "cut_short": None}
         calm = status_markdown(RunView(running=True, reports=[moved]), config)
-        assert "calm 3/10" in calm and "clutter floor" not in calm
+        patience = config.converge_patience
+        assert f"calm 3/{patience}" in calm and "clutter floor" not in calm
         calm = status_markdown(RunView(running=True, reports=[{**moved, "calm": 12}]), config)
-        assert "calm 10/10" in calm and "waiting for the clutter floor" in calm
+        assert f"calm {patience}/{patience}" in calm and "waiting for the clutter floor" in calm
         engine.handle(p.Step())  # with the same budget, spent before its polish: its own cut, not the Run's
         assert engine.estimator.iteration == 1 and engine.estimator.cut_short == "polish"
     finally:
