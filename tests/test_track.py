@@ -63,6 +63,16 @@ def test_a_static_sequence_is_tracked_with_every_object_right(tmp_path, capsys):
     frames = score_results(data, read_results_csv(out))
     assert [f.im_id for f in frames] == [0, 1, 2] and all(f.right for f in frames)
 
+    # Stopped after frame 1 and resumed: frame 2 gets the rows the undisturbed run gave it (all but the time),
+    # since the frames kept are tracked again to carry on from them, unwritten.
+    whole = out.read_text().splitlines()
+    out.write_text("\n".join(line for line in whole if line.split(",")[1] != "2") + "\n")
+    assert main(["track", str(data), "--scene", "0", "--out", str(out), "--resume", *FIRST]) == 0
+    err = capsys.readouterr().err
+    assert "scene 0 frame 1: kept from before; tracked again" in err and "scene 0 frame 2: tracked in" in err
+    untimed = [line.rsplit(",", 1)[0] for line in out.read_text().splitlines()]
+    assert untimed == [line.rsplit(",", 1)[0] for line in whole] and len(untimed) > 3
+
 
 def test_a_pushed_object_is_refound(tmp_path):
     data = _sequence(tmp_path / "seq", 2, push=Push(frame=1, distance=0.06))

@@ -13,6 +13,7 @@ sequence, given each frame's problem in turn (``retarget``): no worker processes
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -33,6 +34,7 @@ from workbench.inference.search.scenepoints import object_badness
 from workbench.inference.search.track_search import Carried, TrackSearch
 from workbench.io import bop
 from workbench.io.results import ResultRow, posterior_rows, result_rows
+from workbench.meshes.heavy import announced
 from workbench.problem.build import problem_for_frame
 from workbench.problem.problem import Problem, ProblemConfig
 from workbench.problem.scene import Frame
@@ -125,7 +127,10 @@ class Tracker:
         t0 = time.perf_counter()
         if self._without_depth(im_id):
             return self._lost_frame(im_id, t0)
-        done = self.advance(im_id)
+        # A frame estimated from scratch takes 10-60 s, with lines only at the end of its steps: said while it goes.
+        with (announced(f"estimating scene {self.scene_id} frame {im_id} from scratch", cached=False)
+              if self.carried is None else contextlib.nullcontext()):
+            done = self.advance(im_id)
         if self.after_gap and done.status not in ("estimated", "re-initialised"):
             done = replace(done, status=RECOVERED if done.status == "tracked" else f"{RECOVERED}, {done.status}")
         self.after_gap = False
@@ -283,15 +288,18 @@ class Tracker:
 
 def track_frames(tracker: Tracker, frames: list[int], done: set[int],
                  on_frame: Callable[[FrameResult], None], echo: bool = True) -> list[FrameResult]:
-    """Step ``tracker`` over ``frames`` (image ids in order), skipping those in ``done`` (a resumed run's): the
-    frame after a skipped one starts from scratch. Each frame's result goes to ``on_frame`` as soon as it is done,
-    and (``echo``) its line to stderr."""
+    """Step ``tracker`` over ``frames`` (image ids in order). Each frame's result goes to ``on_frame`` as soon as it
+    is done, and (``echo``) its line to stderr, but for those in ``done`` (a resumed run's, already written): they
+    are tracked again, unwritten, because each frame starts from the one before, so that the frames after them get
+    the rows an undisturbed run gives."""
     results = []
     for im_id in frames:
-        if im_id in done:
-            tracker.restart()
-            continue
         result = tracker.step(im_id)
+        if im_id in done:
+            if echo:
+                print(f"scene {tracker.scene_id} frame {im_id}: kept from before; tracked again in "
+                      f"{result.seconds:.1f} s to carry on from it", file=sys.stderr)
+            continue
         if echo:
             print(result.line, file=sys.stderr)
         on_frame(result)
