@@ -41,8 +41,7 @@ def workers_of(pid: int) -> list[int]:
 
 
 class Run:
-    """One ``workbench track`` process; its stderr lines are timed as they come (``gaps``: seconds between
-    consecutive lines, and from the start to the first)."""
+    """One ``workbench track`` process; its stderr lines are timed as they come (``silence``)."""
 
     def __init__(self, args: list[str]):
         self.proc = subprocess.Popen([sys.executable, "-m", "workbench.cli", "track", *args], cwd=ROOT,
@@ -55,9 +54,6 @@ class Run:
     def _read(self) -> None:
         for line in self.proc.stderr:
             self.lines.append((time.monotonic(), line.rstrip()))
-
-    def longest_silence(self) -> float:
-        return self.silence()[0]
 
     def silence(self) -> tuple[float, str]:
         """The longest gap between stderr lines (s) and the line it followed ("(start)" for the first)."""

@@ -303,17 +303,25 @@ def test_format_4_session_loads_with_the_floor_weighed_in_from_the_start(saved, 
         load_session(json_path)
 
 
-def test_format_6_session_loads_without_leaning_starts(saved, tmp_path):
-    # Format 6 predates EstimatorConfig.leaning: its sessions searched without leaning starts.
+# Format 6 predates EstimatorConfig.leaning: its sessions searched without leaning starts. Format 8 predates
+# EstimatorConfig.floor_calm: its sessions weighed the clutter floor in at floor_from only.
+@pytest.mark.parametrize("version, name, today, then, bad", [(6, "leaning", True, False, ()),
+                                                             (8, "floor_calm", 3, None, (0, "3", 2.5))])
+def test_an_older_session_loads_with_the_estimator_setting_it_ran_with(saved, tmp_path, version, name, today, then,
+                                                                       bad):
     json_path = _copied(saved, tmp_path)
     doc = json.loads(json_path.read_text())
-    assert doc["estimator_config"]["leaning"] is True  # today's default
-    del doc["estimator_config"]["leaning"]
-    json_path.write_text(json.dumps({**doc, "format_version": 6}))
-    assert load_session(json_path).estimator_config.leaning is False
-    json_path.write_text(json.dumps(doc))  # a format-7 file must carry the setting
-    with pytest.raises(InputError, match="leaning"):
+    assert doc["estimator_config"][name] == today  # today's default
+    del doc["estimator_config"][name]
+    json_path.write_text(json.dumps({**doc, "format_version": version}))
+    assert getattr(load_session(json_path).estimator_config, name) == then
+    json_path.write_text(json.dumps(doc))  # a file of the next format must carry the setting
+    with pytest.raises(InputError, match=name):
         load_session(json_path)
+    for value in bad:
+        json_path.write_text(json.dumps({**doc, "estimator_config": {**doc["estimator_config"], name: value}}))
+        with pytest.raises(InputError, match=name):
+            load_session(json_path)
 
 
 def test_format_7_session_loads_with_bullet_and_a_bad_backend_is_refused(saved, tmp_path):
@@ -333,23 +341,6 @@ def test_format_7_session_loads_with_bullet_and_a_bad_backend_is_refused(saved, 
         **doc["problem_config"]["physics"], "backend": "havok"}}}))
     with pytest.raises(InputError, match="backend.*pybullet, mujoco"):
         load_session(json_path)
-
-
-def test_format_8_session_loads_with_the_floor_at_floor_from_only(saved, tmp_path):
-    # Format 8 predates EstimatorConfig.floor_calm: its sessions weighed the clutter floor in at floor_from only.
-    json_path = _copied(saved, tmp_path)
-    doc = json.loads(json_path.read_text())
-    assert doc["estimator_config"]["floor_calm"] == 3  # today's default
-    del doc["estimator_config"]["floor_calm"]
-    json_path.write_text(json.dumps({**doc, "format_version": 8}))
-    assert load_session(json_path).estimator_config.floor_calm is None
-    json_path.write_text(json.dumps(doc))  # a format-9 file must carry the setting
-    with pytest.raises(InputError, match="floor_calm"):
-        load_session(json_path)
-    for bad in (0, "3", 2.5):
-        json_path.write_text(json.dumps({**doc, "estimator_config": {**doc["estimator_config"], "floor_calm": bad}}))
-        with pytest.raises(InputError, match="floor_calm"):
-            load_session(json_path)
 
 
 def test_serve_refuses_a_mujoco_session_without_mujoco_and_physics_beside_a_session(saved, tmp_path, monkeypatch,

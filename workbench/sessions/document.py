@@ -17,6 +17,7 @@ Every value is read by the typed readers of ``io/readers.py``: a hand-edited val
 
 from __future__ import annotations
 
+import types
 import typing
 from dataclasses import asdict, dataclass, fields, is_dataclass
 from datetime import datetime, timezone
@@ -175,16 +176,20 @@ def read_document(path: Path) -> dict:
     if version <= 5:
         _rescore_floor(document)
     if version <= 6:
-        for at in (("estimator_config",), ("sequence", "config")):
-            _fill_settings(document, at, FORMAT_6_ESTIMATOR)
+        _fill_estimator_settings(document, FORMAT_6_ESTIMATOR)
     if version <= 7:
         _fill_settings(document, ("problem_config", "physics"), FORMAT_7_PHYSICS)
-        for at in (("estimator_config",), ("sequence", "config")):
-            _fill_settings(document, at, FORMAT_7_ESTIMATOR)
+        _fill_estimator_settings(document, FORMAT_7_ESTIMATOR)
     if version <= 8:
-        for at in (("estimator_config",), ("sequence", "config")):
-            _fill_settings(document, at, FORMAT_8_ESTIMATOR)
+        _fill_estimator_settings(document, FORMAT_8_ESTIMATOR)
     return document
+
+
+def _fill_estimator_settings(document: dict, values: dict) -> None:
+    """``_fill_settings`` of both estimator settings a session keeps: the run's, and its sequence's (since format
+    6)."""
+    for at in (("estimator_config",), ("sequence", "config")):
+        _fill_settings(document, at, values)
 
 
 def _fill_settings(document: dict, path: tuple[str, ...], values: dict) -> None:
@@ -367,16 +372,17 @@ def config_from_dict(cls, data, where: str):
     kwargs = {}
     for name in names:
         tp, v, at = hints[name], data[name], f"{where}.{name}"
+        if typing.get_origin(tp) is types.UnionType and type(None) in typing.get_args(tp):  # e.g. float | None
+            if v is None:
+                kwargs[name] = None
+                continue
+            tp = next(a for a in typing.get_args(tp) if a is not type(None))
         if is_dataclass(tp):
             kwargs[name] = config_from_dict(tp, v, at)
         elif tp is float:
             kwargs[name] = read.number(v, at)
-        elif tp == float | None:
-            kwargs[name] = None if v is None else read.number(v, at)
         elif tp is int:
             kwargs[name] = read.integer(v, at)
-        elif tp == int | None:
-            kwargs[name] = None if v is None else read.integer(v, at)
         elif tp is str:
             kwargs[name] = read.string(v, at)
         elif typing.get_origin(tp) is typing.Literal:  # e.g. PhysicsConfig.backend: one of its choices
