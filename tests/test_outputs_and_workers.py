@@ -762,3 +762,37 @@ def test_a_runs_frames_share_one_pool_and_a_frame_evaluates_as_on_a_fresh_one(tm
     finally:
         fresh.close()
     assert np.array_equal(shared.projected, alone.projected) and np.array_equal(shared.loglik, alone.loglik)
+
+
+@pytest.mark.slow
+def test_a_sequences_next_frame_keeps_the_workers_models_and_evaluates_as_a_fresh_pool(tmp_path):
+    """A tracked sequence's next frame has the same objects: the pool sends it without their meshes and each worker
+    keeps the ones it holds. What the frame's hypotheses evaluate to is what a fresh pool on it gives, and its new
+    depth is the one scored."""
+    from dataclasses import replace
+
+    from workbench.evaluation import make_evaluator
+    from workbench.problem.build import load_bop_problem
+    from workbench.synth import make_scenes
+
+    make_scenes(tmp_path / "ds", ["touching"], 1, seed=3, width=320, height=240)
+    _, first = load_bop_problem(tmp_path / "ds", 0, 0)
+    second = replace(first, observed=np.where(first.observed > 0, first.observed + 0.01, 0).astype(np.float32))
+    rng = np.random.default_rng(1)
+    scenes = np.repeat(np.eye(4)[None, None], 5, axis=0).repeat(first.n_objects, axis=1)
+    scenes[:, :, :2, 3] = rng.uniform(-0.05, 0.05, (5, first.n_objects, 2))
+    scenes[:, :, 2, 3] = 0.05 * np.arange(1, first.n_objects + 1)
+    pool = make_evaluator(first, 2)
+    try:
+        before = pool.evaluate(scenes)
+        pool.retarget(second)
+        after = pool.evaluate(scenes)
+    finally:
+        pool.close()
+    fresh = make_evaluator(second, 2)
+    try:
+        alone = fresh.evaluate(scenes)
+    finally:
+        fresh.close()
+    assert np.array_equal(after.projected, alone.projected) and np.array_equal(after.loglik, alone.loglik)
+    assert not np.array_equal(after.loglik, before.loglik)  # the second frame's depth, not the first's

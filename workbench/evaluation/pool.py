@@ -7,6 +7,7 @@ import logging
 import multiprocessing as mp
 import os
 from collections import deque
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -98,9 +99,12 @@ def _worker(problem: Problem, conn, factory: Callable[[Problem], object] | None 
             if message is None:
                 break
             kind, *args = message
-            if kind == "problem":  # the next frame of a sequence: a new evaluator in this process, no new process
+            if kind in ("problem", "frame"):  # a sequence's next frame: a new evaluator here, no new process
+                # "frame": the same objects, sent without their meshes; the ones this worker holds keep what
+                # trimesh cached on them (masses, hulls), which costs ~0.1 s to compute again for each frame.
+                problem = args[0] if kind == "problem" else replace(args[0], models=problem.models)
                 evaluator.close()
-                evaluator = (factory or LocalEvaluator)(*args)
+                evaluator = (factory or LocalEvaluator)(problem)
                 conn.send(None)
                 continue
             conn.send(evaluator.evaluate(*args) if kind == "evaluate" else evaluator.map(*args))
@@ -202,10 +206,16 @@ class PoolEvaluator:
     def retarget(self, problem: Problem) -> None:
         """Evaluate ``problem`` from now on (a sequence's next frame): each worker builds its evaluator anew, in the
         process it already runs, which saves starting the processes and importing the libraries again."""
+        same = len(problem.models) == len(self._problem.models) and all(
+            a is b for a, b in zip(problem.models, self._problem.models))
         self._problem = problem  # a worker started again from now on gets the new problem
-        if self._factory is None:
-            prepare_meshes(problem)
-        self._queue(_PoolPending(self, [("problem", problem)] * len(self._conns), lambda replies: None)).result()
+        if same:  # the workers keep their models (``_worker``); the shapes and meshes are prepared already
+            message = ("frame", replace(problem, models=[]))
+        else:
+            message = ("problem", problem)
+            if self._factory is None:
+                prepare_meshes(problem)
+        self._queue(_PoolPending(self, [message] * len(self._conns), lambda replies: None)).result()
 
     def _queue(self, pending: _PoolPending) -> _PoolPending:
         self._waiting.append(pending)
