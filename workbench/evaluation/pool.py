@@ -205,7 +205,9 @@ class PoolEvaluator:
 
     def retarget(self, problem: Problem) -> None:
         """Evaluate ``problem`` from now on (a sequence's next frame): each worker builds its evaluator anew, in the
-        process it already runs, which saves starting the processes and importing the libraries again."""
+        process it already runs, which saves starting the processes and importing the libraries again. Queued, not
+        waited for: the caller prepares the frame's search meanwhile, and the batches it submits next are evaluated
+        after it (a worker that dies building it is restarted, or raises ``WorkerCrashed``, at their result)."""
         same = len(problem.models) == len(self._problem.models) and all(
             a is b for a, b in zip(problem.models, self._problem.models))
         self._problem = problem  # a worker started again from now on gets the new problem
@@ -215,7 +217,7 @@ class PoolEvaluator:
             message = ("problem", problem)
             if self._factory is None:
                 prepare_meshes(problem)
-        self._queue(_PoolPending(self, [message] * len(self._conns), lambda replies: None)).result()
+        self._queue(_PoolPending(self, [message] * len(self._conns), lambda replies: None))
 
     def _queue(self, pending: _PoolPending) -> _PoolPending:
         self._waiting.append(pending)

@@ -22,20 +22,21 @@ def _only(**shares: float) -> MoveMix:
 @dataclass(frozen=True)
 class TrackConfig:
     """A tracked frame runs ``iterations`` of ``particles`` from the carried particle set, with local moves
-    (``moves``) of a small ``sigma``: the objects stand still, only the camera's motion is uncertain (a few mm and
-    a degree). Objects found lost are re-searched with ``lost_iterations`` and ``lost_moves`` (data-driven moves
-    added). ``lost_badness``, ``lost_rise``: an object is lost when its carried pose's badness
-    (``scenepoints.object_badness``) on the new frame exceeds both ``lost_badness`` and its badness on the previous
-    frame plus ``lost_rise``. More than ``reinit_share`` of the objects lost: the frame is estimated from scratch.
-    A frame whose depth has readings on less than ``min_depth_share`` of its pixels (a dropped or blanked frame) is
-    lost as a whole: nothing is searched, the posterior is carried through it unchanged.
-    ``motion``: the camera's motion from ``scene_camera_world.json`` (given), from the depth, or given where the
-    scene has the file (auto)."""
+    (``moves``) of a small ``sigma``: the objects stand still, only the camera's motion is uncertain (a few mm and a
+    degree). No ICP among them: the frame's settle fits each object to the depth after the step anyway, and ICP
+    refits are computed in this process while the workers wait. Objects found lost are re-searched with
+    ``lost_iterations`` and ``lost_moves`` (data-driven moves added). ``lost_badness``, ``lost_rise``: an object is
+    lost when its carried pose's badness (``scenepoints.object_badness``) on the new frame exceeds both
+    ``lost_badness`` and its badness on the previous frame plus ``lost_rise``. More than ``reinit_share`` of the
+    objects lost: the frame is estimated from scratch. A frame whose depth has readings on less than
+    ``min_depth_share`` of its pixels (a dropped or blanked frame) is lost as a whole: nothing is searched, the
+    posterior is carried through it unchanged. ``motion``: the camera's motion from ``scene_camera_world.json``
+    (given), from the depth, or given where the scene has the file (auto)."""
 
     particles: int = 60
-    iterations: int = 2
+    iterations: int = 1
     sigma: Sigma = field(default_factory=lambda: Sigma(0.003, 0.003, 0.002, *np.radians([1.5, 1.5, 2.0])))
-    moves: MoveMix = field(default_factory=lambda: _only(joint=0.3, single=0.45, icp=0.25))
+    moves: MoveMix = field(default_factory=lambda: _only(joint=0.4, single=0.6))
     lost_iterations: int = 6
     lost_moves: MoveMix = field(default_factory=lambda: _only(joint=0.15, single=0.3, icp=0.2, data=0.3, turn=0.05))
     lost_badness: float = 0.35

@@ -239,13 +239,14 @@ class Tracker:
         estimated from scratch when most are -> (the estimator, its answer, the status, the objects still lost
         (K,) bool, or None when re-initialised)."""
         t = self.track
+        evaluator = self._use(problem)  # the workers build the frame's physics and renderer while this goes on
         samples = carried.geometry.samples
         lost = lost_objects(object_badness(problem, carried.settled, samples), carried.badness, t.lost_badness,
                             t.lost_rise)
         if lost.sum() > t.reinit_share * problem.n_objects:
             return *self._estimate(problem, f"scene {self.scene_id}: re-initialising"), "re-initialised", None
         search = TrackSearch(problem, carried, np.flatnonzero(lost).tolist())
-        estimator = Estimator(problem, t.frame_config(self.config, bool(lost.any())), self._use(problem), search)
+        estimator = Estimator(problem, t.frame_config(self.config, bool(lost.any())), evaluator, search)
         _, best = run_estimator(estimator, "tracking", early_stop=False)
         still = lost & lost_objects(object_badness(problem, best, samples), carried.badness, t.lost_badness,
                                     t.lost_rise)

@@ -5,9 +5,11 @@ A sequence keeps one table frame (``track``), so objects that do not move keep t
 frame's particle set is this frame's prior as it stands (the paper's Eq. 1 with a static-scene motion model). The
 default search's hooks, narrowed:
 
-- ``start``: the carried particles resampled by their weights, each object jittered by Sigma (the camera's motion
-  is known only so well), the carried estimate and its settled answer among them; objects found lost
-  (``lost``) are drawn from data-driven candidates fitted to what the carried scene leaves unexplained.
+- ``start``: the carried particles resampled by their weights, the carried estimate and its settled answer among
+  them, scored as they are: they rest already, on the same table, so physics would only move them by its own
+  noise, at four times the cost of scoring them. The step after it moves them. Where objects are found lost
+  (``lost``), each object is jittered by Sigma and projected, and the lost ones are drawn from data-driven
+  candidates fitted to what the carried scene leaves unexplained.
 - ``propose``: the default search's, with the tracked frame's move mix (local moves; data moves when re-searching).
 - ``after_step``: the default search's polish only while re-searching lost objects.
 - ``finish``: each object settled alone on this frame's depth from its last answer (``settle_each``) and kept
@@ -146,16 +148,19 @@ class TrackSearch(DefaultSearch):
         cfg, c = filt.config, self.carried
         n, K = cfg.particles, self.problem.n_objects
         idx = systematic_resample(np.log(np.maximum(c.weights, 1e-300)), filt.rng, n)
-        start = gaussian.propose_joint(filt.rng, c.particles[idx], cfg.sigma, np.ones(K), cfg.state).hypotheses
-        kinds = np.full(n, int(MoveKind.JOINT), np.int8)
+        start, kinds = c.particles[idx].copy(), np.full(n, int(MoveKind.START), np.int8)
+        if self.lost:
+            start = gaussian.propose_joint(filt.rng, start, cfg.sigma, np.ones(K), cfg.state).hypotheses
+            kinds[:] = int(MoveKind.JOINT)
         start[: min(n, 2)] = np.stack([c.estimate, c.settled])[: min(n, 2)]  # carried as they were
         kinds[: min(n, 2)] = int(MoveKind.START)
-        if self.lost:
-            self.refit_library(filt)
-            take = np.zeros((n, K), dtype=bool)
-            take[2:, self.lost] = filt.rng.random((max(n - 2, 0), len(self.lost))) < cfg.data_start
-            start = datadriven.sequential_start(filt.rng, self.library, n, self.geometry(filt).radius, take, start)
-            kinds[take.any(axis=1)] = int(MoveKind.DATA_START)
+        if not self.lost:
+            return Started(start, kinds, Update(sink=c.sink), project=False)
+        self.refit_library(filt)
+        take = np.zeros((n, K), dtype=bool)
+        take[2:, self.lost] = filt.rng.random((max(n - 2, 0), len(self.lost))) < cfg.data_start
+        start = datadriven.sequential_start(filt.rng, self.library, n, self.geometry(filt).radius, take, start)
+        kinds[take.any(axis=1)] = int(MoveKind.DATA_START)
         return Started(start, kinds, Update(sink=c.sink))  # the same table plane: the same sink
 
     def refit_library(self, filt: ParticleFilter, scene: np.ndarray | None = None) -> None:

@@ -109,11 +109,13 @@ class Update:
 @dataclass
 class Started:
     """What a search's ``start`` returns: the (N, K, 4, 4) initial ``hypotheses``, their (N,) int8 MoveKind
-    ``kinds``, and an ``update`` applied before they are evaluated (a tracked frame's sink)."""
+    ``kinds``, and an ``update`` applied before they are evaluated (a tracked frame's sink). ``project``: False
+    when the hypotheses are at rest already (a tracked frame's carried particles), scored as given."""
 
     hypotheses: np.ndarray
     kinds: np.ndarray
     update: Update = field(default_factory=Update)
+    project: bool = True
 
 
 @dataclass
@@ -353,7 +355,7 @@ class ParticleFilter:
                 self.apply(started.update)
                 start, kinds = started.hypotheses, started.kinds
                 t_resample = time.perf_counter() - t0
-                ev = self.evaluate(start)
+                ev = self.evaluate(start, project=started.project)
             self.particles = ParticleSet.evaluated(start, ev, kinds)
         else:
             idx = systematic_resample(self.beta * self.particles.loglik, self.rng, cfg.particles)
