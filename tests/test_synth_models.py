@@ -199,6 +199,29 @@ def test_the_support_found_is_the_raised_box_where_the_objects_stand_on_it_and_t
         assert np.min(lowest) == pytest.approx(0.0, abs=0.01), (m["category"], lowest)
 
 
+def test_a_sequences_carried_support_is_kept_and_a_given_table_pose_raised_only_when_asked(dataset):
+    """A tracked frame carries the support the frame before found (``raised=False``): kept as it is, raised box
+    and all. The table pose itself, given with ``raised=False``, stays the table; looked at (the default), the objects
+    stand on the raised box above it."""
+    from workbench.problem.build import load_bop_problem
+    from workbench.problem.support import estimate_support
+
+    out, meta = dataset
+    raised = [m for m in meta if m["category"] == "raised"]
+    assert raised
+    for m in raised:
+        frame, problem = load_bop_problem(out, m["scene_id"], 0)
+        found = problem.camera.T_cam_world
+        carried, _ = estimate_support(replace(frame, camera=frame.camera.with_pose(found)), raised=False)
+        assert np.array_equal(carried.T_cam_world, found)
+        table = replace(frame, camera=frame.camera.with_pose(true_table_pose(out, m["scene_id"])))
+        kept, _ = estimate_support(table, raised=False)
+        looked, _ = estimate_support(table)
+        assert np.array_equal(kept.T_cam_world, table.camera.T_cam_world)
+        above_table, above_box = (invert_pose(c.T_cam_world)[2, 3] for c in (table.camera, looked))
+        assert above_table - above_box > 0.02  # the camera's height over the box is less by the box's
+
+
 def test_shape_categories_need_fitting_models(models, tmp_path):
     with pytest.raises(InputError, match="--models"):
         make_scenes(tmp_path / "a", ["raised"], 1, seed=0, width=W, height=H)

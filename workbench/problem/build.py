@@ -11,12 +11,14 @@ from workbench.problem.scene import Frame, ObjectModel
 from workbench.problem.support import estimate_support
 
 
-def problem_for_frame(frame: Frame, models: dict[int, ObjectModel], config: ProblemConfig = ProblemConfig()) -> Problem:
+def problem_for_frame(frame: Frame, models: dict[int, ObjectModel], config: ProblemConfig = ProblemConfig(),
+                      raised: bool = True) -> Problem:
     """Find the table (or the raised support the objects stand on) in the frame and assemble the problem for the
-    objects the frame lists (in that order)."""
+    objects the frame lists (in that order). ``raised`` False: the frame's given table pose is the support
+    (``estimate_support``)."""
     listed = [models[i] for i in frame.object_ids]
     camera, table = estimate_support(frame, objects_volume=sum(m.mass / m.density for m in listed),
-                                     objects_reach=sum(float(m.mesh.extents.max()) for m in listed))
+                                     objects_reach=sum(float(m.mesh.extents.max()) for m in listed), raised=raised)
     return build_problem(frame, listed, camera, table, config)
 
 

@@ -416,7 +416,7 @@ def _given_frame_fits(T_cam_world: np.ndarray, points: np.ndarray, cfg: SupportC
 
 
 def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects_volume: float | None = None,
-                     objects_reach: float | None = None) -> tuple[Camera, Table]:
+                     objects_reach: float | None = None, raised: bool = True) -> tuple[Camera, Table]:
     """The camera with ``T_cam_world`` set and the ``Table`` (extent and object region) of ``frame``: the table, or
     a raised support the objects stand on (``_raised_support``; ``objects_volume``, m^3: the frame's objects'),
     with the objects' region keeping a stack taller than ``max_height`` that they could be (``objects_reach``, m:
@@ -424,7 +424,9 @@ def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects
 
     A given ``frame.camera.T_cam_world`` is kept (only extent and region are measured) unless the depth
     contradicts it (camera below the table, almost no point on z = 0); then a warning is logged and the table is
-    estimated from the depth. Raises ``InputError`` when there is no depth, no support plane or nothing on it."""
+    estimated from the depth. ``raised`` False: a given pose is the support itself, no raised one looked for above
+    it (a sequence's next frame, whose table frame the frame before found). Raises ``InputError`` when there is no
+    depth, no support plane or nothing on it."""
     camera, path = frame.camera, frame.source
     depth = np.asarray(frame.depth, dtype=np.float64)
     depth[~np.isfinite(depth)] = 0.0
@@ -446,7 +448,8 @@ def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects
 
     world = transform_points(invert_pose(T), points)
     outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
-    raised = _raised_support(world, points[:, 2], outline, cfg, objects_volume)
+    raised = (_raised_support(world, points[:, 2], outline, cfg, objects_volume)
+              if raised or estimated else None)
     if raised is not None:  # the objects stand on a box or a shelf: its top is their support
         log.info("%s: the objects stand on a raised support %.0f cm above the table", path, raised * 100)
         T = T @ make_pose(np.eye(3), np.array([0.0, 0.0, raised]))

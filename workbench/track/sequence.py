@@ -229,9 +229,10 @@ class Tracker:
             t = prev_problem.table
             M = depth_motion(previous, frame, prev_problem.camera.T_cam_world, (t.region_min, t.region_max))
         expected = M @ prev_problem.camera.T_cam_world
-        if frame.camera.T_cam_world is None:  # a table pose the dataset gives is the same table's: kept
+        carried = frame.camera.T_cam_world is None  # a table pose the dataset gives is the same table's: kept
+        if carried:  # the support the frame before found, raised support and all: not looked for again
             frame = replace(frame, camera=frame.camera.with_pose(expected))
-        problem = problem_for_frame(frame, self.models, self.problem_config)
+        problem = problem_for_frame(frame, self.models, self.problem_config, raised=not carried)
         return frame, problem, self.carried.moved(invert_pose(problem.camera.T_cam_world) @ expected)
 
     def _track(self, problem: Problem, carried: Carried) -> tuple[Estimator, np.ndarray, str, np.ndarray | None]:
