@@ -135,6 +135,30 @@ def test_bench_profile_prints_every_stage_and_draws_them(tmp_path, capsys):
         assert image.size[0] == 900 and image.getcolors(1 << 16) is not None and len(image.getcolors(1 << 16)) > 8
 
 
+@pytest.mark.slow
+def test_bench_profile_of_a_tracked_frame_counts_its_search_and_the_tracker_around_it(tmp_path, capsys):
+    """``--tracked-from A``: the scene tracked from A to --frame as ``track`` does; the profile is the last frame's,
+    a short search (the carried particles scored as they rest, one step of moves) and its settle, and the
+    tracker's own reading of the frame ("load"). An A after the frame is refused before anything runs."""
+    from workbench.synth.sequence import make_sequences
+    from workbench.track.config import TrackConfig
+
+    make_sequences(tmp_path / "seq", ["touching"], 1, 3, seed=0, width=320, height=240)
+    data = str(tmp_path / "seq")
+    assert main(["bench", "--profile", data, "--scene", "0", "--frame", "2", "--tracked-from", "0", "--particles",
+                 "40", "--iterations", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "frame 0/2 (tracked)" in printed
+    rows = {line.split("|")[1].strip(): line.split("|") for line in printed.splitlines() if line.startswith("| ")}
+    assert {"load", "start", "proposals", "settle", "**all**"} <= set(rows)
+    particles = TrackConfig().particles
+    assert int(rows["start"][7]) == particles and int(rows["start"][6]) == 0  # scored as they rest: no physics
+    assert int(rows["proposals"][6]) == particles * TrackConfig().iterations
+    assert float(rows["load"][2]) > 0
+    assert main(["bench", "--profile", data, "--scene", "0", "--frame", "1", "--tracked-from", "2"]) == 2
+    assert "--tracked-from" in capsys.readouterr().err
+
+
 def test_bench_profile_needs_its_frame(capsys):
     assert main(["bench", "--profile", DEMO, "--scene", "0"]) == 2
     assert "--scene S --frame F" in capsys.readouterr().err

@@ -553,8 +553,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _bench_profile(args: argparse.Namespace) -> int:
     """``bench --profile``: one frame estimated as `estimate` would (its defaults, or --particles, --iterations,
-    --budget), its time by stage printed and, with --png, drawn."""
-    from workbench.bench.profile import profile_frame, profile_png, profile_table
+    --budget), or tracked from --tracked-from on as `track` would, its time by stage printed and, with --png,
+    drawn."""
+    from workbench.bench.profile import profile_frame, profile_png, profile_table, profile_tracked
     from workbench.bench.speed import machine_line
     from workbench.io.outputs import check_output_file
 
@@ -572,8 +573,20 @@ def _bench_profile(args: argparse.Namespace) -> int:
     config = EstimatorConfig(**overrides)
     config.validate("")
     _check_frame_exists(args.dataset, args.scene, args.frame)
-    profile = profile_frame(args.dataset, args.scene, args.frame, config, args.workers)
-    print(f"# workbench bench --profile {args.dataset} --scene {args.scene} --frame {args.frame}: {machine_line()}")
+    if args.tracked_from is None:
+        profile = profile_frame(args.dataset, args.scene, args.frame, config, args.workers)
+        how = ""
+    else:
+        from workbench.track.frames import sequence_frames
+
+        if not args.tracked_from < args.frame:
+            raise InputError("--tracked-from", f"must be an image id before --frame {args.frame}, got "
+                                               f"{args.tracked_from}")
+        frames = sequence_frames(args.dataset, args.scene, None, f"{args.tracked_from}:{args.frame}")
+        profile = profile_tracked(args.dataset, args.scene, frames, config, TrackConfig(), args.workers)
+        how = f" --tracked-from {args.tracked_from}"
+    print(f"# workbench bench --profile {args.dataset} --scene {args.scene} --frame {args.frame}{how}: "
+          f"{machine_line()}")
     print("\n".join(profile_table(profile)))
     if args.png is not None:
         profile_png([profile], args.png, f"{args.dataset.name} frame {profile.frame}")
@@ -783,6 +796,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "per stage of the search, the workers' physics, rendering and likelihood")
     p.add_argument("--scene", type=int, default=None, help="with --profile: the frame's scene id")
     p.add_argument("--frame", type=int, default=None, help="with --profile: the frame's image id")
+    p.add_argument("--tracked-from", type=int, default=None, metavar="A",
+                   help="with --profile: track the scene from image A (estimated from scratch) to --frame, as "
+                        "`track` does, and profile that tracked frame")
     p.add_argument("--png", type=Path, default=None, help="with --profile: also draw it as a stacked bar (PNG)")
     p.add_argument("--force", action="store_true", help="with --png: replace a file that is not a PNG")
     _add_budget_arg(p, "with --profile: the frame")

@@ -1,4 +1,5 @@
-"""`workbench bench --profile DATASET --scene S --frame F`: where one frame's wall time goes.
+"""`workbench bench --profile DATASET --scene S --frame F [--tracked-from A]`: where one frame's wall time goes,
+estimated from scratch or tracked from frame A on.
 
 The frame is estimated as `workbench estimate` does it (the default settings unless overridden), with its stages
 timed by the run's ``inference.clock.StageClock``: per stage this process's own work, its wait for the evaluation
@@ -21,6 +22,8 @@ from workbench.inference.clock import StageTotals
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator
 from workbench.problem.build import load_bop_problem
+from workbench.track.config import TrackConfig
+from workbench.track.sequence import Tracker
 
 
 @dataclass
@@ -64,6 +67,30 @@ def profile_frame(dataset: Path, scene_id: int, im_id: int, config: EstimatorCon
     wall = time.perf_counter() - t0
     return FrameProfile(f"{scene_id}/{im_id}", estimator.clock.ordered(), wall, workers, estimator.iteration + 1,
                         problem.n_objects, estimator.cut_short)
+
+
+def profile_tracked(dataset: Path, scene_id: int, frames: list[int], config: EstimatorConfig, track: TrackConfig,
+                    workers: int = 2, split: str | None = None) -> FrameProfile:
+    """Track ``frames`` (image ids in order, the first estimated from scratch) as `workbench track` would, and
+    profile the last one: its search's stages, "load" for the tracker's work before the search (reading the frame,
+    its table, the lost check) and "other" with what it hands the next frame -> its profile."""
+    tracker = Tracker(dataset, scene_id, frames, config, track, workers=workers, split=split)
+    try:
+        for im_id in frames[:-1]:
+            tracker.step(im_id)
+        t0 = time.perf_counter()
+        done = tracker.advance(frames[-1])
+        clock = done.estimator.clock
+        stages = dict(clock.ordered())  # "other" charged up to here
+        t1 = time.perf_counter()
+        tracker.resume(done.frame, done.problem, done.estimator, done.best, done.lost)
+        wall = time.perf_counter() - t0
+    finally:
+        tracker.close()
+    stages.setdefault("load", StageTotals()).own += clock.started - t0
+    stages.setdefault("other", StageTotals()).own += wall - (t1 - t0)
+    return FrameProfile(f"{scene_id}/{frames[-1]} ({done.status})", clock.ordered_items(stages), wall, workers,
+                        done.estimator.iteration + 1, done.problem.n_objects, done.estimator.cut_short)
 
 
 def profile_table(profile: FrameProfile) -> list[str]:

@@ -150,5 +150,10 @@ class StageClock:
     def ordered(self) -> list[tuple[str, StageTotals]]:
         """The stages met so far, in ``ORDER``."""
         self._charge()
+        return self.ordered_items(self.stages)
+
+    @staticmethod
+    def ordered_items(stages: dict[str, StageTotals]) -> list[tuple[str, StageTotals]]:
+        """``stages`` (name -> totals) as (name, totals) pairs in ``ORDER``, others after them."""
         rank = {name: i for i, name in enumerate(ORDER)}
-        return sorted(self.stages.items(), key=lambda item: rank.get(item[0], len(ORDER)))
+        return sorted(stages.items(), key=lambda item: rank.get(item[0], len(ORDER)))

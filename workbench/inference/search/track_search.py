@@ -181,8 +181,9 @@ class TrackSearch(DefaultSearch):
         if self.lost or filt.estimate is None or cfg.settle_shift == 0 or cfg.settle_turn == 0:
             return super().finish(filt)
         score = lambda scenes: filt.evaluate(scenes, project=False).loglik  # noqa: E731
-        scene, loglik, scored = settle_each(filt.estimate, self.carried.settled, score, cfg.settle_shift,
-                                            cfg.settle_turn, STILL_MARGIN)
+        with filt.clock.stage("settle"):
+            scene, loglik, scored = settle_each(filt.estimate, self.carried.settled, score, cfg.settle_shift,
+                                                cfg.settle_turn, STILL_MARGIN)
         if self.carried.posterior is None:
             return Settled(scene, loglik, [], scored)
 
@@ -191,9 +192,10 @@ class TrackSearch(DefaultSearch):
                 scene, score, step_m=settle.SETTLE_STEP / 2, step_deg=settle.SETTLE_DEGREES / 2, min_step_m=0.001,
                 max_shift_m=cfg.settle_shift, max_turn_deg=cfg.settle_turn, objects=[k])
 
-        posterior, scene, loglik, n = carried_posterior.rescored(
-            self.problem, scene, loglik, self.carried.posterior, score, filt.particles.projected, filt.weights(),
-            refine)
-        through = object_badness(self.problem, scene, self.geometry(filt).samples)
+        with filt.clock.stage("posterior"):
+            posterior, scene, loglik, n = carried_posterior.rescored(
+                self.problem, scene, loglik, self.carried.posterior, score, filt.particles.projected,
+                filt.weights(), refine)
+            through = object_badness(self.problem, scene, self.geometry(filt).samples)
         posterior = replace(posterior, objects=[doubted(o, through[o.obj]) for o in posterior.objects])
         return Settled(scene, loglik, [], scored + n, posterior)
