@@ -730,21 +730,37 @@ def test_processes_preparing_the_same_mesh_take_turns(tmp_path):
         lines.index("second in"), lines  # the second tried while the first held it, and waited its turn
 
 
+def _stacked_scenes(seed: int, n: int, objects: int, spread: float) -> np.ndarray:
+    """``n`` scenes (n, objects, 4, 4) of upright objects at random x, y within ``spread`` (m), each 5 cm above the
+    one before."""
+    scenes = np.repeat(np.eye(4)[None, None], n, axis=0).repeat(objects, axis=1)
+    scenes[:, :, :2, 3] = np.random.default_rng(seed).uniform(-spread, spread, (n, objects, 2))
+    scenes[:, :, 2, 3] = 0.05 * np.arange(1, objects + 1)
+    return scenes
+
+
+def _fresh_pool_evaluation(problem, scenes: np.ndarray):
+    """``scenes`` evaluated by a new pool of 2 workers for ``problem``."""
+    from workbench.evaluation import make_evaluator
+
+    fresh = make_evaluator(problem, 2)
+    try:
+        return fresh.evaluate(scenes)
+    finally:
+        fresh.close()
+
+
 @pytest.mark.slow
 def test_a_runs_frames_share_one_pool_and_a_frame_evaluates_as_on_a_fresh_one(tmp_path):
     """``estimate`` over several frames starts its workers once (``run.runner.FramePool``): each later frame
     retargets them, and what a frame's hypotheses evaluate to does not depend on the frames before."""
-    from workbench.evaluation import make_evaluator
     from workbench.problem.build import load_bop_problem
     from workbench.run.runner import FramePool
     from workbench.synth import make_scenes
 
     make_scenes(tmp_path / "ds", ["touching", "three"], 1, seed=2, width=320, height=240)
     (_, first), (_, second) = (load_bop_problem(tmp_path / "ds", s, 0) for s in (0, 1))
-    rng = np.random.default_rng(0)
-    scenes = np.repeat(np.eye(4)[None, None], 6, axis=0).repeat(second.n_objects, axis=1)
-    scenes[:, :, :2, 3] = rng.uniform(-0.1, 0.1, (6, second.n_objects, 2))
-    scenes[:, :, 2, 3] = 0.05 * np.arange(1, second.n_objects + 1)
+    scenes = _stacked_scenes(0, 6, second.n_objects, 0.1)
     pool = FramePool(workers=2, max_retries=0)
     try:
         lent = pool(first)
@@ -756,11 +772,7 @@ def test_a_runs_frames_share_one_pool_and_a_frame_evaluates_as_on_a_fresh_one(tm
         shared = again.evaluate(scenes)
     finally:
         pool.close()
-    fresh = make_evaluator(second, 2)
-    try:
-        alone = fresh.evaluate(scenes)
-    finally:
-        fresh.close()
+    alone = _fresh_pool_evaluation(second, scenes)
     assert np.array_equal(shared.projected, alone.projected) and np.array_equal(shared.loglik, alone.loglik)
 
 
@@ -778,10 +790,7 @@ def test_a_sequences_next_frame_keeps_the_workers_models_and_evaluates_as_a_fres
     make_scenes(tmp_path / "ds", ["touching"], 1, seed=3, width=320, height=240)
     _, first = load_bop_problem(tmp_path / "ds", 0, 0)
     second = replace(first, observed=np.where(first.observed > 0, first.observed + 0.01, 0).astype(np.float32))
-    rng = np.random.default_rng(1)
-    scenes = np.repeat(np.eye(4)[None, None], 5, axis=0).repeat(first.n_objects, axis=1)
-    scenes[:, :, :2, 3] = rng.uniform(-0.05, 0.05, (5, first.n_objects, 2))
-    scenes[:, :, 2, 3] = 0.05 * np.arange(1, first.n_objects + 1)
+    scenes = _stacked_scenes(1, 5, first.n_objects, 0.05)
     pool = make_evaluator(first, 2)
     try:
         before = pool.evaluate(scenes)
@@ -789,10 +798,6 @@ def test_a_sequences_next_frame_keeps_the_workers_models_and_evaluates_as_a_fres
         after = pool.evaluate(scenes)
     finally:
         pool.close()
-    fresh = make_evaluator(second, 2)
-    try:
-        alone = fresh.evaluate(scenes)
-    finally:
-        fresh.close()
+    alone = _fresh_pool_evaluation(second, scenes)
     assert np.array_equal(after.projected, alone.projected) and np.array_equal(after.loglik, alone.loglik)
     assert not np.array_equal(after.loglik, before.loglik)  # the second frame's depth, not the first's
