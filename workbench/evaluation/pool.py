@@ -101,7 +101,7 @@ def _worker(problem: Problem, conn, factory: Callable[[Problem], object] | None 
             kind, *args = message
             if kind in ("problem", "frame"):  # a sequence's next frame: a new evaluator here, no new process
                 # "frame": the same objects, sent without their meshes; the ones this worker holds keep what
-                # trimesh cached on them (masses, hulls), which costs ~0.1 s to compute again for each frame.
+                # trimesh cached on them (masses, hulls), which would otherwise be computed again for every frame.
                 problem = args[0] if kind == "problem" else replace(args[0], models=problem.models)
                 evaluator.close()
                 evaluator = (factory or LocalEvaluator)(problem)

@@ -7,7 +7,7 @@ default search's hooks, narrowed:
 
 - ``start``: the carried particles resampled by their weights, the carried estimate and its settled answer among
   them, scored as they are: they rest already, on the same table, so physics would only move them by its own
-  noise, at four times the cost of scoring them. The step after it moves them. Where objects are found lost
+  noise, at several times the cost of scoring them. The step after it moves them. Where objects are found lost
   (``lost``), each object is jittered by Sigma and projected, and the lost ones are drawn from data-driven
   candidates fitted to what the carried scene leaves unexplained.
 - ``propose``: the default search's, with the tracked frame's move mix (local moves; data moves when re-searching).
