@@ -14,10 +14,14 @@ from headless import chromium_path, color_extent, gui_input, served, workbench_p
 pytest.importorskip("playwright.sync_api")
 from playwright.sync_api import expect  # noqa: E402
 
+from workbench.track.config import TrackConfig  # noqa: E402
+
 pytestmark = [pytest.mark.slow,  # needs Chromium, and the engine: pybullet and OpenGL
               pytest.mark.skipif(chromium_path() is None, reason="no system Chromium (Debian package `chromium`)")]
 
 TIMEOUT_MS = 60_000
+# A tracked frame's own short budget of iterations, which the status line counts against.
+TRACKED = TrackConfig().iterations
 VIEWPORT = {"width": 1000, "height": 700}
 FIRST_OBJECT = (66, 135, 245)  # colors.OBJECT_COLORS[0]: the first object's line in the plots across frames
 
@@ -69,7 +73,7 @@ def test_next_frame_twice_jump_back_and_plots_across_frames(page, workbench):
         assert app.wait_for(lambda s: app.display.posterior is not None, 60)
         shown[im_id] = (app.state.cloud.poses.copy(), app.display.posterior)
     # The status line counts a tracked frame's iterations against its own short budget.
-    expect(page.get_by_text(re.compile(r"Iteration 2 of 2"))).to_be_visible(timeout=TIMEOUT_MS)
+    expect(page.get_by_text(re.compile(rf"Iteration {TRACKED} of {TRACKED}\b"))).to_be_visible(timeout=TIMEOUT_MS)
 
     # The timeline: three frames with their statuses, the last on show and no frame after it.
     for im_id in (0, 1, 2):
@@ -118,7 +122,7 @@ def test_a_session_saves_and_restores_the_sequence_position(page, workbench):
     page.get_by_role("button", name="Load session").click()
     page.get_by_text("The current run is not saved").wait_for(timeout=TIMEOUT_MS)
     page.get_by_role("button", name="Load anyway").click()
-    page.get_by_text(re.compile(r"Loaded session seq at iteration 2")).wait_for(timeout=TIMEOUT_MS)
+    page.get_by_text(re.compile(rf"Loaded session seq at iteration {TRACKED}\b")).wait_for(timeout=TIMEOUT_MS)
 
     page.get_by_role("tab", name="Data").click()
     expect_on_show(page, app, 1)
@@ -129,7 +133,7 @@ def test_a_session_saves_and_restores_the_sequence_position(page, workbench):
     expect(rows.filter(has_text=frame_row(2, "tracked · run not in the session"))).to_have_count(
         1, timeout=TIMEOUT_MS)
     assert app.config.particles == 16  # the panel keeps the sequence's settings, not the tracked frame's
-    expect(page.get_by_text(re.compile(r"Iteration 2 of 2"))).to_be_visible(timeout=TIMEOUT_MS)
+    expect(page.get_by_text(re.compile(rf"Iteration {TRACKED} of {TRACKED}\b"))).to_be_visible(timeout=TIMEOUT_MS)
 
     # A frame whose run the session does not hold: a message beside the timeline, frame 1 stays.
     page.get_by_role("button", name="0", exact=True).click()
