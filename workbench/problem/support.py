@@ -448,11 +448,10 @@ def estimate_support(frame: Frame, cfg: SupportConfig = SupportConfig(), objects
 
     world = transform_points(invert_pose(T), points)
     outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
-    raised = (_raised_support(world, points[:, 2], outline, cfg, objects_volume)
-              if raised or estimated else None)
-    if raised is not None:  # the objects stand on a box or a shelf: its top is their support
-        log.info("%s: the objects stand on a raised support %.0f cm above the table", path, raised * 100)
-        T = T @ make_pose(np.eye(3), np.array([0.0, 0.0, raised]))
+    height = _raised_support(world, points[:, 2], outline, cfg, objects_volume) if raised or estimated else None
+    if height is not None:  # the objects stand on a box or a shelf: its top is their support
+        log.info("%s: the objects stand on a raised support %.0f cm above the table", path, height * 100)
+        T = T @ make_pose(np.eye(3), np.array([0.0, 0.0, height]))
         world = transform_points(invert_pose(T), points)
         outline, extent = _table_outline(world[_on_table(world, points[:, 2], cfg)], cfg, path)
     extent = _extend_unseen_sides(extent, depth, camera, T, cfg)

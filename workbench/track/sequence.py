@@ -102,6 +102,7 @@ class Tracker:
         self.workers, self.early_stop, self.max_retries = workers, early_stop, max_retries
         self.world = sequence_world(self.dataset, scene_id, split, track.motion, frames)
         self.evaluator = None
+        self._serving: Problem | None = None  # the problem ``evaluator`` was last given
         self.evaluator_for = evaluator_for
         self.models: dict = {}
         self._light: dict[int, tuple] = {}  # id of a model's mesh -> (it, the model with its light copy; _sent)
@@ -117,7 +118,7 @@ class Tracker:
     def close(self) -> None:
         if self.evaluator is not None:
             self.evaluator.close()
-            self.evaluator = None
+            self.evaluator = self._serving = None
 
     def step(self, im_id: int) -> FrameResult:
         """Estimate or track frame ``im_id`` (the one after the previous step's, unless restarted). A frame without
@@ -178,9 +179,11 @@ class Tracker:
     # ----------------------------------------------------------------------------------------------------- parts
     def _use(self, problem: Problem) -> Evaluator:
         """The evaluator, for ``problem``: ``evaluator_for``'s, or one started with the first frame and given each
-        next frame's problem."""
+        next frame's problem (once: a frame re-initialised after its lost check asks again)."""
         if self.evaluator_for is not None:
             return self.evaluator_for(problem)
+        if problem is self._serving:
+            return self.evaluator
         sent = self._sent(problem)
         try:
             if self.evaluator is None:
@@ -190,6 +193,7 @@ class Tracker:
         except WorkerCrashed as err:
             raise InputError(f"scene {self.scene_id}", f"{err}; the frames before it are kept (run again with "
                                                        "--resume)") from None
+        self._serving = problem
         return self.evaluator
 
     def _sent(self, problem: Problem) -> Problem:
@@ -229,10 +233,10 @@ class Tracker:
             t = prev_problem.table
             M = depth_motion(previous, frame, prev_problem.camera.T_cam_world, (t.region_min, t.region_max))
         expected = M @ prev_problem.camera.T_cam_world
-        carried = frame.camera.T_cam_world is None  # a table pose the dataset gives is the same table's: kept
-        if carried:  # the support the frame before found, raised support and all: not looked for again
+        table_carried = frame.camera.T_cam_world is None  # a table pose the dataset gives is the same table's: kept
+        if table_carried:  # the support the frame before found, raised support and all: not looked for again
             frame = replace(frame, camera=frame.camera.with_pose(expected))
-        problem = problem_for_frame(frame, self.models, self.problem_config, raised=not carried)
+        problem = problem_for_frame(frame, self.models, self.problem_config, raised=not table_carried)
         return frame, problem, self.carried.moved(invert_pose(problem.camera.T_cam_world) @ expected)
 
     def _track(self, problem: Problem, carried: Carried) -> tuple[Estimator, np.ndarray, str, np.ndarray | None]:
