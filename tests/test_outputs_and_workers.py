@@ -541,6 +541,25 @@ def test_long_work_is_announced_and_never_silent_for_longer_than_the_interval(ca
         pass
     assert capfd.readouterr().err == ""
 
+def test_a_killed_runs_announcements_stop_with_it():
+    """The speaker shares the run's stderr: while it lives the pipe stays open. Killed mid-announcement, the run
+    leaves no speaker behind that goes on saying "still estimating" for ever."""
+    import signal
+    import threading
+
+    script = ("import time\nfrom workbench.meshes.heavy import announced\n"
+              "with announced('estimating scene 1 frame 1', first_s=0.0, every_s=0.2):\n    time.sleep(600)\n")
+    run = subprocess.Popen([sys.executable, "-c", script], stderr=subprocess.PIPE, text=True)
+    assert "estimating scene 1 frame 1 ..." in run.stderr.readline()
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    done = {}
+    reader = threading.Thread(target=lambda: done.setdefault("rest", run.stderr.read()), daemon=True)
+    reader.start()
+    reader.join(60)  # the speaker's pipe reaches its end once the speaker has stopped
+    assert "rest" in done, "the killed run's speaker is still announcing"
+
+
 
 def test_a_heavy_mesh_is_worked_on_as_a_lighter_one(monkeypatch):
     from workbench.meshes import heavy

@@ -160,14 +160,18 @@ def one_at_a_time(key: str, folder: Path):
         os.close(fd)  # closing releases the lock
 
 
+# The speaker waits on its stdin, a pipe from this process: the pipe closes when this process ends however it ends
+# (killed, too), and the speaker then stops, instead of announcing a finished run's work for ever.
 _HEARTBEAT = """
-import sys, time
+import select, sys, time
 what, first, every = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
 t0 = time.monotonic()
-time.sleep(first)
+def gone(wait):
+    return bool(select.select([sys.stdin], [], [], wait)[0])
+if gone(first):
+    sys.exit()
 print(f"workbench: {what} ...", file=sys.stderr, flush=True)
-while True:
-    time.sleep(every)
+while not gone(every):
     print(f"workbench: still {what} ({time.monotonic() - t0:.0f} s)", file=sys.stderr, flush=True)
 """
 
@@ -181,7 +185,7 @@ def announced(what: str, first_s: float = FIRST_S, every_s: float = EVERY_S, cac
     t0 = time.perf_counter()
     try:
         speaker = subprocess.Popen([sys.executable, "-S", "-c", _HEARTBEAT, what, str(first_s), str(every_s)],
-                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+                                   stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
     except OSError:
         speaker = None  # no process to spare: work in silence rather than not at all
     finished = False
@@ -192,6 +196,7 @@ def announced(what: str, first_s: float = FIRST_S, every_s: float = EVERY_S, cac
         if speaker is not None:
             speaker.kill()
             speaker.wait()
+            speaker.stdin.close()
         took = time.perf_counter() - t0
         if finished and took > first_s:  # not "done" when it failed or was stopped
             print(f"workbench: done {what} in {took:.0f} s" + (" (cached for later runs)" if cached else ""),
