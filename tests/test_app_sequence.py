@@ -13,6 +13,7 @@ from inbox import Inbox
 from workbench.app import protocol as p
 from workbench.geometry import invert_pose
 from workbench.score.metrics import position_error
+from workbench.track.config import TrackConfig
 
 pytestmark = pytest.mark.slow  # needs the engine: pybullet and OpenGL
 
@@ -66,7 +67,7 @@ def test_next_frame_tracks_jumps_back_and_a_session_keeps_the_position(sequence,
         assert [f.im_id for f in state.frames] == [0, 1, 2] and state.current == 2 and state.next_id is None
         assert [f.status for f in state.frames[1:]] == ["tracked", "tracked"]
         assert [f.motion for f in state.frames] == ["", "given", "given"]
-        assert state.reports and state.run_config.particles == 60  # the tracked frame's short search
+        assert state.reports and state.run_config.particles == TrackConfig().particles  # a tracked frame
         # A static scene seen from a moving camera: the objects found stay where they were in the sequence's table
         # frame.
         moved = np.linalg.norm(state.frames[2].positions - state.frames[0].positions, axis=1)
@@ -112,7 +113,7 @@ def test_next_frame_tracks_jumps_back_and_a_session_keeps_the_position(sequence,
         state = second.of(p.SequenceState)[-1]
         assert [f.im_id for f in state.frames] == [0, 1, 2] and state.current == 1
         assert [f.held for f in state.frames] == [False, True, False] and state.reports
-        assert state.run_config is not None and state.run_config.particles == 60
+        assert state.run_config is not None and state.run_config.particles == TrackConfig().particles
         restored.handle(p.ShowFrame(0))
         assert "not in the loaded session" in second.of(p.Failure)[-1].problem and restored.frame.im_id == 1
         restored.handle(p.NextFrame())

@@ -9,6 +9,7 @@ import pytest
 from PIL import Image
 
 from workbench.cli import main
+from workbench.errors import InputError
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.search.track_search import settle_each
 from workbench.io import bop
@@ -87,6 +88,15 @@ def test_a_pushed_object_is_refound(tmp_path):
     assert results[1].status == "1 object re-found"
     symmetries = bop.load_models(data, [frame.object_ids[pushed]])[frame.object_ids[pushed]].symmetries
     assert is_right(frame.gt_T_cam_obj[pushed], estimate, symmetries)
+
+
+def test_a_tracked_frame_steps_few_particles_and_a_re_search_at_least_the_lost_count():
+    base, track = EstimatorConfig(), TrackConfig()
+    assert track.frame_config(base, lost=False).particles == track.particles < track.lost_particles
+    assert track.frame_config(base, lost=True).particles == track.lost_particles
+    assert TrackConfig(particles=100).frame_config(base, lost=True).particles == 100
+    with pytest.raises(InputError, match="lost_particles"):
+        TrackConfig(lost_particles=0).validate()
 
 
 def test_a_frame_whose_objects_all_moved_is_reinitialised(tmp_path):

@@ -245,7 +245,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
     check_count(args.track_particles, "--track-particles", low=1, high=MAX_PARTICLES)
     check_count(args.track_iterations, "--track-iterations", low=1, high=MAX_TRACK_ITERATIONS)
     check_run_memory(config.particles, problem.max_render_pixels)
-    check_run_memory(args.track_particles, problem.max_render_pixels, "--track-particles")
+    check_run_memory(max(args.track_particles, TRACK_DEFAULTS.lost_particles), problem.max_render_pixels,
+                     "--track-particles")
     track = TrackConfig(particles=args.track_particles, iterations=args.track_iterations, motion=args.motion)
     track.validate()
     ray = ray_config(args)
@@ -657,7 +658,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the camera's motion between frames: given (the scene's scene_camera_world.json), depth "
                         "(registered from the depth), auto (given where the scene has the file; default)")
     p.add_argument("--track-particles", type=int, default=TRACK_DEFAULTS.particles,
-                   help=f"particles of a tracked frame (default {TRACK_DEFAULTS.particles})")
+                   help=f"particles of a tracked frame (default {TRACK_DEFAULTS.particles}; at least "
+                        f"{TRACK_DEFAULTS.lost_particles} where it re-searches lost objects)")
     p.add_argument("--track-iterations", type=int, default=TRACK_DEFAULTS.iterations,
                    help=f"iterations of a tracked frame (default {TRACK_DEFAULTS.iterations})")
     _add_estimator_args(p)  # the first frame's, and a re-initialised frame's: as estimate's
