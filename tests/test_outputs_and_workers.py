@@ -439,12 +439,29 @@ def test_a_worker_that_keeps_dying_ends_after_max_retries(toy_batch):
         pool.close()
 
 
+def test_a_script_without_a_main_guard_is_told_so_instead_of_hanging(tmp_path):
+    """Each spawned worker imports the script again; unguarded, its own pool start fails there and the worker dies
+    before reading the problem. The problem (meshes: larger than a pipe's buffer) used to go as the process's
+    arguments, whose write ``multiprocessing`` never lets fail: the script hung for ever."""
+    script = tmp_path / "unguarded.py"
+    script.write_text("from workbench.cli import DEMO_DATASET\nfrom workbench.evaluation import make_evaluator\n"
+                      "from workbench.problem.build import load_bop_problem\n"
+                      "_, problem = load_bop_problem(DEMO_DATASET, 0, 0)\nmake_evaluator(problem, 2)\n")
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert run.returncode != 0
+    assert "WorkerCrashed: evaluation worker 1 exited as it started" in run.stderr
+    assert 'if __name__ == "__main__":' in run.stderr
+
+
 def test_workers_leave_quietly_when_the_main_process_is_gone(capfd):
     from workbench.evaluation import pool
 
     class Gone:
+        def __init__(self):
+            self.messages = iter(["the problem", ("evaluate", np.zeros((0, 1, 4, 4)))])
+
         def recv(self):
-            return ("evaluate", np.zeros((0, 1, 4, 4)))
+            return next(self.messages)
 
         def send(self, value):
             raise BrokenPipeError(32, "Broken pipe")
@@ -462,7 +479,7 @@ def test_workers_leave_quietly_when_the_main_process_is_gone(capfd):
         def close(self):
             pass
 
-    pool._worker(None, Gone(), Quiet)  # returns, no traceback
+    pool._worker(Gone(), Quiet)  # returns, no traceback
     assert "Traceback" not in capfd.readouterr().err
 
 
@@ -701,8 +718,10 @@ def test_a_pool_prepares_the_meshes_once_before_its_workers_start(monkeypatch):
     order = []
     monkeypatch.setattr(pool, "prepare_meshes", lambda problem: order.append("prepare"))
     monkeypatch.setattr(pool.PoolEvaluator, "_start", lambda self, i: order.append(f"worker {i}"))
+    monkeypatch.setattr(pool.PoolEvaluator, "_hand_problem", lambda self, i: order.append(f"problem {i}"))
     pool.PoolEvaluator(object(), 3)
-    assert order == ["prepare", "worker 0", "worker 1", "worker 2"]
+    # every worker started before the first is sent its problem: they import their libraries side by side
+    assert order == ["prepare", "worker 0", "worker 1", "worker 2", "problem 0", "problem 1", "problem 2"]
 
 
 def _hold_the_lock(key: str, folder: str, log: str, name: str, until: str) -> None:

@@ -89,9 +89,13 @@ def check_workers(workers, where: str = "--workers") -> int:
     return int(workers)
 
 
-def _worker(problem: Problem, conn, factory: Callable[[Problem], object] | None = None) -> None:
+def _worker(conn, factory: Callable[[Problem], object] | None = None) -> None:
     # One llvmpipe thread per worker: the pool already keeps every core busy, extra render threads only contend.
     os.environ.setdefault("LP_NUM_THREADS", "1")
+    try:
+        problem = conn.recv()  # the first message (``PoolEvaluator._hand_problem``)
+    except (EOFError, KeyboardInterrupt, OSError):
+        return
     evaluator = (factory or LocalEvaluator)(problem)
     try:
         while True:
@@ -154,17 +158,34 @@ class PoolEvaluator:
         self._ctx = mp.get_context("spawn")
         self._conns: list = [None] * workers
         self._procs: list = [None] * workers
-        for i in range(workers):
+        for i in range(workers):  # all started before any is sent its problem: they import side by side
             self._start(i)
+        for i in range(workers):
+            self._hand_problem(i)
         self._in_flight: _PoolPending | None = None
         self._waiting: deque[_PoolPending] = deque()
 
     def _start(self, i: int) -> None:
         parent, child = self._ctx.Pipe()
-        proc = self._ctx.Process(target=_worker, args=(self._problem, child, self._factory), daemon=True)
+        proc = self._ctx.Process(target=_worker, args=(child, self._factory), daemon=True)
         proc.start()
         child.close()
         self._conns[i], self._procs[i] = parent, proc
+
+    def _hand_problem(self, i: int) -> None:
+        """Send worker ``i`` the problem, its first message. Over the worker's own pipe, not as the process's
+        arguments: ``multiprocessing`` writes those to a pipe whose reading end it holds itself until the write
+        ends, so a problem larger than the pipe's buffer, sent to a worker that dies as it starts, blocks the
+        caller for ever. Here that worker's death closes the pipe, and the caller is told."""
+        try:
+            self._conns[i].send(self._problem)
+        except (ConnectionError, OSError) as err:
+            proc = self._procs[i]
+            proc.join(timeout=5)
+            raise WorkerCrashed(
+                f"evaluation worker {i + 1} exited as it started (exit code {proc.exitcode}; its error is above). A "
+                "script that evaluates in a pool must start it under `if __name__ == \"__main__\":`, since each "
+                "worker imports the script again (multiprocessing's spawn)") from err
 
     def _restart(self, i: int, pending: _PoolPending, err: Exception) -> None:
         """Worker ``i`` died during ``pending``: start it again (WorkerCrashed past ``max_retries``)."""
@@ -182,6 +203,10 @@ class PoolEvaluator:
         log.warning("evaluation worker %d (pid %s) died (%s); started it again and retried its part of the batch "
                     "(retry %d of %d)", i + 1, proc.pid, how, pending.retries, self.max_retries)
         self._start(i)
+        try:
+            self._hand_problem(i)
+        except WorkerCrashed as again:
+            self._fail(again)
 
     @property
     def pids(self) -> list[int]:
