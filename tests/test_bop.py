@@ -125,6 +125,20 @@ def test_frames_round_trip(dataset):
     assert list(info) == ["0", "4"] and info["4"][1]["visib_fract"] == 0.5
 
 
+def test_a_scenes_files_are_parsed_once_while_their_bytes_stay_the_same(dataset, monkeypatch):
+    from workbench.io import readers
+
+    parsed, parse = [], readers.parse_json
+    monkeypatch.setattr(readers, "parse_json", lambda data, path: parsed.append(Path(path).name) or parse(data, path))
+    bop.load_frame(dataset, 3, 0)
+    assert bop.load_frame(dataset, 3, 4).object_ids == [1, 2]
+    assert parsed.count("scene_gt.json") == 1 and parsed.count("scene_camera.json") == 1
+    # Rewritten in place at once, to the same size: the timestamps may not tell, the bytes do.
+    edit_json(scene(dataset) / "scene_gt.json", lambda content: content["4"][0].update(obj_id=2))
+    assert bop.load_frame(dataset, 3, 4).object_ids == [2, 2]
+    assert parsed.count("scene_gt.json") == 2 and parsed.count("scene_camera.json") == 1
+
+
 def test_objects_from_test_targets_when_ground_truth_is_withheld(dataset):
     (scene(dataset) / "scene_gt.json").unlink()
     with raises_on(scene(dataset), "--objects"):

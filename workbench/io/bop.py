@@ -45,6 +45,7 @@ from workbench.io.readers import (
     parse_pose,
     parse_T,
     read_json,
+    read_json_kept,
 )
 from workbench.meshes.heavy import loading
 from workbench.problem.scene import Camera, Frame, ObjectModel
@@ -578,7 +579,7 @@ def load_frame(
     split_dir = _split_dir(dataset, split)
     scene_dir = _scene_dir(split_dir, scene_id)
     cam_path = scene_dir / "scene_camera.json"
-    cams = read_json(cam_path)
+    cams = read_json_kept(cam_path)  # read, never changed here
     ids = sorted(image_ids(cams, cam_path))
     if str(im_id) not in cams:
         span = f"{ids[0]}..{ids[-1]}" if ids else "none"
@@ -618,7 +619,7 @@ def load_frame(
     gt_path = scene_dir / "scene_gt.json"
     gt_entries = None
     if gt_path.is_file():
-        gt_all = read_json(gt_path)
+        gt_all = read_json_kept(gt_path)  # read, never changed here
         image_ids(gt_all, gt_path)
         if str(im_id) not in gt_all:
             raise InputError(gt_path, f"image {im_id} has no ground-truth entry")
@@ -647,7 +648,7 @@ def load_frame(
     except InputError:
         info_path = None  # a dataset without models may still be read for its frames
     if info_path is not None:
-        known = set(_object_ids(read_json(info_path), info_path))
+        known = set(_object_ids(read_json_kept(info_path), info_path))
         unknown = sorted(set(object_ids) - known)
         if unknown:
             raise InputError(info_path, f"unknown obj_id {unknown}; this dataset has objects {sorted(known)}")

@@ -13,6 +13,7 @@ Their messages differ where the files' users read different words; each reader k
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -41,6 +42,11 @@ MAX_NUMBER_CHARS = 100  # a float64 needs 24 characters, numpy's 128-bit RNG sta
 def read_json(path: Path) -> dict | list:
     """The parsed JSON file, within the limits above, or InputError naming it."""
     path = Path(path)
+    return parse_json(_read_bytes(path), path)
+
+
+def _read_bytes(path: Path) -> bytes:
+    """The file's bytes, at most MAX_JSON_BYTES of them, or InputError naming it."""
     if not path.is_file():
         raise InputError(path, "file not found")
     try:
@@ -48,10 +54,32 @@ def read_json(path: Path) -> dict | list:
         if size > MAX_JSON_BYTES:
             raise InputError(path, f"is {size / 2**20:.0f} MB, more than any input of the workbench "
                                    f"({MAX_JSON_BYTES // 2**20} MB): not the file meant?")
-        data = path.read_bytes()
+        return path.read_bytes()
     except OSError as e:
         raise InputError(path, f"cannot be read ({e.strerror or e})") from e
-    return parse_json(data, path)
+
+
+# Files ``read_json_kept`` holds, newest last: a scene's camera and truth, its models' info, a second scene's.
+KEPT_FILES = 6
+_KEPT: dict[tuple, dict | list] = {}
+
+
+def read_json_kept(path: Path) -> dict | list:
+    """``read_json(path)``, parsed once while the file's bytes stay the same (known by their hash: reading and
+    hashing a file is a small part of parsing it, and a hash is not fooled by a file rewritten within the
+    timestamps' granularity). For a sequence's per-image files, which every frame reads: a 2000-image scene's
+    scene_gt.json takes ~0.1 s to parse, a third of a tracked frame. The value is shared between callers: read it,
+    never change it."""
+    path = Path(path)
+    data = _read_bytes(path)
+    key = (str(path.resolve()), hashlib.blake2b(data, digest_size=16).digest())
+    value = _KEPT.pop(key, None)
+    if value is None:
+        value = parse_json(data, path)
+        while len(_KEPT) >= KEPT_FILES:
+            _KEPT.pop(next(iter(_KEPT)))
+    _KEPT[key] = value  # newest last
+    return value
 
 
 def parse_json(data: bytes | str, path: Path | str) -> dict | list:
