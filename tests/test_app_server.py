@@ -232,6 +232,12 @@ def test_a_run_with_a_budget_stops_by_it_answers_and_says_what_it_cut():
         assert f"calm 3/{patience}" in calm and "clutter floor" not in calm
         calm = status_markdown(RunView(running=True, reports=[{**moved, "calm": 12}]), config)
         assert f"calm {patience}/{patience}" in calm and "waiting for the clutter floor" in calm
+        # Pause pressed: the run says it stops after the iteration under way, until it has.
+        stopping = status_markdown(RunView(running=True, reports=[moved], pause_requested_at=0,
+                                           stage=p.Stage("polish", 5.0)), config)
+        assert "stopping after this iteration" in stopping and "running" not in stopping
+        assert "stopping after the first" in status_markdown(RunView(running=True, pause_requested_at=-1), config)
+        assert "stopping" not in status_markdown(RunView(reports=[moved], pause_requested_at=0), config)
         engine.handle(p.Step())  # with the same budget, spent before its polish: its own cut, not the Run's
         assert engine.estimator.iteration == 1 and engine.estimator.cut_short == "polish"
     finally:

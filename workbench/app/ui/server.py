@@ -146,6 +146,8 @@ class App:
         # sends that from the UI thread too): the run stops at most one iteration after the one on display.
         self.state.pause_requested_at = self.state.iteration
         self.send(p.Pause())
+        self.buttons.pause.disabled = True  # taken: the status says the run stops after this iteration
+        self.buttons.status.content = status_markdown(self.state, self.config)
 
     @on_ui_thread
     def reset(self) -> None:
@@ -263,6 +265,8 @@ class App:
         s = self.state
         s.last_state, s.running = msg, msg.running
         s.stage = None  # a stage is what a run is doing; it starts, stops or is reset here
+        if msg.running:
+            s.pause_requested_at = None  # a new run: no Pause pressed in it yet
         self.buttons.done()
         if msg.reason == "reset":
             s.reports, s.cloud, s.chosen, s.iteration, s.truth, s.run_config = [], None, None, -1, None, None

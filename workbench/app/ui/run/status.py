@@ -30,7 +30,7 @@ class RunView:
     worker_pids: list[int] = field(default_factory=list)
     engine_pid: int | None = None
     restarts: int = 0
-    pause_requested_at: int | None = None  # the iteration on display when Pause was pressed
+    pause_requested_at: int | None = None  # the iteration on display when Pause was pressed (this run)
     display_errors: list[str] = field(default_factory=list)  # bugs in drawing a message (logged, kept for tests)
     truth: p.TruthErrors | None = None  # the estimate against the dataset's ground truth, latest iteration
     # The run's own settings where they are not the panel's (a sequence's tracked frame): its budget is its own.
@@ -46,13 +46,17 @@ def status_markdown(s: RunView, cfg) -> str:
     doing = ("" if s.stage is None
              else f": {DOING.get(s.stage.name, s.stage.name)} ({s.stage.seconds:.0f} s into the run)")
     if not s.reports:
+        if s.running and s.pause_requested_at is not None:
+            return f"No iterations yet ({cfg.iterations} planned) · **stopping after the first**{doing}"
         if s.running:
             return f"No iterations yet ({cfg.iterations} planned) · running{doing}"
         return f"No iterations yet ({cfg.iterations} planned) · paused. Press **Step** or **Run**."
     r = s.reports[-1]
     it = r["iteration"]
     left = r.get("budget_left_s")
-    if s.running:
+    if s.running and s.pause_requested_at is not None:  # Pause was taken: the engine stops between iterations
+        state = "**stopping after this iteration**" + doing
+    elif s.running:
         state = ("running" if left is None else f"running, {left:.0f} s of the budget left") + doing
     elif r.get("cut_short"):
         state = f"**finished**: the budget cut short {r['cut_short']}"
