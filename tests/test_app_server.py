@@ -283,6 +283,14 @@ def test_serve_starts_from_a_saved_session_and_a_damaged_one_only_gets_a_message
         app.send(p.Step())
         assert app.wait_for(lambda s: s.iteration == 2, 60), app.state.failures
         assert "session start" in app.state.view.title and not app.state.display_errors
+        # Loading a frame: Step and Run wait, and say why, until the engine has it (or refused it).
+        waiting = app.ui.call(lambda: (app.load(p.Source(demo=True)), app.buttons.run.disabled,
+                                       app.buttons.step.disabled, app.buttons.busy.content)[1:])
+        assert waiting[:2] == (True, True) and "Loading the frame" in waiting[2]
+        assert app.wait_for(lambda s: s.iteration == -1 and not app.buttons.run.disabled, 120), app.state.failures
+        app.ui.call(app.load, p.Source(dataset=tmp_path / "nowhere", scene_id=0, im_id=0))
+        assert app.wait_for(lambda s: not app.buttons.run.disabled and any(
+            "nowhere" in f"{f.path} {f.problem}" for f in s.failures), 60), app.state.failures
     finally:
         handle.stop()
 

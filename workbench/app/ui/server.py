@@ -159,6 +159,9 @@ class App:
         self.reporter.set_title(f"loading {source.describe()} …")
         self.settings.likelihood = self.settings.tab.likelihood.value
         self.send(p.Load(source, self.config, self.settings.likelihood))
+        # Until the engine has the frame (its new run's reset, or a failure): a Step or Run clicked meanwhile would
+        # wait in the engine's queue with no sign of it.
+        self.buttons.wait("Loading the frame")
         self.settings.show_pending()
 
     @on_ui_thread
