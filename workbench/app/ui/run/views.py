@@ -151,10 +151,11 @@ class ObservationLayer:
             for b, (points, rgb, size) in enumerate(by_depth(c, view.T_world_cam))
         ]
         x0, x1, y0, y1 = view.table
-        # The table slab's top a millimetre below z = 0, so the table's own points stay visible on it.
+        # The table slab's top a millimetre below z = 0, so the table's own points stay visible on it. Toon-shaded: a
+        # flat slab looks the same, and software WebGL shades each of its pixels for less.
         add(scene.add_box(
             "/observation/table", color=colors.TABLE_COLOR, dimensions=(x1 - x0, y1 - y0, 0.004),
-            position=((x0 + x1) / 2, (y0 + y1) / 2, -0.003), **NO_SHADOW,
+            position=((x0 + x1) / 2, (y0 + y1) / 2, -0.003), material="toon3", **NO_SHADOW,
         ))  # opaque: a blended slab this large costs a full pass of blending; it also hides the floor below it
         rx0, rx1, ry0, ry1 = view.region
         corners = np.array([[rx0, ry0, 0], [rx1, ry0, 0], [rx1, ry1, 0], [rx0, ry1, 0]], dtype=np.float32)
