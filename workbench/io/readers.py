@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +64,7 @@ def _read_bytes(path: Path) -> bytes:
 # reads, and one more. Few: a 2000-image scene's scene_gt.json (3.4 MB) parsed holds ~9 MB.
 KEPT_FILES = 4
 _KEPT: dict[tuple, dict | list] = {}
+_KEPT_LOCK = threading.Lock()  # the server's threads may read frames side by side
 
 
 def read_json_kept(path: Path) -> dict | list:
@@ -74,12 +76,14 @@ def read_json_kept(path: Path) -> dict | list:
     path = Path(path)
     data = _read_bytes(path)
     key = (str(path.resolve()), hashlib.blake2b(data, digest_size=16).digest())
-    value = _KEPT.pop(key, None)
+    with _KEPT_LOCK:
+        value = _KEPT.pop(key, None)
     if value is None:
         value = parse_json(data, path)
+    with _KEPT_LOCK:
         while len(_KEPT) >= KEPT_FILES:
             _KEPT.pop(next(iter(_KEPT)))
-    _KEPT[key] = value  # newest last
+        _KEPT[key] = value  # newest last
     return value
 
 
