@@ -244,11 +244,10 @@ def _cmd_track(args: argparse.Namespace) -> int:
     check_count(args.max_retries, "--max-retries", low=0, high=MAX_RETRIES)
     check_count(args.track_particles, "--track-particles", low=1, high=MAX_PARTICLES)
     check_count(args.track_iterations, "--track-iterations", low=1, high=MAX_TRACK_ITERATIONS)
-    check_run_memory(config.particles, problem.max_render_pixels)
-    check_run_memory(max(args.track_particles, TRACK_DEFAULTS.lost_particles), problem.max_render_pixels,
-                     "--track-particles")
     track = TrackConfig(particles=args.track_particles, iterations=args.track_iterations, motion=args.motion)
     track.validate()
+    check_run_memory(config.particles, problem.max_render_pixels)
+    check_run_memory(track.re_search_particles, problem.max_render_pixels, "--track-particles")
     ray = ray_config(args)
     sequences = {}
     for scene in dict.fromkeys(args.scene):  # each scene once, in the order given

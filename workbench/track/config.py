@@ -26,14 +26,14 @@ class TrackConfig:
     degree). No ICP among them: the frame's settle fits each object to the depth after the step anyway, and ICP
     refits are computed in this process while the workers wait. Few particles, for the same reason: the settle,
     not the step, places each object. Objects found lost are re-searched with ``lost_iterations`` of
-    ``lost_particles`` (at least ``particles``) and ``lost_moves`` (data-driven moves added): there the particles
-    search. ``lost_badness``, ``lost_rise``: an object is
-    lost when its carried pose's badness (``scenepoints.object_badness``) on the new frame exceeds both
-    ``lost_badness`` and its badness on the previous frame plus ``lost_rise``. More than ``reinit_share`` of the
-    objects lost: the frame is estimated from scratch. A frame whose depth has readings on less than
-    ``min_depth_share`` of its pixels (a dropped or blanked frame) is lost as a whole: nothing is searched, the
-    posterior is carried through it unchanged. ``motion``: the camera's motion from ``scene_camera_world.json``
-    (given), from the depth, or given where the scene has the file (auto)."""
+    ``re_search_particles`` and ``lost_moves`` (data-driven moves added): there the particles search.
+    ``lost_badness``, ``lost_rise``: an object is lost when its carried pose's badness
+    (``scenepoints.object_badness``) on the new frame exceeds both ``lost_badness`` and its badness on the previous
+    frame plus ``lost_rise``. More than ``reinit_share`` of the objects lost: the frame is estimated from scratch.
+    A frame whose depth has readings on less than ``min_depth_share`` of its pixels (a dropped or blanked frame) is
+    lost as a whole: nothing is searched, the posterior is carried through it unchanged. ``motion``: the camera's
+    motion from ``scene_camera_world.json`` (given), from the depth, or given where the scene has the file
+    (auto)."""
 
     particles: int = 30
     iterations: int = 1
@@ -58,12 +58,16 @@ class TrackConfig:
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise InputError(name, f"must lie in [0, 1], got {getattr(self, name)}")
 
+    @property
+    def re_search_particles(self) -> int:
+        """Particles of a frame that re-searches lost objects: ``lost_particles``, or ``particles`` if more."""
+        return max(self.particles, self.lost_particles)
+
     def frame_config(self, config: EstimatorConfig, lost: bool) -> EstimatorConfig:
         """The estimator's settings for a tracked frame, from the run's ``config`` (its seed, method, state and
         settling kept): re-searching lost objects (``lost``) or not. A frame that is only tracked weighs the clutter
         floor in from its first step: the carried particles already rest on their readings."""
-        return replace(config, particles=max(self.particles, self.lost_particles) if lost else self.particles,
-                       sigma=self.sigma,
+        return replace(config, particles=self.re_search_particles if lost else self.particles, sigma=self.sigma,
                        iterations=self.lost_iterations if lost else self.iterations,
                        moves=self.lost_moves if lost else self.moves,
                        floor_from=config.floor_from if lost else 0.0)
