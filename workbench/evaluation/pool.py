@@ -96,6 +96,9 @@ def _worker(conn, factory: Callable[[Problem], object] | None = None) -> None:
         problem = conn.recv()  # the first message (``PoolEvaluator._hand_problem``)
     except (EOFError, KeyboardInterrupt, OSError):
         return
+    if problem is None:  # closed before it had a problem (another worker died as it started)
+        conn.close()
+        return
     evaluator = (factory or LocalEvaluator)(problem)
     try:
         while True:
@@ -158,12 +161,16 @@ class PoolEvaluator:
         self._ctx = mp.get_context("spawn")
         self._conns: list = [None] * workers
         self._procs: list = [None] * workers
-        for i in range(workers):  # all started before any is sent its problem: they import side by side
-            self._start(i)
-        for i in range(workers):
-            self._hand_problem(i)
         self._in_flight: _PoolPending | None = None
         self._waiting: deque[_PoolPending] = deque()
+        for i in range(workers):  # all started before any is sent its problem: they import side by side
+            self._start(i)
+        try:
+            for i in range(workers):
+                self._hand_problem(i)
+        except WorkerCrashed:
+            self.close()  # the workers that did start: not left running without a pool
+            raise
 
     def _start(self, i: int) -> None:
         parent, child = self._ctx.Pipe()
