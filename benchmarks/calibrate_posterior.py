@@ -6,7 +6,7 @@ usage: calibrate_posterior.py DATASET POSTERIOR.json [DATASET POSTERIOR.json ...
 Each POSTERIOR.json is what `workbench estimate DATASET --posterior POSTERIOR.json` wrote (default settings). For
 every object it reads the modes' log-likelihood gaps to the estimate, and marks each mode right or not against the
 dataset's scene_gt.json (metrics.is_right: 2 cm, 10 degrees, up to the model's symmetries). Then, for temperatures
-on a grid, it recomputes the probabilities (posterior.probabilities, with the estimator's turn margin) and reports
+on a grid, it recomputes the probabilities (posterior.probabilities) and reports
 the negative log-likelihood of the right modes, the expected calibration error of the top mode, coverage (the truth
 among the modes holding 95 %) and top-1 accuracy; the temperature of least negative log-likelihood is the fit,
 broken down per dataset and (generated sets) category. Then it fits the chance that the truth is among none of the
@@ -14,7 +14,8 @@ modes (posterior.ELSEWHERE: a logistic in the share of the estimate the sensor s
 calibration error, and what the top modes' would be with it folded into them. It also counts how often the truth's
 heading lies inside a reported range of headings, and the posterior sweep's share of the frames' wall time. --data
 keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without estimating again;
---png draws the reliability diagram at the fitted temperature, or at --temperature (the one the product uses).
+--png draws the reliability diagram, and the breakdown per dataset and category is printed, at the fitted temperature,
+or at --temperature (the one the product uses).
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ def modes_at(records: list[dict], temperature: float, elsewhere: tuple[float, fl
     (the logistic ``elsewhere`` (intercept, slope) in ``seen_through``) where given."""
     out = []
     for r in records:
-        p = probabilities(np.array(r["gaps"]), np.array(r["estimate"]), temperature)
+        p = probabilities(np.array(r["gaps"]), temperature)
         if elsewhere is not None:
             p = p * found_probability(r["seen_through"], elsewhere)
         order = np.argsort(-p, kind="stable")
@@ -129,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, help="write the gaps and right flags here (JSON)")
     ap.add_argument("--from-data", type=Path, nargs="*", default=[], help="add records saved by --data before")
     ap.add_argument("--png", type=Path, help="the reliability diagram at the fitted temperature (or --temperature)")
-    ap.add_argument("--temperature", type=float, help="draw the diagram at this temperature, not the fit")
+    ap.add_argument("--temperature", type=float,
+                    help="break the objects down and draw the diagram at this temperature, not the fit")
     a = ap.parse_args(argv)
     if len(a.pairs) % 2:
         ap.error("give DATASET POSTERIOR.json pairs")
@@ -180,8 +182,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"seen through, median (90th percentile): truth among the modes {np.median(through[among]):.3f} "
               f"({np.percentile(through[among], 90):.3f}), not {np.median(through[~among]):.3f} "
               f"({np.percentile(through[~among], 90):.3f})")
-    objects = plain
-    print("at the fit, per dataset and category: objects, top-1, coverage95, ECE, ECE with elsewhere folded in")
+    shown = best if a.temperature is None else a.temperature
+    objects = modes_at(records, shown)
+    folded = modes_at(records, shown, doubt)
+    print(f"at temperature {shown:.1f}, per dataset and category: objects, top-1, coverage95, ECE, ECE with elsewhere "
+          f"folded in")
     groups: dict[tuple[str, str], list[int]] = {}
     for i, r in enumerate(records):
         groups.setdefault((r["dataset"], r.get("category", "real")), []).append(i)
@@ -195,8 +200,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{coverage([objects[i] for i in idx]):.3f}  {expected_calibration_error([objects[i] for i in idx]):.3f}"
               f"  {expected_calibration_error([folded[i] for i in idx]):.3f}")
     if a.png:
-        drawn = best if a.temperature is None else a.temperature
-        reliability_png(modes_at(records, drawn), a.png, f"temperature {drawn:.0f}, {len(objects)} objects")
+        reliability_png(objects, a.png, f"temperature {shown:.0f}, {len(objects)} objects")
     return 0
 
 

@@ -26,11 +26,12 @@ BOX = metrics.box_symmetries(np.array([0.16, 0.06, 0.21]))  # a cracker box: its
 
 
 def test_probabilities_are_finite_sum_to_one_and_never_rank_a_candidate_above_the_estimate():
-    gaps = np.array([0.0, 25.0, -10.0, 1e6, -1e6])  # a candidate may score above the estimate within the margin
-    p = probabilities(gaps, np.arange(5) == 0, temperature=20.0)
+    gaps = np.array([0.0, 25.0, -10.0, 1e6, -1e6, -20.0])  # a candidate may score above the estimate within the margin
+    p = probabilities(gaps, temperature=20.0)
     assert np.all(np.isfinite(p)) and np.isclose(p.sum(), 1.0) and np.argmax(p) == 0
-    assert p[1] > p[2] > p[4] and p[3] == p[0]  # beyond the margin it would have replaced the estimate: a tie
-    hotter = probabilities(gaps, np.arange(5) == 0, temperature=200.0)
+    assert p[1] == p[0] == p[3] and p[0] > p[2] > p[5] > p[4]  # above the estimate it only ties it
+    assert np.isclose(p[2] / p[0], np.exp(-10.0 / 20.0))  # the evidence alone: no margin against a candidate
+    hotter = probabilities(gaps, temperature=200.0)
     assert hotter[0] < p[0]  # a higher temperature trusts the gaps less
 
 

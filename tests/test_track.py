@@ -174,6 +174,7 @@ def test_a_hidden_handle_keeps_its_modes_until_the_camera_sees_it(tmp_path):
     for i, result in enumerate(results):
         right = _modes_right(tmp_path / "seq", i, result.rows)
         top = max(r.score for r in result.rows)
-        seen.append((len(right) > 1 and any(right)) if i < 3 else (top > 0.9 and right[0]))
-    # Hidden: several modes, the truth among them; shown: one mode above 0.9, the truth.
+        seen.append((len(right) > 1 and any(right) and top <= 0.6) if i < 3 else (top > 0.9 and right[0]))
+    # Hidden: several modes, the truth among them, none sure (each view's gaps against the estimate as carried, not
+    # as settled: against the settled one the top mode reached 0.75); shown: one mode above 0.9, the truth.
     assert seen == [True] * 5

@@ -6,7 +6,8 @@ a tracked frame has about one. The modes the previous frame left open are what t
 scored again here, as given, with the other objects where the new estimate has them.
 
 Evidence accumulates (issue 31, item 4): a mode's ``gap`` in a carried posterior is the weakest it has been, against
-the estimate, on any view since it was found (its own view's log-likelihood gap, the least of them kept). Views of
+the estimate, on any view since it was found (its own view's log-likelihood gap against the estimate as carried,
+both scored as given, the least of them kept). Views of
 one still scene are anything but independent (the same model errors, the same occlusions), so adding their gaps up
 would grow sure of whatever the first view could not decide; taking the weakest keeps a mode that no view has
 decided at its probability, and one view that decides it (a mug's handle come into view) decides it from then on.
@@ -101,20 +102,23 @@ def rescored(problem: Problem, scene: np.ndarray, loglik: float, previous: Poste
             modes = {o.obj: [(m, float(ll[i])) for i, (j, m) in enumerate(given) if j == o.obj]
                      for o in previous.objects}
     temperature = previous.temperature
-    open_gap = RANGE_GAP * temperature - settle.TURN_MARGIN
+    open_gap = RANGE_GAP * temperature
     objects = []
     for o in previous.objects:
         k = o.obj
         symmetries = problem.models[k].symmetries
         # The evidence so far, against the estimate as it is now: the carried mode that the estimate is (the last
-        # estimate, or the mode that replaced it) is the reference.
-        ref = next((m.gap for m, _ in modes[k] if is_right(scene[k], m.T, symmetries)), 0.0)
+        # estimate, or the mode that replaced it) is the reference. This view's gap too is against that mode as
+        # given, not against the estimate as settled: the modes are scored as given, and settling alone gains tens of
+        # log-units, which made a mug's hidden handle look decided (docs/journal/2026-12.md, "Evidence alone").
+        ref, ref_now = next(((m.gap, now) for m, now in modes[k] if is_right(scene[k], m.T, symmetries)),
+                            (0.0, loglik))
         candidates = []
         for m, now in modes[k]:
             if is_right(scene[k], m.T, symmetries):
                 continue  # the estimate itself
             what = LAST_ESTIMATE if m.what == ESTIMATE else m.what
-            candidates.append((m.T, now, min(m.gap - ref, now - loglik), what))
+            candidates.append((m.T, now, min(m.gap - ref, now - ref_now), what))
         objects.append(ObjectPosterior(
             obj=k, modes=accumulated_modes(scene[k], loglik, candidates, symmetries, temperature),
             position_spread_m=position_spread(projected, weights, scene[k], k),
@@ -133,7 +137,7 @@ def accumulated_modes(estimate: np.ndarray, loglik: float, candidates: list[tupl
         if not any(is_right(M, T, symmetries) for M, _, _, _ in modes):
             modes.append((np.array(T, dtype=np.float64), float(ll), float(gap), what))
     gaps = np.array([g for _, _, g, _ in modes])
-    p = probabilities(gaps, np.arange(len(modes)) == 0, temperature)
+    p = probabilities(gaps, temperature)
     order = np.argsort(-p, kind="stable")[:max_modes]
     order = order[p[order] >= MIN_PROBABILITY]
     kept = p[order] / p[order].sum()

@@ -18,13 +18,15 @@ are the same pose up to the model's symmetries (``score.metrics.is_right``: with
 scored by its best member.
 
 Probabilities: a depth likelihood sums thousands of correlated pixels, so raw likelihood ratios are far too
-confident. Each mode's log-likelihood gap to the estimate is divided by a temperature, and a mode other than the
-estimate's pays the estimator's turn margin first (a turn replaces the estimate only when it gains more than
-``settle.TURN_MARGIN``): p_m ∝ exp((gap_m - margin [m is not the estimate]) / temperature), normalised over the
-object's modes. The estimate is therefore always the most likely mode, and a top-1 reader gets the estimate. The
-temperature is measured (``benchmarks/calibrate_posterior.py``, its data in ``benchmarks/calibration/``) so that a
-mode given 0.8 is right about 80 % of the time: on the real dev frames and generated ones (every make-scenes category,
-mugs with their handles hidden or shown, YCB-Video models lying free).
+confident. Each mode's log-likelihood gap to the estimate is divided by a temperature, the log-units one
+independent piece of evidence is worth: p_m ∝ exp(min(gap_m, 0) / temperature), normalised over the object's modes.
+The probabilities weigh the evidence alone. The estimator's turn margin (a turn replaces the estimate only when it
+gains more than ``settle.TURN_MARGIN``) is a rule for when to act, not evidence, and a candidate that scores above
+the estimate within that margin only ties it: the estimate is always among the most likely modes, and a top-1
+reader gets the estimate. The temperature is measured (``benchmarks/calibrate_posterior.py``, its data in
+``benchmarks/calibration/``) so that a mode given 0.8 is right about 80 % of the time: on the real dev frames and
+generated ones (every make-scenes category, mugs with their handles hidden or shown, YCB-Video models lying free),
+under the generated sensors ``kinect-like`` and ``xtion`` (the one measured on the real frames).
 
 The modes are what the view cannot decide, given that the search found the object's basin; it can also miss it
 altogether (the object laid where the depth shows something else). Such an estimate often shows itself: the sensor
@@ -63,11 +65,11 @@ from workbench.problem.scene import display_names
 from workbench.score.metrics import is_right
 
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
-# right modes) on 207 objects: the 50 of ycbv-real-dev, 109 of 44 generated frames of every make-scenes category and
-# 48 of 18 generated frames of YCB-Video models lying free (default estimate, seed 0; benchmarks/calibration/,
-# docs/journal/2026-11.md, "The posterior, second step"): 24.7 (the same on the dev frames and the posterior's own
-# categories alone; flat from 17 to 50).
-TEMPERATURE = 25.0
+# right modes) on 447 objects: the posterior's suite of 225 (ycbv-real-dev and generated kinect-like frames) and 222
+# of generated xtion frames (the posterior's categories, YCB-Video models lying free, the real-shape categories;
+# benchmarks/calibration/, docs/journal/2026-12.md, "Evidence alone"): 11.7, flat from 6 to 21. 15 keeps the open
+# range of headings (RANGE_GAP temperatures) where it was when the turn margin was paid in the probabilities.
+TEMPERATURE = 15.0
 YAW_STEP_DEG = 30.0
 SETTLE_SWEEP = 2  # per object, the best turns about the vertical (as given) that are settled and become modes
 PARTICLE_POSES = 2  # per object, the heaviest distinct poses of the final particles tried as modes
@@ -153,12 +155,11 @@ class Posterior:
         return f"{len(unsure)} of {len(self.objects)} objects uncertain: " + ", ".join(parts)
 
 
-def probabilities(gaps: np.ndarray, is_estimate: np.ndarray, temperature: float,
-                  margin: float = settle.TURN_MARGIN) -> np.ndarray:
-    """Mode probabilities from log-likelihood gaps (M,) to the estimate: softmax of (gap - margin for every mode
-    but the estimate's) / temperature -> (M,), summing to 1."""
-    z = (np.asarray(gaps, dtype=np.float64) - margin * ~np.asarray(is_estimate, bool)) / temperature
-    z = np.minimum(z, 0.0)  # a candidate can never outrank the estimate: the estimator would have taken it
+def probabilities(gaps: np.ndarray, temperature: float) -> np.ndarray:
+    """Mode probabilities from log-likelihood gaps (M,) to the estimate (whose own gap is 0): softmax of
+    min(gap, 0) / temperature -> (M,), summing to 1."""
+    z = np.asarray(gaps, dtype=np.float64) / temperature
+    z = np.minimum(z, 0.0)  # a candidate never outranks the estimate: within the turn margin it only ties it
     w = np.exp(z - z.max())
     return w / w.sum()
 
@@ -187,7 +188,7 @@ def object_modes(estimate: np.ndarray, loglik: float, candidates: list[tuple[np.
         if not any(is_right(M, T, symmetries) for M, _, _ in modes):
             modes.append((np.array(T, dtype=np.float64), float(ll), what))
     gaps = np.array([ll - loglik for _, ll, _ in modes])
-    p = probabilities(gaps, np.arange(len(modes)) == 0, temperature)
+    p = probabilities(gaps, temperature)
     order = np.argsort(-p, kind="stable")[:MAX_MODES]
     order = order[p[order] >= MIN_PROBABILITY]  # the estimate's always is: it is the most likely
     kept = p[order] / p[order].sum()
@@ -353,7 +354,7 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
     loglik_before = loglik
     samples, rest_poses, hulls = geometry.samples, geometry.rest, geometry.hulls
     # A heading is open when its odds against the estimate's are better than 1 : exp(RANGE_GAP) (``probabilities``).
-    open_gap = RANGE_GAP * temperature - settle.TURN_MARGIN
+    open_gap = RANGE_GAP * temperature
     hopeless = -HOPELESS  # as given this far below the estimate, settling it is not worth its cost
     # Scored as given first: every object's turns about the vertical, its particles' own poses, and its other
     # resting faces at every heading.
@@ -413,7 +414,7 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
     # estimate to be reported once it has converged at settling's first two steps, and one that has moved into the
     # estimate's own mode after them. On YCB-Video models lying free, such candidates took most of the sweep's
     # scenes, in their last millimetres (docs/journal/2026-11.md, "The posterior, fourth step").
-    unreported = loglik - settle.TURN_MARGIN - temperature * np.log(1.0 / MIN_PROBABILITY)
+    unreported = loglik - temperature * np.log(1.0 / MIN_PROBABILITY)
     searches = [settle.search(s, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES, max_shift_m=max_shift_m,
                               max_turn_deg=max_turn_deg, objects=[k], give_up_below=unreported,
                               known=lambda T, k=k: is_right(scene[k], T[k], problem.models[k].symmetries))
