@@ -37,7 +37,7 @@ from workbench.geometry import backproject
 from workbench.io import bop
 from workbench.problem.support import ransac_plane
 from workbench.score.vsd import render_alone
-from workbench.synth import sensor_stats as st
+from workbench.synth.sensor import stats as st
 
 EDGE_JUMP = 0.02  # m: a reference jump this large is a silhouette (objects stand 3-20 cm above the table)
 EDGE_MRAD = 3.0  # the edge band: within this angle of a silhouette (3 px at fx 1067, 1.6 px at 525)

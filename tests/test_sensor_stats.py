@@ -1,5 +1,5 @@
-"""The sensor's error statistics (``synth.sensor_stats``) on constructed arrays, and the sensor models of
-``synth.sensor`` measured by them: fast, no dataset, no OpenGL."""
+"""The sensor's error statistics (``synth.sensor.stats``) on constructed arrays, and the sensor models of
+``synth.sensor.model`` measured by them: fast, no dataset, no OpenGL."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from workbench.errors import InputError
-from workbench.synth import sensor_stats as st
-from workbench.synth.sensor import (
+from workbench.synth.sensor import stats as st
+from workbench.synth.sensor.model import (
     SENSOR_NAMES,
     SensorModel,
     apply_sensor,

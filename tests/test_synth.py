@@ -21,7 +21,7 @@ from workbench.synth import CATEGORIES, load_distractors, make_demo, make_scenes
 from workbench.synth.config import DESKS, PAPER_CATEGORIES, SHAPE_CATEGORIES, SynthConfig
 from workbench.synth.objects import BOX_BY_ID, BOXES, OBJECT_BY_ID, OBJECTS, ROUND, item_mesh, tilt_deg
 from workbench.synth.scenes import generate_scene
-from workbench.synth.sensor import SensorModel, apply_sensor, axial_sigma
+from workbench.synth.sensor.model import SensorModel, apply_sensor, axial_sigma
 from workbench.synth.sim import Sim, contact_distances, item_distances
 from workbench.synth.views import pixel_rays, raycast
 

@@ -20,7 +20,7 @@ from workbench.synth import load_distractors, make_scenes, true_table_pose
 from workbench.synth.config import SHAPE_CATEGORIES, SynthConfig
 from workbench.synth.dataset import model_items
 from workbench.synth.roles import BOX, OTHER, TOOL, VESSEL, role
-from workbench.synth.sensor import axial_sigma
+from workbench.synth.sensor.model import axial_sigma
 from workbench.synth.sequence import make_sequences
 from workbench.synth.sim import Sim
 from workbench.synth.views import pixel_rays, raycast

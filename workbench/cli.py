@@ -21,7 +21,7 @@ from workbench.label.config import LabelConfig
 from workbench.physics import BACKENDS, PhysicsConfig, check_backend
 from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
-from workbench.synth.sensor import SENSOR_NAMES
+from workbench.synth.sensor.model import SENSOR_NAMES
 from workbench.track.config import TrackConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"

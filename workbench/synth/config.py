@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workbench.synth.sensor import SensorModel
+from workbench.synth.sensor.model import SensorModel
 
 PAPER_CATEGORIES = ("touching", "stacked", "slant", "occluded", "three", "four")
 SHAPE_CATEGORIES = ("ycb_clutter", "raised", "leaning", "tools")  # real shapes: drawn from given models only

@@ -20,7 +20,7 @@ from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, SHAPE_CA
 from workbench.synth.distractors import Distractor, distractor_mesh
 from workbench.synth.objects import BOXES, ROUND, MeshItem, box_mesh, item_mesh
 from workbench.synth.scenes import SceneSample, generate_scene
-from workbench.synth.sensor import SensorName, check_sensor, sensor_model
+from workbench.synth.sensor.model import SensorName, check_sensor, sensor_model
 from workbench.synth.shape_layouts import check_models
 from workbench.synth.sim import Sim
 
@@ -193,7 +193,7 @@ def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, 
     from the paper's set-up, "table_size", "table_pose", "distractors" (also in scenes.json).
     ``models``: a BOP dataset (or models folder) whose models the scenes draw from instead of the built-in
     objects (only ``MODEL_CATEGORIES``; ``SHAPE_CATEGORIES`` need it); copied into ``out`` with their symmetries.
-    ``sensor``: the depth sensor's model (``synth.sensor.sensor_model``).
+    ``sensor``: the depth sensor's model (``synth.sensor.model.sensor_model``).
     ``out`` must be new or empty unless ``force``.
     """
     check_sensor(sensor)

@@ -11,7 +11,7 @@ from workbench.synth.config import DESKS, HANDLE_CATEGORIES, SHAPE_CATEGORIES, D
 from workbench.synth.distractors import Distractor, place_distractors
 from workbench.synth.layout import Placed, draw_layout, relations_hold, settle_layout
 from workbench.synth.objects import item_mesh
-from workbench.synth.sensor import apply_sensor
+from workbench.synth.sensor.model import apply_sensor
 from workbench.synth.shape_layouts import draw_shape_layout, holds
 from workbench.synth.sim import Sim
 from workbench.synth.views import (

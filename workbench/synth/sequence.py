@@ -24,7 +24,7 @@ from workbench.synth.config import CATEGORIES, DESKS, SHAPE_CATEGORIES, DeskSpec
 from workbench.synth.dataset import _scene_meta, _write_camera_json, check_out_folder, save_object_models
 from workbench.synth.layout import Placed
 from workbench.synth.scenes import SceneSample, generate_scene
-from workbench.synth.sensor import SensorName, apply_sensor, check_sensor, sensor_model
+from workbench.synth.sensor.model import SensorName, apply_sensor, check_sensor, sensor_model
 from workbench.synth.sim import Sim
 from workbench.synth.views import handle_pixels, in_view, render_clean
 

@@ -1,6 +1,6 @@
 """Statistics of a depth sensor's errors, measured against a reference depth (what a perfect sensor would read).
 
-They are what ``synth.sensor``'s models are fitted to and checked against (``benchmarks/sensor_stats.py``): the
+They are what ``synth.sensor.model``'s models are fitted to and checked against (``benchmarks/sensor_stats.py``): the
 residual's spread and tails by depth and by angle of incidence, its spatial correlation length, the share of
 missing readings at depth discontinuities, at grazing angles and elsewhere, and the flying pixels at
 silhouettes. Pure functions on arrays: depth images are (H, W) metres, 0 = no reading, NaN in a reference =
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.synth.sensor import discontinuities, incidence_angle  # noqa: F401 (re-exported)
+from workbench.synth.sensor.model import discontinuities, incidence_angle  # noqa: F401 (re-exported)
 
 MAD_TO_STD = 1.4826  # the MAD of a normal distribution times this is its standard deviation
 
