@@ -30,6 +30,7 @@ import numpy as np
 from workbench.inference.answer.posterior import found_probability, probabilities
 from workbench.io import bop
 from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
+from workbench.score.gt_info import HIDDEN_VISIB, gt_info_path, visib_fractions
 from workbench.score.metrics import heading_offset_deg, is_right
 
 GRID = np.geomspace(2.0, 400.0, 60)
@@ -47,14 +48,17 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
         frame = bop.load_frame(dataset, f["scene_id"], f["im_id"])
         seen_through = ([o["seen_through"] for o in f["objects"]] if all("seen_through" in o for o in f["objects"])
                         else estimate_seen_through(dataset, f))  # a JSON written before it was reported
+        visib = (visib_fractions(frame) if gt_info_path(frame).is_file()
+                 else [None] * len(frame.object_ids))  # a dataset without scene_gt_info.json
         for o, through in zip(f["objects"], seen_through):
             if o["obj_id"] not in models:
                 models[o["obj_id"]] = bop.load_models(dataset, [o["obj_id"]])[o["obj_id"]]
-            truths = [T for i, T in zip(frame.object_ids, frame.gt_T_cam_obj) if i == o["obj_id"]]
             modes = o["modes"]
             poses = [mode_pose(m) for m in modes]
             # With several instances of a model, the instance nearest the estimate is this object's truth.
-            truth = min(truths, key=lambda T: np.linalg.norm(T[:3, 3] - poses[0][:3, 3]))
+            nearest = min((j for j, i in enumerate(frame.object_ids) if i == o["obj_id"]),
+                          key=lambda j: np.linalg.norm(frame.gt_T_cam_obj[j][:3, 3] - poses[0][:3, 3]))
+            truth = frame.gt_T_cam_obj[nearest]
             symmetries = models[o["obj_id"]].symmetries
             out.append({"dataset": dataset.name, "category": category.get(f["scene_id"], "real"),
                         "scene_id": f["scene_id"], "im_id": f["im_id"], "obj_id": o["obj_id"],
@@ -64,7 +68,7 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
                         "truth_heading_deg": heading_offset_deg(truth, poses[0], np.array(o["vertical_cam"]),
                                                                 symmetries),
                         "frame_seconds": f.get("seconds"), "posterior_seconds": f.get("posterior_seconds"),
-                        "seen_through": float(through)})
+                        "seen_through": float(through), "visib_fract": visib[nearest]})
     return out
 
 
@@ -194,6 +198,11 @@ def main(argv: list[str] | None = None) -> int:
         part = [objects[i] for i in idx]
         print(f"  {name:24s} {cat:14s} {len(part):4d}  {top1(part):.3f}  {coverage(part):.3f}  "
               f"{expected_calibration_error(part):.3f}  {expected_calibration_error([folded[i] for i in idx]):.3f}")
+    hidden = [i for i, r in enumerate(records) if r.get("visib_fract") is not None and r["visib_fract"] < HIDDEN_VISIB]
+    if hidden:
+        part = [objects[i] for i in hidden]
+        print(f"  {'objects under 10 % visible':39s} {len(part):4d}  {top1(part):.3f}  {coverage(part):.3f}  "
+              f"{expected_calibration_error(part):.3f}  {expected_calibration_error([folded[i] for i in hidden]):.3f}")
     for name in sorted({r["dataset"] for r in records}):
         idx = [i for i, r in enumerate(records) if r["dataset"] == name]
         print(f"  {name:24s} {'all':14s} {len(idx):4d}  {top1([objects[i] for i in idx]):.3f}  "

@@ -33,7 +33,7 @@ def dataset(tmp_path_factory):
     from workbench.synth.sequence import make_sequences
 
     out = tmp_path_factory.mktemp("label_seq")
-    make_sequences(out, ["touching"], 1, 4, seed=0, width=320, height=240, arc_deg=6.0)
+    make_sequences(out, ["touching"], 1, 4, seed=0, width=320, height=240, arc_deg=6.0, sensor="kinect-like")
     return out
 
 

@@ -26,7 +26,7 @@ def sequence(tmp_path_factory):
     from workbench.synth.sequence import make_sequences
 
     out = tmp_path_factory.mktemp("seq")
-    make_sequences(out, ["touching"], 1, 3, seed=0, width=320, height=240, arc_deg=5.0)
+    make_sequences(out, ["touching"], 1, 3, seed=0, width=320, height=240, arc_deg=5.0, sensor="kinect-like")
     return out
 
 

@@ -33,7 +33,7 @@ def workbench(tmp_path_factory):
 
     # As `workbench make-scenes OUT --categories touching --sequence 3 --arc 5`, at 320x240 to stay quick.
     data = tmp_path_factory.mktemp("seq")
-    make_sequences(data, ["touching"], 1, 3, seed=0, width=320, height=240, arc_deg=5.0)
+    make_sequences(data, ["touching"], 1, 3, seed=0, width=320, height=240, arc_deg=5.0, sensor="kinect-like")
     with served(EstimatorConfig(particles=16, iterations=2), data, 0, 0,
                 sessions_dir=tmp_path_factory.mktemp("sessions")) as handle:
         yield handle

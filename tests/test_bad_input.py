@@ -59,7 +59,7 @@ def two_frames(tmp_path_factory) -> Path:
     from workbench.synth import make_scenes
 
     out = tmp_path_factory.mktemp("two") / "data"
-    make_scenes(out, ["touching"], 2, seed=3, width=320, height=240)
+    make_scenes(out, ["touching"], 2, seed=3, width=320, height=240, sensor="kinect-like")
     return out
 
 
@@ -170,7 +170,8 @@ def test_make_scenes_refuses_a_folder_that_is_not_empty(demo, tmp_path):
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "keep.txt").write_text("x")
-    make_scenes(mine, ["touching"], 1, seed=0, width=160, height=120, force=True)  # asked for: writes beside it
+    # asked for: writes beside it
+    make_scenes(mine, ["touching"], 1, seed=0, width=160, height=120, force=True, sensor="kinect-like")
     assert (mine / "keep.txt").read_text() == "x" and (mine / "scenes.json").is_file()
 
 

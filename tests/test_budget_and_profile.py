@@ -143,7 +143,7 @@ def test_bench_profile_of_a_tracked_frame_counts_its_search_and_the_tracker_arou
     from workbench.synth.sequence import make_sequences
     from workbench.track.config import TrackConfig
 
-    make_sequences(tmp_path / "seq", ["touching"], 1, 3, seed=0, width=320, height=240)
+    make_sequences(tmp_path / "seq", ["touching"], 1, 3, seed=0, width=320, height=240, sensor="kinect-like")
     data = str(tmp_path / "seq")
     assert main(["bench", "--profile", data, "--scene", "0", "--frame", "2", "--tracked-from", "0", "--particles",
                  "40", "--iterations", "3"]) == 0

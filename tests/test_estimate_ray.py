@@ -32,7 +32,7 @@ FRAMES = [(0, 0), (1, 0), (2, 0)]
 def dataset(tmp_path_factory) -> Path:
     """Three generated frames of two touching boxes (320x240, to stay quick)."""
     out = tmp_path_factory.mktemp("ray-touching")
-    make_scenes(out, ["touching"], len(FRAMES), seed=5, width=320, height=240)
+    make_scenes(out, ["touching"], len(FRAMES), seed=5, width=320, height=240, sensor="kinect-like")
     return out
 
 

@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow  # needs generated scenes (pybullet)
 @pytest.fixture(scope="module")
 def touching(tmp_path_factory):
     out = tmp_path_factory.mktemp("icp")
-    synth.make_scenes(out, ["touching"], 1, seed=1, width=320, height=240)
+    synth.make_scenes(out, ["touching"], 1, seed=1, width=320, height=240, sensor="kinect-like")
     frame = bop.load_frame(out, 0, 0)
     return frame, bop.load_models(out, frame.object_ids)
 

@@ -25,7 +25,8 @@ CONFIG = EstimatorConfig(particles=100, iterations=8)
 
 
 def _sequence(out, frames, take_out=None):
-    make_sequences(out, ["touching"], 1, frames, seed=0, width=320, height=240, arc_deg=6.0, take_out=take_out)
+    make_sequences(out, ["touching"], 1, frames, seed=0, width=320, height=240, arc_deg=6.0, take_out=take_out,
+                   sensor="kinect-like")
     return out
 
 

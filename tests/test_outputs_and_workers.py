@@ -796,7 +796,7 @@ def test_a_runs_frames_share_one_pool_and_a_frame_evaluates_as_on_a_fresh_one(tm
     from workbench.run.runner import FramePool
     from workbench.synth import make_scenes
 
-    make_scenes(tmp_path / "ds", ["touching", "three"], 1, seed=2, width=320, height=240)
+    make_scenes(tmp_path / "ds", ["touching", "three"], 1, seed=2, width=320, height=240, sensor="kinect-like")
     (_, first), (_, second) = (load_bop_problem(tmp_path / "ds", s, 0) for s in (0, 1))
     scenes = _stacked_scenes(0, 6, second.n_objects, 0.1)
     pool = FramePool(workers=2, max_retries=0)
@@ -825,7 +825,7 @@ def test_a_sequences_next_frame_keeps_the_workers_models_and_evaluates_as_a_fres
     from workbench.problem.build import load_bop_problem
     from workbench.synth import make_scenes
 
-    make_scenes(tmp_path / "ds", ["touching"], 1, seed=3, width=320, height=240)
+    make_scenes(tmp_path / "ds", ["touching"], 1, seed=3, width=320, height=240, sensor="kinect-like")
     _, first = load_bop_problem(tmp_path / "ds", 0, 0)
     second = replace(first, observed=np.where(first.observed > 0, first.observed + 0.01, 0).astype(np.float32))
     scenes = _stacked_scenes(1, 5, first.n_objects, 0.05)

@@ -287,7 +287,7 @@ def test_a_generated_mug_gets_an_open_heading_when_its_handle_is_hidden_and_one_
     from workbench.io import bop
     from workbench.synth import make_scenes
 
-    make_scenes(tmp_path / "d", [category], 1, seed=0)  # 640 x 480, as the calibration suite
+    make_scenes(tmp_path / "d", [category], 1, seed=0, sensor="kinect-like")  # 640 x 480, as the calibration suite
     posterior = tmp_path / "posterior.json"
     assert main(["estimate", str(tmp_path / "d"), "--out", str(tmp_path / "r.csv"), "--posterior",
                  str(posterior)]) == 0

@@ -279,7 +279,7 @@ def _generated_frame(tmp_path_factory, category: str, seed: int):
     from workbench.synth import make_scenes
 
     out = tmp_path_factory.mktemp(category)
-    make_scenes(out, [category], 1, seed=seed, width=320, height=240)
+    make_scenes(out, [category], 1, seed=seed, width=320, height=240, sensor="kinect-like")
     return load_bop_problem(out, 0, 0)
 
 

@@ -161,7 +161,7 @@ def test_make_scenes_takes_the_sensor_by_name_and_keeps_kinect_like_by_default()
     from workbench.cli import build_parser
 
     parser = build_parser()
-    assert parser.parse_args(["make-scenes", "out"]).sensor == "kinect-like"
+    assert parser.parse_args(["make-scenes", "out"]).sensor == "xtion"  # new sets: the sensor measured on real frames
     assert parser.parse_args(["make-scenes", "out", "--sensor", "xtion"]).sensor == "xtion"
     with pytest.raises(SystemExit):
         parser.parse_args(["make-scenes", "out", "--sensor", "sonar"])

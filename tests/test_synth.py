@@ -35,7 +35,7 @@ BUILT_IN = [c for c in CATEGORIES if c not in SHAPE_CATEGORIES]  # real shapes n
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> tuple[Path, list[dict]]:
     out = tmp_path_factory.mktemp("synth")
-    return out, make_scenes(out, BUILT_IN, 1, seed=0, width=W, height=H)
+    return out, make_scenes(out, BUILT_IN, 1, seed=0, width=W, height=H, sensor="kinect-like")
 
 
 def _world(frame, dataset=None) -> np.ndarray:
@@ -170,8 +170,8 @@ def test_sensor_noise_at_known_depth_and_dropouts():
 
 
 def test_same_seed_same_scene_and_unknown_category(tmp_path):
-    a = make_scenes(tmp_path / "a", ["slant"], 1, seed=5, width=160, height=120)
-    b = make_scenes(tmp_path / "b", ["slant"], 1, seed=5, width=160, height=120)
+    a = make_scenes(tmp_path / "a", ["slant"], 1, seed=5, width=160, height=120, sensor="kinect-like")
+    b = make_scenes(tmp_path / "b", ["slant"], 1, seed=5, width=160, height=120, sensor="kinect-like")
     fa, fb = bop.load_frame(tmp_path / "a", 0, 0), bop.load_frame(tmp_path / "b", 0, 0)
     assert a == b and np.allclose(fa.gt_T_cam_obj, fb.gt_T_cam_obj) and np.array_equal(fa.depth, fb.depth)
     with pytest.raises(InputError, match="unknown"):
@@ -303,7 +303,7 @@ def test_lying_scenes_draw_from_given_models_and_copy_them(tmp_path):
     flip = make_pose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
     bop.save_models(src, {3: trimesh.creation.box(extents=[0.04, 0.06, 0.2]),
                           9: trimesh.creation.cylinder(radius=0.03, height=0.1, sections=32)}, {9: flip[None]})
-    meta = make_scenes(tmp_path / "out", ["lying"], 2, seed=0, width=W, height=H, models=src)
+    meta = make_scenes(tmp_path / "out", ["lying"], 2, seed=0, width=W, height=H, models=src, sensor="kinect-like")
     assert all(set(m["obj_ids"]) <= {3, 9} and m["category"] == "lying" for m in meta)
     copied, given = tmp_path / "out" / "models", src / "models"
     assert (copied / "obj_000003.ply").read_bytes() == (given / "obj_000003.ply").read_bytes()
@@ -320,7 +320,8 @@ def test_lying_scenes_draw_from_given_models_and_copy_them(tmp_path):
 
 
 def test_desk_options_override_the_category(tmp_path):
-    meta = make_scenes(tmp_path, ["touching"], 1, seed=0, width=W, height=H, distractors=2, table_pose=0.0)
+    meta = make_scenes(tmp_path, ["touching"], 1, seed=0, width=W, height=H, distractors=2, table_pose=0.0,
+                       sensor="kinect-like")
     scene_dir = tmp_path / "test" / "000000"
     assert meta[0]["table_pose"] is False and len(meta[0]["distractors"]) == 2
     assert "cam_R_w2c" not in json.loads((scene_dir / "scene_camera.json").read_text())["0"]

@@ -80,7 +80,8 @@ def models(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def dataset(models, tmp_path_factory) -> tuple[Path, list[dict]]:
     out = tmp_path_factory.mktemp("shapes")
-    return out, make_scenes(out, list(SHAPE_CATEGORIES), 1, seed=0, width=W, height=H, models=models)
+    return out, make_scenes(out, list(SHAPE_CATEGORIES), 1, seed=0, width=W, height=H, models=models,
+                            sensor="kinect-like")
 
 
 def _distractor_entries(out: Path, scene_id: int) -> list[dict]:

@@ -29,7 +29,7 @@ FIRST = ["--particles", "100", "--iterations", "8", "--workers", "1"]  # the fir
 
 def _sequence(out, frames, push=None, arc_deg=4.0, take_out=None):
     make_sequences(out, ["touching"], 1, frames, seed=0, width=320, height=240, arc_deg=arc_deg, push=push,
-                   take_out=take_out)
+                   take_out=take_out, sensor="kinect-like")
     return out
 
 
@@ -168,7 +168,8 @@ def test_an_object_taken_out_is_lost_and_recovered_when_put_back(tmp_path):
 
 def test_a_hidden_handle_keeps_its_modes_until_the_camera_sees_it(tmp_path):
     # A mug alone, its handle hidden behind its body on frames 0-2 and in view from frame 3 as the camera moves.
-    make_sequences(tmp_path / "seq", ["handle_hidden"], 1, 5, seed=0, width=320, height=240, handle=3)
+    make_sequences(tmp_path / "seq", ["handle_hidden"], 1, 5, seed=0, width=320, height=240, handle=3,
+                   sensor="kinect-like")
     results = _track(tmp_path / "seq", [0, 1, 2, 3, 4])
     seen = []
     for i, result in enumerate(results):

@@ -22,7 +22,7 @@ FAST = ("--particles", "32", "--iterations", "4", "--workers", "2", "--track-par
 def dataset(tmp_path_factory) -> Path:
     """Two generated sequences of three frames (two touching boxes, the camera on a 4 degree arc; 320x240)."""
     out = tmp_path_factory.mktemp("track-ray")
-    make_sequences(out, ["touching"], 2, 3, seed=0, width=320, height=240, arc_deg=4.0)
+    make_sequences(out, ["touching"], 2, 3, seed=0, width=320, height=240, arc_deg=4.0, sensor="kinect-like")
     return out
 
 

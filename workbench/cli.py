@@ -21,7 +21,7 @@ from workbench.label.config import LabelConfig
 from workbench.physics import BACKENDS, PhysicsConfig, check_backend
 from workbench.problem.problem import ProblemConfig
 from workbench.render.likelihood import LikelihoodConfig
-from workbench.synth.sensor.model import SENSOR_NAMES
+from workbench.synth.sensor.model import DEFAULT_SENSOR, SENSOR_NAMES
 from workbench.track.config import TrackConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
@@ -762,11 +762,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --sequence and --categories handle_hidden: the mug's handle, hidden behind its body on "
                    "the first frames, comes into view from frame K on as the camera moves (the arc is chosen for "
                    "it; --arc is not used)")
-    p.add_argument("--sensor", choices=SENSOR_NAMES, default="kinect-like",
-                   help="the depth sensor's model: ideal (the exact depth), kinect-like (white noise growing with "
-                   "depth, 1 mm steps, holes at edges; the default, which the benchmarks' sets were made with) or "
-                   "xtion (measured on the real YCB-Video frames: correlated noise and distortion growing with z^2, "
-                   "holes at edges and grazing angles, flying pixels)")
+    p.add_argument("--sensor", choices=SENSOR_NAMES, default=DEFAULT_SENSOR,
+                   help="the depth sensor's model: xtion (the default: measured on the real YCB-Video frames, "
+                   "correlated noise and distortion growing with z^2, holes at edges and grazing angles, flying "
+                   "pixels), kinect-like (white noise growing with depth, 1 mm steps, holes at edges; the sets of "
+                   "the benchmarks' figures before 2026-12-07) or ideal (the exact depth)")
     p.add_argument("--demo", action="store_true", help="write the small bundled demo (assets/demo) instead")
     p.add_argument("--force", action="store_true", help="write into OUT even if it is not empty")
     p.set_defaults(func=_cmd_make_scenes)

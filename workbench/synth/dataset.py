@@ -20,7 +20,7 @@ from workbench.synth.config import CATEGORIES, DESKS, MODEL_CATEGORIES, SHAPE_CA
 from workbench.synth.distractors import Distractor, distractor_mesh
 from workbench.synth.objects import BOXES, ROUND, MeshItem, box_mesh, item_mesh
 from workbench.synth.scenes import SceneSample, generate_scene
-from workbench.synth.sensor.model import SensorName, check_sensor, sensor_model
+from workbench.synth.sensor.model import DEFAULT_SENSOR, SensorName, check_sensor, sensor_model
 from workbench.synth.shape_layouts import check_models
 from workbench.synth.sim import Sim
 
@@ -182,7 +182,7 @@ def model_items(models: Path) -> tuple[MeshItem, ...]:
 
 def make_scenes(out: Path, categories: list[str], per_category: int, seed: int, width: int = 640,
                 height: int = 480, distractors: int | None = None, table_pose: float | None = None,
-                force: bool = False, models: Path | None = None, sensor: SensorName = "kinect-like") -> list[dict]:
+                force: bool = False, models: Path | None = None, sensor: SensorName = DEFAULT_SENSOR) -> list[dict]:
     """Write ``per_category`` scenes of each category as a BOP dataset in ``out`` (split "test", one image each).
 
     Scene ids run over ``categories`` in order; each scene's random draw depends only on (seed, category,

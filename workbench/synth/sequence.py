@@ -24,7 +24,7 @@ from workbench.synth.config import CATEGORIES, DESKS, SHAPE_CATEGORIES, DeskSpec
 from workbench.synth.dataset import _scene_meta, _write_camera_json, check_out_folder, save_object_models
 from workbench.synth.layout import Placed
 from workbench.synth.scenes import SceneSample, generate_scene
-from workbench.synth.sensor.model import SensorName, apply_sensor, check_sensor, sensor_model
+from workbench.synth.sensor.model import DEFAULT_SENSOR, SensorName, apply_sensor, check_sensor, sensor_model
 from workbench.synth.sim import Sim
 from workbench.synth.views import handle_pixels, in_view, render_clean
 
@@ -152,7 +152,7 @@ def write_sequence(out: Path, scene_id: int, sample: SceneSample, cfg: SynthConf
 def make_sequences(out: Path, categories: list[str], per_category: int, frames: int, seed: int, width: int = 640,
                    height: int = 480, arc_deg: float = 10.0, push: Push | None = None, force: bool = False,
                    take_out: TakeOut | None = None, handle: int | None = None, max_tries: int = 20,
-                   sensor: SensorName = "kinect-like") -> list[dict]:
+                   sensor: SensorName = DEFAULT_SENSOR) -> list[dict]:
     """``per_category`` sequences of ``frames`` frames per category, each a generated scene (as ``make_scenes``
     draws it, same seed) seen on an arc of ``arc_deg`` degrees, with an optional ``push`` or ``take_out``. With
     ``handle`` (a frame; category ``handle_hidden`` only) the arc is instead chosen for each scene so that the mug's
