@@ -6,11 +6,11 @@ a tracked frame has about one. The modes the previous frame left open are what t
 scored again here, as given, with the other objects where the new estimate has them.
 
 Evidence accumulates (issue 31, item 4): a mode's ``gap`` in a carried posterior is the weakest it has been, against
-the estimate, on any view since it was found (its own view's log-likelihood gap against the estimate as carried,
-both scored as given, the least of them kept). Views of
-one still scene are anything but independent (the same model errors, the same occlusions), so adding their gaps up
-would grow sure of whatever the first view could not decide; taking the weakest keeps a mode that no view has
-decided at its probability, and one view that decides it (a mug's handle come into view) decides it from then on.
+the estimate, on any view since it was found (each view's log-likelihood gap against the estimate as carried, both
+scored as given; the least of them kept). Views of one still scene are anything but independent (the same model
+errors, the same occlusions), so adding their gaps up would grow sure of whatever the first view could not decide;
+taking the weakest keeps a mode that no view has decided at its probability, and one view that decides it (a mug's
+handle come into view) decides it from then on.
 Probabilities follow from these gaps as in ``posterior.object_modes``; a mode that drops below
 ``posterior.MIN_PROBABILITY`` is gone. A mode that now beats the estimate by more than the turn margin replaces
 it (fitted to the depth by ``refine``; the estimate then becomes one of its modes), as settling's turns do: the
