@@ -358,6 +358,32 @@ def test_settling_turns_a_flat_object_back_over_its_outlines_axis():
     assert any(name.startswith("over a level axis") for _, name, _, _ in turns)
 
 
+def test_turns_that_could_not_be_reported_stop_early_and_leave_the_answer_as_it_was():
+    """The L-shaped plate at its truth (a score peaked there stands in for the depth): every turn of it lands far
+    below, so with ``give_up_below`` its searches stop once settled at their first two steps, and the answer and the
+    turns' ranking stay those of the full searches."""
+    from types import SimpleNamespace
+
+    from workbench.geometry import pose_from_xyz_rpy, rotation_angle
+    from workbench.problem.scene import ObjectModel
+
+    truth = pose_from_xyz_rpy([0.1, 0.2, 0.0, 0.0, 0.0, 0.4])
+
+    def score(scenes):
+        shift = np.linalg.norm(scenes[:, 0, :3, 3] - truth[:3, 3], axis=-1) * 1e3  # mm
+        turn = np.degrees(rotation_angle(np.swapaxes(scenes[:, 0, :3, :3], -1, -2) @ truth[:3, :3]))
+        return -(shift ** 2) - turn ** 2
+
+    problem = SimpleNamespace(models=[ObjectModel(obj_id=1, mesh=_flat_l_plate(), name="plate")])
+    scene = truth[None]
+    loglik = float(score(scene[None])[0])
+    full = turn_over(problem, scene, loglik, score, lambda s: s, 0.015, 12.0)
+    early = turn_over(problem, scene, loglik, score, lambda s: s, 0.015, 12.0, give_up_below=loglik - 100.0)
+    assert np.array_equal(early[0], full[0]) and early[1] == full[1] and early[2] < full[2]
+    assert [name for _, name, _, _ in early[4]] == [name for _, name, _, _ in full[4]]
+    assert all(ll < loglik - 100.0 for _, _, _, ll in early[4])
+
+
 def test_a_box_turned_about_the_vertical_is_a_tie_unless_the_model_declares_the_turn_a_symmetry(
         frame_and_problem, seeing):
     """The depth is drawn from the projected truth and the estimate is that scene. A box turned half about the

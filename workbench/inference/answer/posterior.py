@@ -155,6 +155,12 @@ class Posterior:
         return f"{len(unsure)} of {len(self.objects)} objects uncertain: " + ", ".join(parts)
 
 
+def unreported_below(loglik: float, temperature: float = TEMPERATURE) -> float:
+    """The log-likelihood below which a candidate against an estimate of ``loglik`` gets less than MIN_PROBABILITY,
+    and is not reported."""
+    return loglik - temperature * np.log(1.0 / MIN_PROBABILITY)
+
+
 def probabilities(gaps: np.ndarray, temperature: float) -> np.ndarray:
     """Mode probabilities from log-likelihood gaps (M,) to the estimate (whose own gap is 0): softmax of
     min(gap, 0) / temperature -> (M,), summing to 1."""
@@ -414,7 +420,7 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
     # estimate to be reported once it has converged at settling's first two steps, and one that has moved into the
     # estimate's own mode after them. On YCB-Video models lying free, such candidates took most of the sweep's
     # scenes, in their last millimetres (docs/journal/2026-11.md, "The posterior, fourth step").
-    unreported = loglik - temperature * np.log(1.0 / MIN_PROBABILITY)
+    unreported = unreported_below(loglik, temperature)
     searches = [settle.search(s, step_m=settle.SETTLE_STEP, step_deg=settle.SETTLE_DEGREES, max_shift_m=max_shift_m,
                               max_turn_deg=max_turn_deg, objects=[k], give_up_below=unreported,
                               known=lambda T, k=k: is_right(scene[k], T[k], problem.models[k].symmetries))

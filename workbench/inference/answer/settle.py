@@ -329,7 +329,8 @@ Turn = tuple[int, str, np.ndarray, float]  # an object, the name of its turn, th
 
 
 def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: Rest, max_shift_m: float,
-              max_turn_deg: float) -> tuple[np.ndarray, float, int, list[Tie], list[Turn]]:
+              max_turn_deg: float, give_up_below: float = -np.inf
+              ) -> tuple[np.ndarray, float, int, list[Tie], list[Turn]]:
     """Each object of the settled ``scene`` (K, 4, 4) turned over (``half_turns``), onto the faces beside the one it
     rests on (``quarter_turns``; a flat object also over the best of its ``level_flips``, ``best_level_flips``) and
     settled alone, the others kept: the depth's near ties, which the search compares only after physics, where our
@@ -338,7 +339,8 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
     physics (``rest``), resting that scene, keeps the object within the settling region; when several objects turn,
     their turns are kept together if that scene scores at least as well as the best one alone -> (scene, log-
     likelihood, scenes scored, the ties left, every settled turn as (object, name, scene, log-likelihood): the
-    posterior's turns when no turn was kept)."""
+    posterior's turns when no turn was kept). A turn still below ``give_up_below`` once settled at its first two
+    steps stops there (``search``): it could neither replace the object nor be reported as a mode."""
     starts, names = [], []
     for k, model in enumerate(problem.models):
         for turns, turn_names in ((half_turns, half_turn_names), (quarter_turns, quarter_turn_names)):
@@ -348,7 +350,7 @@ def turn_over(problem: Problem, scene: np.ndarray, loglik: float, score: Score, 
     starts += flips
     names += flip_names
     owners = [k for k, _ in starts]
-    found, best = settle_alone(scene, loglik, score, starts, max_shift_m, max_turn_deg)
+    found, best = settle_alone(scene, loglik, score, starts, max_shift_m, max_turn_deg, give_up_below=give_up_below)
     scored += sum(n for _, _, n in found)
     kept, result, n = keep_held(scene, loglik, best, score, rest, max_shift_m, max_turn_deg)
     scored += n
@@ -413,11 +415,13 @@ def hop(problem: Problem, scene: np.ndarray, loglik: float, score: Score, rest: 
 
 
 def settle_alone(scene: np.ndarray, loglik: float, score: Score, starts: list[tuple[int, np.ndarray]],
-                 max_shift_m: float, max_turn_deg: float, region: np.ndarray | None = None
+                 max_shift_m: float, max_turn_deg: float, region: np.ndarray | None = None,
+                 give_up_below: float = -np.inf
                  ) -> tuple[list[tuple[np.ndarray, float, int]], dict[int, tuple[np.ndarray, float]]]:
     """``scene`` (K, 4, 4), of log-likelihood ``loglik``, with one object moved to each of ``starts`` (object,
     pose (4, 4)) and settled alone, the others kept, within ``max_shift_m`` and ``max_turn_deg`` of ``region``
-    (default: each start); every search in lockstep (``run``) -> (each start's (scene, log-likelihood, scenes
+    (default: each start), a search giving up as ``search`` says below ``give_up_below``; every search in lockstep
+    (``run``) -> (each start's (scene, log-likelihood, scenes
     scored), object -> its best settled scene and log-likelihood where that gains more than TURN_MARGIN over
     ``loglik``)."""
     searches = []
@@ -425,7 +429,7 @@ def settle_alone(scene: np.ndarray, loglik: float, score: Score, starts: list[tu
         start = scene.copy()
         start[k] = pose
         searches.append(search(start, step_m=SETTLE_STEP, step_deg=SETTLE_DEGREES, max_shift_m=max_shift_m,
-                               max_turn_deg=max_turn_deg, objects=[k], region=region))
+                               max_turn_deg=max_turn_deg, objects=[k], region=region, give_up_below=give_up_below))
     found = run(searches, score)
     best: dict[int, tuple[np.ndarray, float]] = {}
     for (k, _), (T, ll, _) in zip(starts, found):

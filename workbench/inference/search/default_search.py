@@ -241,8 +241,10 @@ class DefaultSearch:
             return cut("turns", scene, loglik, scored)
         with clock.stage("turns"):
             before = scene
-            scene, loglik, turned, ties, turns = settle.turn_over(self.problem, scene, loglik, score, rest,
-                                                                  cfg.settle_shift, cfg.settle_turn)
+            # A turn that could be neither the answer nor a mode stops early, as the posterior's candidates do.
+            scene, loglik, turned, ties, turns = settle.turn_over(
+                self.problem, scene, loglik, score, rest, cfg.settle_shift, cfg.settle_turn,
+                give_up_below=posterior.unreported_below(loglik))
             # After the turns, not before: a restart that leans a mug facing the wrong way can win, and its half
             # turn then no longer does. A turned object was settled from a fresh start; the others restart where
             # physics put them.
