@@ -241,12 +241,12 @@ def search(T: np.ndarray, step_m: float = 0.01, step_deg: float = 4.0, min_step_
     ``max_turn_deg`` from its pose in ``region`` (K, 4, 4; default ``T``) is not tried; only the ``objects`` listed
     move (default: all). Local: it refines a scene within about two steps of the optimum, it does not find one.
 
-    Two early stops, for the posterior's sweep, which settles many candidates and keeps only what could be a mode of
-    its own: a search whose best is still below ``give_up_below`` (log-units) once it has converged at its first two
-    steps stops there (the finer steps gain a few log-units each, not what it lacks); a search that, after its
-    first two steps, moves into a scene that ``known`` (scene (K, 4, 4) -> bool) says is already a mode (the
-    estimate's) stops there. Not before: at the first steps a search may pass through a mode on its way to another
-    (a mug's heading, 10 degrees from the estimate's and on)."""
+    Two early stops, for the posterior's sweep and settling's turns, which settle many candidates and keep only what
+    could be a mode of its own: a search whose best is still below ``give_up_below`` (log-units) once it has
+    converged at its first two steps stops there (the finer steps gain a few log-units each, not what it lacks); a
+    search that, after its first two steps, moves into a scene that ``known`` (scene (K, 4, 4) -> bool) says is
+    already a mode (the estimate's) stops there. Not before: at the first steps a search may pass through a mode on
+    its way to another (a mug's heading, 10 degrees from the estimate's and on)."""
     T = np.array(T, dtype=np.float64)
     origin, K = np.array(T if region is None else region, dtype=np.float64), len(T)
     movable = np.zeros(K, dtype=bool)
@@ -421,9 +421,8 @@ def settle_alone(scene: np.ndarray, loglik: float, score: Score, starts: list[tu
     """``scene`` (K, 4, 4), of log-likelihood ``loglik``, with one object moved to each of ``starts`` (object,
     pose (4, 4)) and settled alone, the others kept, within ``max_shift_m`` and ``max_turn_deg`` of ``region``
     (default: each start), a search giving up as ``search`` says below ``give_up_below``; every search in lockstep
-    (``run``) -> (each start's (scene, log-likelihood, scenes
-    scored), object -> its best settled scene and log-likelihood where that gains more than TURN_MARGIN over
-    ``loglik``)."""
+    (``run``) -> (each start's (scene, log-likelihood, scenes scored), object -> its best settled scene and
+    log-likelihood where that gains more than TURN_MARGIN over ``loglik``)."""
     searches = []
     for k, pose in starts:
         start = scene.copy()
