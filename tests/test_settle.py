@@ -43,6 +43,18 @@ def _quadratic(target: np.ndarray):
     return lambda scenes: -(((scenes[:, :, :3, 3] - target) * 1e3) ** 2).sum(axis=(1, 2))
 
 
+def _peaked_at(truth: np.ndarray):
+    """A score of one-object scenes peaked at the pose ``truth`` (4, 4): -(distance in mm)^2 - (angle in degrees)^2."""
+    from workbench.geometry import rotation_angle
+
+    def score(scenes: np.ndarray) -> np.ndarray:
+        shift = np.linalg.norm(scenes[:, 0, :3, 3] - truth[:3, 3], axis=-1) * 1e3  # mm
+        turn = np.degrees(rotation_angle(np.swapaxes(scenes[:, 0, :3, :3], -1, -2) @ truth[:3, :3]))
+        return -(shift ** 2) - turn ** 2
+
+    return score
+
+
 def test_pattern_search_finds_a_nearby_optimum_and_stays_in_its_region():
     start = np.tile(np.eye(4), (2, 1, 1))
     target = np.array([[0.0071, -0.0033, 0.0012], [-0.0025, 0.0043, 0.0]])
@@ -335,7 +347,7 @@ def test_settling_turns_a_flat_object_back_over_its_outlines_axis():
     peaked at the truth stands in for the depth (what turn_over is given), and physics holds every pose."""
     from types import SimpleNamespace
 
-    from workbench.geometry import pose_from_xyz_rpy, rotation_angle
+    from workbench.geometry import pose_from_xyz_rpy
     from workbench.inference.answer.settle import _turned
     from workbench.problem.scene import ObjectModel
 
@@ -345,11 +357,7 @@ def test_settling_turns_a_flat_object_back_over_its_outlines_axis():
     wrong = _turned(truth, mesh.centroid, [2.0 * np.outer(axis, axis) - np.eye(3)])[0]
     assert rotation_error(truth, wrong) > 170
 
-    def score(scenes):
-        shift = np.linalg.norm(scenes[:, 0, :3, 3] - truth[:3, 3], axis=-1) * 1e3  # mm
-        turn = np.degrees(rotation_angle(np.swapaxes(scenes[:, 0, :3, :3], -1, -2) @ truth[:3, :3]))
-        return -(shift ** 2) - turn ** 2
-
+    score = _peaked_at(truth)
     problem = SimpleNamespace(models=[ObjectModel(obj_id=1, mesh=mesh, name="plate")])
     scene = wrong[None]
     final, loglik, _, _, turns = turn_over(problem, scene, float(score(scene[None])[0]), score, lambda s: s,
@@ -361,19 +369,15 @@ def test_settling_turns_a_flat_object_back_over_its_outlines_axis():
 def test_turns_that_could_not_be_reported_stop_early_and_leave_the_answer_as_it_was():
     """The L-shaped plate at its truth (a score peaked there stands in for the depth): every turn of it lands far
     below, so with ``give_up_below`` its searches stop once settled at their first two steps, and the answer and the
-    turns' ranking stay those of the full searches."""
+    turns the same, as the full searches leave them."""
     from types import SimpleNamespace
 
-    from workbench.geometry import pose_from_xyz_rpy, rotation_angle
+    from workbench.geometry import pose_from_xyz_rpy
     from workbench.problem.scene import ObjectModel
 
     truth = pose_from_xyz_rpy([0.1, 0.2, 0.0, 0.0, 0.0, 0.4])
 
-    def score(scenes):
-        shift = np.linalg.norm(scenes[:, 0, :3, 3] - truth[:3, 3], axis=-1) * 1e3  # mm
-        turn = np.degrees(rotation_angle(np.swapaxes(scenes[:, 0, :3, :3], -1, -2) @ truth[:3, :3]))
-        return -(shift ** 2) - turn ** 2
-
+    score = _peaked_at(truth)
     problem = SimpleNamespace(models=[ObjectModel(obj_id=1, mesh=_flat_l_plate(), name="plate")])
     scene = truth[None]
     loglik = float(score(scene[None])[0])
