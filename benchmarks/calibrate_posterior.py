@@ -12,7 +12,8 @@ among the modes holding 95 %) and top-1 accuracy; the temperature of least negat
 broken down per dataset and (generated sets) category. Then it fits the chance that the truth is among none of the
 modes (posterior.ELSEWHERE: a logistic in the share of the estimate the sensor sees through) and reports its own
 calibration error, and what the top modes' would be with it folded into them. It also counts how often the truth's
-heading lies inside a reported range of headings, and the posterior sweep's share of the frames' wall time. --data
+heading lies inside a reported range of headings, how often a hidden object's truth lies in its hiding region (a
+place within 2 cm, level), and the posterior sweep's share of the frames' wall time. --data
 keeps the gaps and right flags (benchmarks/calibration/), so that the fit can be redone without estimating again;
 --png draws the reliability diagram, and the breakdown per dataset and category is printed, at the fitted temperature,
 or at --temperature (the one the product uses).
@@ -27,11 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
+from workbench.inference.answer.hidden import TOLERANCE_CELLS
 from workbench.inference.answer.posterior import found_probability, probabilities
 from workbench.io import bop
 from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
 from workbench.score.gt_info import HIDDEN_VISIB, gt_info_path, visib_fractions
-from workbench.score.metrics import heading_offset_deg, is_right
+from workbench.score.metrics import RIGHT_CM, heading_offset_deg, is_right
 
 GRID = np.geomspace(2.0, 400.0, 60)
 
@@ -68,8 +70,20 @@ def collect(dataset: Path, posterior: Path) -> list[dict]:
                         "truth_heading_deg": heading_offset_deg(truth, poses[0], np.array(o["vertical_cam"]),
                                                                 symmetries),
                         "frame_seconds": f.get("seconds"), "posterior_seconds": f.get("posterior_seconds"),
-                        "seen_through": float(through), "visib_fract": visib[nearest]})
+                        "seen_through": float(through), "visib_fract": visib[nearest],
+                        **hiding_record(o.get("hiding"), truth, np.array(o["vertical_cam"]))})
     return out
+
+
+def hiding_record(hiding: dict | None, truth: np.ndarray, vertical: np.ndarray) -> dict:
+    """A hidden object's region (the posterior JSON's ``hiding``) as record entries: its places' gaps, and whether
+    the truth's origin lies level within RIGHT_CM of a place (its heading left open) -> {} for an object without."""
+    if not hiding:
+        return {}
+    d = truth[:3, 3] * 1000.0 - np.asarray(hiding["places_mm"])  # (P, 3) mm
+    level = d - np.outer(d @ vertical, vertical)
+    return {"hiding_gaps": hiding["gaps"],
+            "in_region": bool(np.linalg.norm(level, axis=1).min() < 10.0 * RIGHT_CM)}
 
 
 def mode_pose(mode: dict) -> np.ndarray:
@@ -96,11 +110,14 @@ def estimate_seen_through(dataset: Path, frame_json: dict) -> np.ndarray:
 def modes_at(records: list[dict], temperature: float, elsewhere: tuple[float, float] | None = None
              ) -> list[ObjectModes]:
     """Each record's modes with probabilities at ``temperature``, scaled by the chance that the truth is among them
-    (the logistic ``elsewhere`` (intercept, slope) in ``seen_through``) where given."""
+    (the logistic ``elsewhere`` (intercept, slope) in ``seen_through``) where given; a hidden object's then by the
+    chance that the truth lies within 2 cm of its estimate's place (``hidden.HidingRegion.estimate_share``)."""
     out = []
     for r in records:
         p = probabilities(np.array(r["gaps"]), temperature)
-        if elsewhere is not None:
+        if elsewhere is not None and r.get("hiding_gaps"):  # a hidden object's elsewhere: the rest of its region
+            p = p * min(1.0, float(probabilities(np.array(r["hiding_gaps"]), temperature)[0]) * TOLERANCE_CELLS)
+        elif elsewhere is not None:
             p = p * found_probability(r["seen_through"], elsewhere)
         order = np.argsort(-p, kind="stable")
         out.append(ObjectModes(p[order], np.array(r["right"])[order]))
@@ -203,6 +220,14 @@ def main(argv: list[str] | None = None) -> int:
         part = [objects[i] for i in hidden]
         print(f"  {'objects under 10 % visible':39s} {len(part):4d}  {top1(part):.3f}  {coverage(part):.3f}  "
               f"{expected_calibration_error(part):.3f}  {expected_calibration_error([folded[i] for i in hidden]):.3f}")
+        covered = [coverage([objects[i]]) == 1.0 or records[i].get("in_region", False) for i in hidden]
+        print(f"  {'':39s} the truth among those modes or, for one the sensor sees none of, in its hiding region: "
+              f"{np.mean(covered):.3f}")
+    regions = [r for r in records if "in_region" in r]
+    if regions:
+        print(f"{len(regions)} objects the sensor sees none of, with a hiding region: the truth within {RIGHT_CM:g} cm "
+              f"of one of its places for {sum(r['in_region'] for r in regions)}; places per region, median "
+              f"{np.median([len(r['hiding_gaps']) for r in regions]):.0f}")
     for name in sorted({r["dataset"] for r in records}):
         idx = [i for i, r in enumerate(records) if r["dataset"] == name]
         print(f"  {name:24s} {'all':14s} {len(idx):4d}  {top1([objects[i] for i in idx]):.3f}  "

@@ -53,6 +53,37 @@ def test_the_posterior_in_words():
     assert np.array_equal(scene_with_modes(scene, None, (1, 0), ["can", "mug"])[0], scene)
 
 
+def test_a_hidden_object_is_named_hidden_with_its_places_in_words_and_as_dots_in_the_view():
+    import viser
+
+    from workbench.app.protocol import MeshData
+    from workbench.app.ui.run.ghosts import ModesLayer
+    from workbench.inference.answer.posterior import hidden
+
+    places = np.array([[0.3, 0.1, 0.04], [0.325, 0.1, 0.04], [0.35, 0.1, 0.04]])
+    o = hidden(ObjectPosterior(1, [Mode(np.eye(4), -10.0, 0.0, 1.0, "the estimate")], 0.001, seen_through=1.0,
+                               elsewhere=0.99), places, np.zeros(3), 15.0)
+    assert confidence_text(o) == "p = 0.67, hidden: one of 3 places"  # elsewhere: the region says where
+    post = Posterior([posterior_by_hand().objects[0], o], 15.0)
+    assert (f"| {named(1, 'mug')} | 0.67 | — | hidden: one of 3 places up to 5 cm apart, p = 0.67 where estimated | "
+            f"1.0 | — |") in posterior_markdown(post, ["can", "mug"], 7)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    try:
+        box = MeshData("box", np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32),
+                       np.array([[0, 1, 2]], np.int32))
+        layer = ModesLayer(server)
+        layer.set_frame([box, box])
+        layer.update(post)
+        assert sorted(layer.hiding) == [1] and sorted(layer.ghosts) == [0]
+        assert np.allclose(layer.hiding[1].points, places, atol=1e-3)  # viser sends them as float16
+        layer.set_visible(False)
+        assert not layer.hiding[1].visible
+        layer.update(None)
+        assert layer.hiding == {}
+    finally:
+        server.stop()
+
+
 def test_a_finished_run_carries_its_posterior_and_labels_take_the_chosen_mode(tmp_path, hidden_handle_dataset):
     """Snapshots carry no posterior until the run finishes; then the settled estimate's. "Use best estimate as
     label" takes the mode chosen for each object (of the posterior shown: a choice made on another iteration's

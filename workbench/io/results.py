@@ -83,7 +83,9 @@ def posterior_record(problem: Problem, posterior: Posterior) -> list[dict]:
     position (mm); the range of headings about the table's vertical (``vertical_cam``, a unit vector in the camera
     frame) that the view leaves open (degrees about the estimate's, or null); the share of its estimate's surface
     the sensor sees through, and the chance that it is none of the modes (``elsewhere``, beside the modes, whose
-    probabilities sum to 1)."""
+    probabilities sum to 1); for an object the sensor sees none of, its hiding region (``hiding``: the places its
+    origin can be, camera frame mm, the estimate's first, with their probabilities and log-likelihood gaps to the
+    estimate), else null."""
     T_cam_world = problem.camera.T_cam_world
     out = []
     for o in posterior.objects:
@@ -99,6 +101,11 @@ def posterior_record(problem: Problem, posterior: Posterior) -> list[dict]:
                     "position_spread_mm": round(1000.0 * o.position_spread_m, 3),
                     "yaw_range_deg": None if o.yaw_range_deg is None else list(o.yaw_range_deg),
                     "seen_through": round(o.seen_through, 4), "elsewhere": round(o.elsewhere, 6),
+                    "hiding": None if o.hiding is None else {
+                        "places_mm": [[round(1000.0 * float(v), 3) for v in p] for p in
+                                      o.hiding.places @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]],
+                        "probabilities": [round(float(q), 6) for q in o.hiding.probabilities],
+                        "gaps": [round(float(g), 3) for g in o.hiding.gaps]},
                     "vertical_cam": [round(float(v), 12) for v in T_cam_world[:3, 2]],
                     "temperature": posterior.temperature})
     return out

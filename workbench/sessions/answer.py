@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from workbench.inference.answer.hidden import HidingRegion
 from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
 from workbench.inference.answer.settle import Tie
 from workbench.io import readers as read
@@ -42,8 +43,8 @@ def answer_json(answer: Answer) -> dict:
 
 def posterior_json(posterior: Posterior) -> dict:
     """A posterior as plain JSON: per object its modes (pose, log-likelihood, gap, probability, what), position
-    spread (m) and open heading range (degrees, or null), the temperature, and the stage a budget cut short (only
-    where one did)."""
+    spread (m), open heading range (degrees, or null) and, for a hidden object, its hiding region (places m and
+    their probabilities and gaps); the temperature, and the stage a budget cut short (only where one did)."""
     cut = {} if posterior.cut_short is None else {"cut_short": posterior.cut_short}
     return {
         **cut,
@@ -56,6 +57,10 @@ def posterior_json(posterior: Posterior) -> dict:
             "yaw_range_deg": None if o.yaw_range_deg is None else [float(v) for v in o.yaw_range_deg],
             "seen_through": float(o.seen_through),
             "elsewhere": float(o.elsewhere),
+            **({} if o.hiding is None else {"hiding": {
+                "places": np.asarray(o.hiding.places, np.float64).tolist(),
+                "probabilities": np.asarray(o.hiding.probabilities, np.float64).tolist(),
+                "gaps": np.asarray(o.hiding.gaps, np.float64).tolist()}}),
         } for o in posterior.objects],
     }
 
@@ -92,7 +97,10 @@ def parse_posterior(value, K: int, where: str = "posterior") -> Posterior:
 def _object(value, k: int, where: str) -> ObjectPosterior:
     keys = ("obj", "modes", "position_spread_m", "yaw_range_deg")
     # Sessions saved before the chance of "elsewhere" was reported have neither entry: no doubt, as they showed.
-    read.exact_keys(value, keys + ("seen_through", "elsewhere") if "elsewhere" in value else keys, where)
+    if "elsewhere" in value:
+        keys += ("seen_through", "elsewhere")
+    read.exact_keys(value, keys + ("hiding",) if "hiding" in value else keys, where)
+    hiding = None if "hiding" not in value else _hiding(value["hiding"], f"{where}.hiding")
     elsewhere = read.quantity(value.get("elsewhere", 0.0), f"{where}.elsewhere")
     seen_through = read.quantity(value.get("seen_through", 0.0), f"{where}.seen_through")
     if not (0.0 <= elsewhere <= 1.0 and 0.0 <= seen_through <= 1.0):
@@ -115,7 +123,17 @@ def _object(value, k: int, where: str) -> ObjectPosterior:
         if len(yaw) != 2 or not -180.0 <= yaw[0] <= 0.0 <= yaw[1] <= 180.0:
             raise ValueError(f"{where}.yaw_range_deg must be [lo, hi] degrees with -180 <= lo <= 0 <= hi <= 180, "
                              f"got {list(yaw)}")
-    return ObjectPosterior(k, modes, spread, yaw, seen_through, elsewhere)
+    return ObjectPosterior(k, modes, spread, yaw, seen_through, elsewhere, hiding)
+
+
+def _hiding(value, where: str) -> HidingRegion:
+    read.exact_keys(value, ("places", "probabilities", "gaps"), where)
+    places = read.json_list(value["places"], f"{where}.places")
+    places = read.finite_array(places, (len(places), 3), np.float64, f"{where}.places")
+    p = read.finite_array(value["probabilities"], (len(places),), np.float64, f"{where}.probabilities")
+    if not len(p) or np.any(p < 0) or abs(p.sum() - 1.0) > 1e-6:
+        raise ValueError(f"{where}.probabilities must be one per place, summing to 1, got {p.tolist()}")
+    return HidingRegion(places, p, read.finite_array(value["gaps"], (len(places),), np.float64, f"{where}.gaps"))
 
 
 def _mode(value, where: str) -> Mode:

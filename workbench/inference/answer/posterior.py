@@ -56,10 +56,11 @@ import numpy as np
 from workbench.evaluation.base import run_here
 from workbench.geometry import rot_z, rotvec_to_matrix
 from workbench.inference.answer import settle
+from workbench.inference.answer.hidden import HidingRegion, hiding_places
 from workbench.inference.search.datadriven import elsewhere
 from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves.resting import RestingPoses, lowest_point
-from workbench.inference.search.scenepoints import object_badness
+from workbench.inference.search.scenepoints import object_badness, unseen
 from workbench.problem.problem import Problem
 from workbench.problem.scene import display_names
 from workbench.score.metrics import is_right
@@ -107,7 +108,10 @@ class ObjectPosterior:
     ``yaw_range_deg``: (lo, hi) degrees about the estimate's heading (lo <= 0 <= hi) where the view leaves the
     rotation about the vertical open, or None; ``seen_through``: the share of the estimate's camera-facing surface
     that the sensor sees through; ``elsewhere``: the probability that the truth is none of the modes (the search
-    missed it)."""
+    missed it); ``hiding``: for an object the sensor sees none of, the places where it can be as well
+    (``hidden.HidingRegion``), None otherwise. A hidden object's modes are all at its estimate's place, so its
+    ``elsewhere`` is the chance that the truth does not lie within 2 cm of that place (``1 -
+    HidingRegion.estimate_share``), and the region says where else."""
 
     obj: int
     modes: list[Mode]
@@ -115,6 +119,7 @@ class ObjectPosterior:
     yaw_range_deg: tuple[float, float] | None = None
     seen_through: float = 0.0
     elsewhere: float = 0.0
+    hiding: HidingRegion | None = None
 
     @property
     def confidence(self) -> float:
@@ -135,15 +140,18 @@ class Posterior:
     def summary(self, problem: Problem, threshold: float = 0.9) -> str:
         """One line: e.g. "2 of 6 objects uncertain: potted meat can (turned over its x axis, p = 0.45), mug
         (about the vertical anywhere in [-60, 90] degrees)"; "all 4 objects certain" when every top mode holds at
-        least ``threshold``."""
+        least ``threshold``. A hidden object is always named, with its region (``hiding_text``)."""
         unsure = [o for o in self.objects
-                  if o.confidence < threshold or o.yaw_range_deg is not None or o.elsewhere >= DOUBTFUL]
+                  if o.confidence < threshold or o.yaw_range_deg is not None or o.elsewhere >= DOUBTFUL
+                  or o.hiding is not None]
         if not unsure:
             return f"all {len(self.objects)} objects certain (p >= {threshold:g})"
         parts, names = [], display_names(problem.models)
         for o in unsure:
             name = names[o.obj]
-            if o.elsewhere >= DOUBTFUL:
+            if o.hiding is not None:
+                parts.append(f"{name} ({hiding_text(o.hiding)})")
+            elif o.elsewhere >= DOUBTFUL:
                 parts.append(f"{name} (maybe elsewhere: the sensor sees through {100 * o.seen_through:.0f} % of it, "
                              f"p = {o.elsewhere:.2f})")
             elif o.yaw_range_deg is not None:
@@ -153,6 +161,12 @@ class Posterior:
                 second = o.modes[1]
                 parts.append(f"{name} ({second.what}, p = {second.probability:.2f})")
         return f"{len(unsure)} of {len(self.objects)} objects uncertain: " + ", ".join(parts)
+
+
+def hiding_text(region: HidingRegion) -> str:
+    """A hiding region in words: "hidden: one of 37 places up to 24 cm apart, p = 0.03 where estimated"."""
+    return (f"hidden: one of {len(region.places)} places up to {100 * region.extent_m:.0f} cm apart, "
+            f"p = {region.estimate_share:.2f} where estimated")
 
 
 def unreported_below(loglik: float, temperature: float = TEMPERATURE) -> float:
@@ -181,6 +195,16 @@ def found_probability(seen_through: np.ndarray | float, coefficients: tuple[floa
 def doubted(o: ObjectPosterior, seen_through: float) -> ObjectPosterior:
     """``o`` with its ``seen_through`` share and the chance that its truth is elsewhere (``found_probability``)."""
     return replace(o, seen_through=float(seen_through), elsewhere=1.0 - float(found_probability(seen_through)))
+
+
+def hidden(o: ObjectPosterior, places: np.ndarray, gaps: np.ndarray, temperature: float) -> ObjectPosterior:
+    """``o``, an object the sensor sees none of, with its hiding region: ``places`` (P, 3) m, table frame, the
+    estimate's first, and their log-likelihood ``gaps`` (P,) to the estimate's scene, weighted as modes are
+    (``probabilities``). The chance that it is elsewhere than its modes is the chance that it is not at their place
+    (``HidingRegion.estimate_share``), not a guess from a share seen through (of nothing)."""
+    region = HidingRegion(np.asarray(places, dtype=np.float64), probabilities(gaps, temperature),
+                          np.asarray(gaps, dtype=np.float64))
+    return replace(o, elsewhere=1.0 - region.estimate_share, hiding=region)
 
 
 def object_modes(estimate: np.ndarray, loglik: float, candidates: list[tuple[np.ndarray, float, str]],
@@ -476,7 +500,7 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
     settled: dict[tuple[int, str], float] = {}
     for k, what, _, ll in held:
         settled[k, what] = max(ll, settled.get((k, what), -np.inf))
-    objects, through = [], object_badness(problem, scene, samples)
+    objects, through, hid = [], object_badness(problem, scene, samples), unseen(problem, scene, samples)
     for k, model in enumerate(problem.models):
         candidates = [(T[k], ll, what) for j, what, T, ll in held if j == k]
         if k in kept:  # its pose before is now a candidate, its gaps are to its new pose
@@ -498,4 +522,9 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
             obj=k,
             modes=object_modes(scene[k], kept.get(k, loglik_before), candidates, model.symmetries, temperature),
             position_spread_m=position_spread(projected, weights, scene[k], k), yaw_range_deg=open_range), through[k]))
+    # An object the sensor sees none of could be anywhere it stays unseen: its region of the table, as given.
+    for k in np.flatnonzero(hid):
+        places, gaps, n = hiding_places(scene, int(k), loglik, score, geometry.solids, open_gap)
+        objects[k] = hidden(objects[k], places, gaps, temperature)
+        scored += n
     return Posterior(objects, temperature, time.perf_counter() - t0), scored, scene, loglik

@@ -138,20 +138,34 @@ def project_samples(problem: Problem, scene: np.ndarray, samples: list[ModelSamp
     return out
 
 
-def object_badness(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
-    """How badly each object of ``scene`` (K, 4, 4) explains its part of the observation -> (K,) in [0, 1]: the
-    share of its camera-facing surface samples where the sensor sees through it (observed depth well behind the
-    surface) or sees nothing of it (the surface is in front of the observation but not on it, out of view)."""
+def seen_counts(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> tuple[np.ndarray, np.ndarray]:
+    """Per object of ``scene`` (K, 4, 4), its camera-facing surface samples that the sensor sees through (observed
+    depth well behind the surface) and that it sees on the surface -> (through (K,), on (K,)) counts. The rest lie
+    behind what the sensor sees (hidden) or have no reading."""
     obs = problem.observed
-    bad = np.zeros(len(samples))
+    through, on = np.zeros(len(samples), dtype=int), np.zeros(len(samples), dtype=int)
     for k, (v, u, d) in enumerate(project_samples(problem, scene, samples)):
         o = obs[v, u]
         seen = o > 0
-        through = seen & (o > d + SEEN_THROUGH)
-        on = seen & (np.abs(o - d) < EXPLAINED)
-        total = through.sum() + on.sum()
-        bad[k] = through.sum() / total if total else 1.0
-    return bad
+        through[k] = int((seen & (o > d + SEEN_THROUGH)).sum())
+        on[k] = int((seen & (np.abs(o - d) < EXPLAINED)).sum())
+    return through, on
+
+
+def object_badness(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
+    """How badly each object of ``scene`` (K, 4, 4) explains its part of the observation -> (K,) in [0, 1]: the
+    share of its camera-facing surface samples where the sensor sees through it among those it sees through or on;
+    1 for an object it sees nothing of (out of view, or hidden: ``unseen``)."""
+    through, on = seen_counts(problem, scene, samples)
+    total = through + on
+    return np.where(total > 0, through / np.maximum(total, 1), 1.0)
+
+
+def unseen(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
+    """(K,) bool: the objects of ``scene`` (K, 4, 4) of which the sensor sees no camera-facing surface sample, on
+    the surface or through it: hidden behind what it sees, or out of view."""
+    through, on = seen_counts(problem, scene, samples)
+    return through + on == 0
 
 
 def _splat(problem: Problem, scene: np.ndarray, samples: list[ModelSamples], objects: list[int]) -> np.ndarray:

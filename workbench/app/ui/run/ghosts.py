@@ -1,6 +1,6 @@
 """The other modes of the posterior in the 3D view: each object's alternatives to the estimate (``modes[1:]``) as
 ghosts, faint outlines in a pale tint of the object's colour, each labelled beside it with its object's name and
-its probability.
+its probability; a hidden object's hiding places (``posterior.ObjectPosterior.hiding``) as dots of that tint.
 
 Ghosts are drawn as the particles are (``views.outline_mesh``: the feature edges of a coarse decimation, one
 instanced wireframe per object), not as solid meshes or every triangle edge: a few more instances cost software
@@ -22,6 +22,7 @@ from workbench.app.ui.widgets import colors
 from workbench.inference.answer.posterior import Posterior
 
 GHOST_OPACITY = 0.55
+HIDING_POINT_M = 0.012  # a hiding place's dot: about half the places' spacing, so neighbours stay apart
 LABEL_LIFT_M = 0.02  # a label sits this far above the ghost's highest outline point
 LABEL_GAP_M = 0.01  # and this far beyond its outline, on the side away from the other objects
 
@@ -45,13 +46,15 @@ def label_position(segments: np.ndarray, T: np.ndarray, away_from: np.ndarray) -
 @dataclass
 class ModesLayer:
     """Per object with other modes: one instanced outline (an instance per mode after the first) and a label per
-    mode ("mug · p = 0.31 turned over its x axis"). ``ghosts[k]``: object k's outline handle, if it has other
-    modes; ``labels``: every label's handle; ``texts``: their texts, in the order drawn (for the tests)."""
+    mode ("mug · p = 0.31 turned over its x axis"); for an object the sensor sees none of, a dot at each place it
+    may hide in. ``ghosts[k]``: object k's outline handle, if it has other modes; ``hiding[k]``: its dots' handle,
+    if it is hidden; ``labels``: every label's handle; ``texts``: their texts, in the order drawn (for the tests)."""
 
     server: viser.ViserServer
     meshes: list[MeshData] = field(default_factory=list)
     nodes: Nodes = field(default_factory=Nodes)
     ghosts: dict = field(default_factory=dict)
+    hiding: dict = field(default_factory=dict)
     labels: list = field(default_factory=list)
     texts: list[str] = field(default_factory=list)
     shown: bool = True
@@ -62,7 +65,7 @@ class ModesLayer:
 
     def clear(self) -> None:
         self.nodes.clear()
-        self.ghosts, self.labels, self.texts = {}, [], []
+        self.ghosts, self.hiding, self.labels, self.texts = {}, {}, [], []
 
     def update(self, posterior: Posterior | None) -> None:
         """Draw ``posterior``'s other modes (None: none), replacing those drawn."""
@@ -73,8 +76,15 @@ class ModesLayer:
         middle = np.mean([o.modes[0].T[:3, 3] for o in posterior.objects], axis=0)
         with self.server.atomic():
             for o in posterior.objects:
+                if o.obj >= len(self.meshes):
+                    continue
+                if o.hiding is not None:
+                    self.hiding[o.obj] = add(scene.add_point_cloud(
+                        f"/modes/{o.obj}/hiding", o.hiding.places.astype(np.float32),
+                        np.array(colors.ghost_color(o.obj), np.uint8), point_size=HIDING_POINT_M, point_shape="circle",
+                        visible=self.shown))
                 others = o.modes[1:]
-                if not others or o.obj >= len(self.meshes):
+                if not others:
                     continue
                 mesh, k = self.meshes[o.obj], o.obj
                 poses = np.stack([m.T for m in others])
@@ -96,5 +106,5 @@ class ModesLayer:
 
     def set_visible(self, shown: bool) -> None:
         self.shown = shown
-        for h in (*self.ghosts.values(), *self.labels):
+        for h in (*self.ghosts.values(), *self.hiding.values(), *self.labels):
             h.visible = shown

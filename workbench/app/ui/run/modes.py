@@ -8,7 +8,7 @@ import numpy as np
 
 from workbench.app.ui.widgets.colors import named
 from workbench.app.ui.widgets.markdown import escape
-from workbench.inference.answer.posterior import DOUBTFUL, Mode, ObjectPosterior, Posterior
+from workbench.inference.answer.posterior import DOUBTFUL, Mode, ObjectPosterior, Posterior, hiding_text
 
 
 def chance(o: ObjectPosterior, mode: Mode) -> float:
@@ -32,10 +32,13 @@ def yaw_text(o: ObjectPosterior) -> str:
 
 def confidence_text(o: ObjectPosterior) -> str:
     """An object's confidence: its top mode's ``chance``, the open heading if any, and the chance that it is
-    elsewhere when that is at least ``posterior.DOUBTFUL``: "p = 0.84", "p = 1.00, heading open −60° … +90°",
-    "p = 0.38, elsewhere 0.62"."""
+    elsewhere when that is at least ``posterior.DOUBTFUL`` or, for a hidden object, how many places it may be in:
+    "p = 0.84", "p = 1.00, heading open −60° … +90°", "p = 0.38, elsewhere 0.62", "p = 0.03, hidden: one of 37
+    places"."""
     yaw = yaw_text(o)
     doubt = f"elsewhere {o.elsewhere:.2f}" if o.elsewhere >= DOUBTFUL else ""
+    if o.hiding is not None:
+        doubt = f"hidden: one of {len(o.hiding.places)} places"
     return ", ".join([f"p = {chance(o, o.modes[0]):.2f}", *(t for t in (yaw, doubt) if t)])
 
 
@@ -66,8 +69,9 @@ def posterior_markdown(posterior: Posterior | None, names: list[str], iteration:
     for o in posterior.objects:
         name = named(o.obj, names[o.obj] if o.obj < len(names) else f"object {o.obj}")
         others = "<br>".join(escape(mode_label(o, m)) for m in o.modes[1:]) or "—"  # one line each
-        rows.append(f"| {name} | {chance(o, o.modes[0]):.2f} | {others} | {o.elsewhere:.2f} "
-                    f"({100 * o.seen_through:.0f} %) | {o.position_spread_m * 1000:.1f} | "
+        where = escape(hiding_text(o.hiding)) if o.hiding is not None else \
+            f"{o.elsewhere:.2f} ({100 * o.seen_through:.0f} %)"
+        rows.append(f"| {name} | {chance(o, o.modes[0]):.2f} | {others} | {where} | {o.position_spread_m * 1000:.1f} | "
                     f"{yaw_text(o).removeprefix('heading open ') or '—'} |")
     return (f"**Posterior** of the settled estimate · iteration {iteration}\n\n"
             "| object | p | other modes | elsewhere | spread mm | heading |\n"
@@ -76,8 +80,9 @@ def posterior_markdown(posterior: Posterior | None, names: list[str], iteration:
             + f"\n\n<small>per object, the estimate (*p*), the other modes and *elsewhere* add up to 1; other modes "
               f"are drawn as ghosts in the 3D view; probabilities at temperature {posterior.temperature:g}; "
               f"*elsewhere*: the chance that it is none of its modes, from the share of its surface the sensor sees "
-              f"through (in brackets); *spread*: of its position; *heading*: the range of turns about the vertical "
-              f"left open</small>")
+              f"through (in brackets), or for an object the sensor sees none of, the places it may hide in (dots in "
+              f"the 3D view); *spread*: of its position; *heading*: the range of turns about the vertical left "
+              f"open</small>")
 
 
 def scene_with_modes(scene: np.ndarray, posterior: Posterior | None, modes: tuple[int, ...],
