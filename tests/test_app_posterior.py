@@ -11,6 +11,7 @@ from headless import free_port
 from inbox import Inbox
 
 from workbench.app import protocol as p
+from workbench.app.ui.run.ghosts import LABELLED
 from workbench.app.ui.run.modes import confidence_text, mode_label, mode_option, posterior_markdown, scene_with_modes
 from workbench.app.ui.widgets.colors import named, view_legend_html
 from workbench.inference.answer.posterior import Mode, ObjectPosterior, Posterior
@@ -167,7 +168,8 @@ def test_the_server_draws_the_modes_and_shows_the_confidences(hidden_handle_data
             ghost = d.modes.ghosts[o.obj]
             assert len(ghost.batched_positions) == len(o.modes) - 1
             assert np.allclose(ghost.batched_positions, [m.T[:3, 3] for m in o.modes[1:]])
-        assert d.modes.texts == [f"{names[o.obj]} · {mode_label(o, m)}" for o in several for m in o.modes[1:]]
+        assert d.modes.texts == [f"{names[o.obj]} · {mode_label(o, m)}" for o in several
+                                 for m in o.modes[1:1 + LABELLED]]
         # The solid estimate is the run's settled answer (each object's top mode), not the most likely particle.
         for o, best in zip(post.objects, d.particles.best):
             assert np.allclose(best.position, o.modes[0].T[:3, 3], atol=1e-6)

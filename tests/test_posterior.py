@@ -10,6 +10,8 @@ import pytest
 from workbench.geometry import invert_pose, make_pose, rot_z
 from workbench.inference.answer.posterior import (
     DOUBTFUL,
+    RANGE_STEP_DEG,
+    YAW_STEP_DEG,
     Mode,
     ObjectPosterior,
     Posterior,
@@ -268,6 +270,12 @@ def test_a_mug_whose_handle_is_hidden_is_uncertain_about_its_heading_and_the_tru
     offset = (heading(truth) - heading(settled) + 180.0) % 360.0 - 180.0  # the truth's heading from the estimate's
     lo, hi = mug.yaw_range_deg
     assert lo <= offset <= hi and abs(offset) > 20  # the estimate is off, and the range says where it could be
+    # Every heading found open (the range less the half step it reaches beyond them) is right for one mode: the
+    # range's modes lie RANGE_STEP_DEG apart, all listed.
+    modes = [heading(m.T) - heading(settled) for m in mug.modes]
+    for a in np.arange(lo + YAW_STEP_DEG / 2, hi - YAW_STEP_DEG / 2 + 1e-9, 1.0):
+        assert min(abs((a - m + 180.0) % 360.0 - 180.0) for m in modes) <= RANGE_STEP_DEG / 2 + 0.5, (lo, hi, modes)
+    assert any(metrics.is_right(truth, m.T) for m in mug.modes)
 
 
 @pytest.mark.slow  # pybullet and OpenGL

@@ -26,7 +26,6 @@ import trimesh
 from workbench.errors import InputError
 from workbench.evaluation import Evaluator, WorkerCrashed, make_evaluator
 from workbench.geometry import invert_pose
-from workbench.inference.answer.carried_posterior import filled
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator, object_confidence
 from workbench.inference.search.geometry import SearchGeometry
@@ -210,17 +209,10 @@ class Tracker:
         return replace(problem, models=models)
 
     def _estimate(self, problem: Problem, desc: str) -> tuple[Estimator, np.ndarray]:
-        """From scratch, as ``estimate`` does; its posterior's open ranges of headings filled with modes
-        (``carried_posterior.filled``), for the frames after it to decide among."""
-        estimator, best = run_estimator(Estimator(problem, self.config, self._use(problem)), desc, self.early_stop,
-                                        show_progress=True)
-        if estimator.posterior is not None:
-            f = estimator.filter
-            geometry = (estimator.search.geometry(f) if hasattr(estimator.search, "geometry")
-                        else SearchGeometry.of(problem, upright=estimator.config.state == "xyzyaw"))
-            estimator.posterior, _ = filled(problem, best, estimator.settled_loglik, estimator.posterior,
-                                            lambda scenes: f.evaluate(scenes, project=False).loglik, geometry.samples)
-        return estimator, best
+        """From scratch, as ``estimate`` does: its posterior's open ranges of headings are modes every
+        ``posterior.RANGE_STEP_DEG``, for the frames after it to decide among."""
+        return run_estimator(Estimator(problem, self.config, self._use(problem)), desc, self.early_stop,
+                             show_progress=True)
 
     def _tracked_problem(self, frame: Frame) -> tuple[Frame, Problem, Carried]:
         """The frame in the sequence's table frame (the previous frame's, moved by the camera's motion), its

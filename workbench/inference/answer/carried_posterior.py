@@ -22,7 +22,6 @@ its places.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -30,18 +29,17 @@ import numpy as np
 from workbench.geometry import rotation_angle
 from workbench.inference.answer import settle
 from workbench.inference.answer.posterior import (
+    MAX_MODES,
     MIN_PROBABILITY,
     RANGE_GAP,
+    RANGE_STEP_DEG,
     YAW_STEP_DEG,
     Mode,
     ObjectPosterior,
     Posterior,
     position_spread,
     probabilities,
-    turn_centre,
-    turned_about_vertical,
     yaw_range,
-    yaw_turns,
 )
 from workbench.problem.problem import Problem
 from workbench.score.metrics import is_right
@@ -51,11 +49,9 @@ ESTIMATE = "the estimate"
 # A carried mode's pose is a turn about the vertical of the estimate's when their rotations differ by a turn about
 # the table's z alone, to within this (degrees): it is then a heading of the open range.
 LEVEL_DEG = 5.0
-# The headings of an open range that a sequence carries as modes, degrees apart: the sweep's 30 degrees leave the
-# truth up to 15 degrees from every mode, beyond what counts as right (10); 15 leaves it within 7.5 of one, and
-# modes 15 degrees apart stay distinct.
-FILL_STEP_DEG = 15.0
-CARRIED_MODES = 16  # modes a carried posterior keeps per object (an open range's headings fill half of them)
+# Modes a carried posterior keeps per object: as many as a frame's (``posterior.MAX_MODES``) and a whole circle of
+# an open range's headings (``posterior.RANGE_STEP_DEG`` apart).
+CARRIED_MODES = MAX_MODES + int(round(360.0 / RANGE_STEP_DEG))
 
 Refine = Callable[[np.ndarray, int], tuple[np.ndarray, float, int]]  # (scene, object) -> (fitted, loglik, scored)
 
@@ -144,42 +140,6 @@ def accumulated_modes(estimate: np.ndarray, loglik: float, candidates: list[tupl
     order = order[p[order] >= MIN_PROBABILITY]
     kept = p[order] / p[order].sum()
     return [Mode(modes[i][0], modes[i][1], float(gaps[i]), float(q), modes[i][3]) for i, q in zip(order, kept)]
-
-
-def filled(problem: Problem, scene: np.ndarray, loglik: float, posterior: Posterior, score: settle.Score,
-           samples: list, step_deg: float = FILL_STEP_DEG) -> tuple[Posterior, int]:
-    """A frame's posterior (``posterior.sweep``'s, of the settled ``scene`` (K, 4, 4) whose log-likelihood as given
-    is ``loglik``) with each open range of headings filled: the estimate turned about the vertical through its axis
-    (``posterior.turn_centre`` of its surface ``samples``) every ``step_deg`` within the range, scored as given with
-    ``score``, a mode each where it is not one already -> (the posterior, scenes scored). What a sequence starts
-    carrying: a later view that decides the heading then finds the right one among the modes."""
-    fills = []
-    for o in posterior.objects:
-        if o.yaw_range_deg is None:
-            continue
-        k, (lo, hi) = o.obj, o.yaw_range_deg
-        poses, angles = yaw_turns(scene[k], turn_centre(samples[k].points, scene[k, 2, :3]), step_deg)
-        symmetries = problem.models[k].symmetries
-        fills += [(k, T, a) for T, a in zip(poses, angles) if lo <= a <= hi
-                  and not any(is_right(m.T, T, symmetries) for m in o.modes)]
-    if not fills:
-        return posterior, 0
-    scenes = np.repeat(scene[None], len(fills), axis=0)
-    for i, (k, T, _) in enumerate(fills):
-        scenes[i, k] = T
-    ll = score(scenes)
-    objects = []
-    for o in posterior.objects:
-        new = [(T, float(ll[i]), float(ll[i]) - loglik, turned_about_vertical(a))
-               for i, (k, T, a) in enumerate(fills) if k == o.obj]
-        if not new:
-            objects.append(o)
-            continue
-        old = [(m.T, m.loglik, m.gap, m.what) for m in o.modes[1:]]
-        objects.append(replace(o, modes=accumulated_modes(scene[o.obj], loglik, old + new,
-                                                          problem.models[o.obj].symmetries,
-                                                          posterior.temperature)))
-    return replace(posterior, objects=objects), len(fills)
 
 
 def heading_deg(estimate: np.ndarray, T: np.ndarray) -> float | None:

@@ -41,9 +41,9 @@ estimate (a large ``elsewhere``).
 
 A rotation about the vertical that the view leaves open is reported as a range (``yaw_range_deg``, about the
 estimate's heading) rather than as a dozen modes: the turns whose scene as given scores within ``RANGE_GAP``
-temperatures of the estimate's, when they form one arc of at least three steps. Each heading of the range is also a
-mode, scored as given, so that the estimate's probability is its share of the range (at most ``MAX_MODES`` are
-listed, the range says the rest).
+temperatures of the estimate's, when they form one arc of at least three steps. The range's headings every
+``RANGE_STEP_DEG`` (20 degrees: each heading within the right-pose tolerance of one) are also modes, scored as given
+and all listed, so that the estimate's probability is its share of the range.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ from workbench.inference.search.moves.resting import RestingPoses, lowest_point
 from workbench.inference.search.scenepoints import object_badness, unseen
 from workbench.problem.problem import Problem
 from workbench.problem.scene import display_names
-from workbench.score.metrics import is_right
+from workbench.score.metrics import RIGHT_DEG, is_right
 
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on 447 objects: the posterior's suite of 225 (ycbv-real-dev and generated kinect-like frames) and 222
@@ -76,7 +76,11 @@ SETTLE_SWEEP = 2  # per object, the best turns about the vertical (as given) tha
 PARTICLE_POSES = 2  # per object, the heaviest distinct poses of the final particles tried as modes
 FACE_SWEEP = 2  # per object, the best poses on another resting face (as given) that are settled and become modes
 RANGE_GAP = np.log(20.0)  # temperatures: a heading whose odds against the estimate are better than 1 : 20 is open
-MAX_MODES = 8  # modes reported per object (the most likely)
+MAX_MODES = 8  # modes reported per object (the most likely), besides the headings of an open range
+# The headings of an open range listed as modes, degrees apart: twice the right-pose tolerance (RIGHT_DEG), so that
+# each heading of the range is right for one mode, and a mode's share of the range is what it is right for. At the
+# sweep's 30 degrees the truth could lie 15 from every mode, and each mode stood for 30 degrees but was right for 20.
+RANGE_STEP_DEG = 2 * RIGHT_DEG
 MIN_PROBABILITY = 1e-3  # a mode less likely than this is not reported
 HOPELESS = 1500.0  # log-units: a candidate this far below the estimate as given is not settled
 # The logistic (intercept, slope) of the chance that the truth is among an object's modes, in the share of its
@@ -208,10 +212,10 @@ def hidden(o: ObjectPosterior, places: np.ndarray, gaps: np.ndarray, temperature
 
 
 def object_modes(estimate: np.ndarray, loglik: float, candidates: list[tuple[np.ndarray, float, str]],
-                 symmetries: np.ndarray, temperature: float) -> list[Mode]:
+                 symmetries: np.ndarray, temperature: float, max_modes: int = MAX_MODES) -> list[Mode]:
     """One object's modes: its pose in the estimate (4, 4) with the estimate's log-likelihood, and ``candidates``
     (pose (4, 4), log-likelihood of the scene with it, what it is); candidates that are the same pose up to
-    ``symmetries`` (S, 4, 4) as the estimate or as a better candidate are one mode with them -> at most MAX_MODES
+    ``symmetries`` (S, 4, 4) as the estimate or as a better candidate are one mode with them -> at most ``max_modes``
     modes of at least MIN_PROBABILITY, most likely first, probabilities (``probabilities``) summing to 1."""
     modes = [(estimate, loglik, "the estimate")]
     for T, ll, what in sorted(candidates, key=lambda c: -c[1]):
@@ -219,7 +223,7 @@ def object_modes(estimate: np.ndarray, loglik: float, candidates: list[tuple[np.
             modes.append((np.array(T, dtype=np.float64), float(ll), what))
     gaps = np.array([ll - loglik for _, ll, _ in modes])
     p = probabilities(gaps, temperature)
-    order = np.argsort(-p, kind="stable")[:MAX_MODES]
+    order = np.argsort(-p, kind="stable")[:max_modes]
     order = order[p[order] >= MIN_PROBABILITY]  # the estimate's always is: it is the most likely
     kept = p[order] / p[order].sum()
     return [Mode(modes[i][0], modes[i][1], float(gaps[i]), float(q), modes[i][2]) for i, q in zip(order, kept)]
@@ -489,7 +493,8 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
         angles, at, distinct = yaw[k]
         headings[k] = (angles, [given[at + i][1] for i in range(len(angles))], given_ll[at:at + len(angles)],
                        distinct, loglik_before)
-    centres = dict(zip(kept, run(centre_call, [(samples[k].points, scene[k, 2, :3]) for k in kept])))
+    centres = dict(enumerate(centres)) | dict(zip(kept, run(centre_call, [(samples[k].points, scene[k, 2, :3])
+                                                                           for k in kept])))
     for k in kept:
         poses, angles = yaw_turns(scene[k], centres[k])
         turned = np.repeat(scene[None], len(poses), axis=0)
@@ -500,11 +505,8 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
     settled: dict[tuple[int, str], float] = {}
     for k, what, _, ll in held:
         settled[k, what] = max(ll, settled.get((k, what), -np.inf))
-    objects, through, hid = [], object_badness(problem, scene, samples), unseen(problem, scene, samples)
+    ranges, fine = {}, []
     for k, model in enumerate(problem.models):
-        candidates = [(T[k], ll, what) for j, what, T, ll in held if j == k]
-        if k in kept:  # its pose before is now a candidate, its gaps are to its new pose
-            candidates.append((before[k], loglik_before, "as first settled"))
         angles, poses, lls, distinct, base = headings[k]
         # How far the range reaches counts a heading settled above (one of its best few) as it settled, not only
         # as given: a generated mug with its handle hidden was open from the estimate to -30 degrees as given, and
@@ -512,16 +514,32 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
         # heading's own mode below keeps its pose and score as given; the settled pose is a candidate of its own.
         best = lls if k in kept else np.maximum(lls, [settled.get((k, turned_about_vertical(a)), -np.inf)
                                                       for a in angles])
-        open_range = yaw_range(angles, best - base, distinct, YAW_STEP_DEG, open_gap)
+        ranges[k] = open_range = yaw_range(angles, best - base, distinct, YAW_STEP_DEG, open_gap)
         if open_range is not None:
-            # Each heading of the open range is a mode (scored as given: a lower bound of what settling would give),
-            # so that the estimate's probability is its share of the range, not of the two headings settled.
-            for i in np.flatnonzero(distinct & (angles >= open_range[0]) & (angles <= open_range[1])):
-                candidates.append((poses[i], float(lls[i]), turned_about_vertical(angles[i])))
+            # Each heading of the open range, every RANGE_STEP_DEG out to half a step beyond its ends, is a mode
+            # (scored as given: a lower bound of what settling would give), so that the estimate's probability is its
+            # share of the range, not of the two headings settled; in the scene its headings above were scored in.
+            home = scene if k in kept else before
+            poses, angles = yaw_turns(home[k], centres[k], RANGE_STEP_DEG)
+            for T, a in zip(poses, angles):
+                if open_range[0] - RANGE_STEP_DEG / 2 <= a <= open_range[1] + RANGE_STEP_DEG / 2 \
+                        and not is_right(home[k], T, model.symmetries):
+                    turned = home.copy()
+                    turned[k] = T
+                    fine.append((k, T, a, turned))
+    fine_ll = score(np.stack([f[3] for f in fine])) if fine else np.zeros(0)
+    scored += len(fine)
+    objects, through, hid = [], object_badness(problem, scene, samples), unseen(problem, scene, samples)
+    for k, model in enumerate(problem.models):
+        candidates = [(T[k], ll, what) for j, what, T, ll in held if j == k]
+        if k in kept:  # its pose before is now a candidate, its gaps are to its new pose
+            candidates.append((before[k], loglik_before, "as first settled"))
+        headed = [(T, float(ll), turned_about_vertical(a)) for (j, T, a, _), ll in zip(fine, fine_ll) if j == k]
         objects.append(doubted(ObjectPosterior(
             obj=k,
-            modes=object_modes(scene[k], kept.get(k, loglik_before), candidates, model.symmetries, temperature),
-            position_spread_m=position_spread(projected, weights, scene[k], k), yaw_range_deg=open_range), through[k]))
+            modes=object_modes(scene[k], kept.get(k, loglik_before), candidates + headed, model.symmetries,
+                               temperature, MAX_MODES + len(headed)),
+            position_spread_m=position_spread(projected, weights, scene[k], k), yaw_range_deg=ranges[k]), through[k]))
     # An object the sensor sees none of could be anywhere it stays unseen: its region of the table, as given.
     for k in np.flatnonzero(hid):
         places, gaps, n = hiding_places(scene, int(k), loglik, score, geometry.solids, open_gap)

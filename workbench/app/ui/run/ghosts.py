@@ -19,9 +19,10 @@ from workbench.app.protocol import MeshData
 from workbench.app.ui.run.modes import mode_label
 from workbench.app.ui.run.views import NO_SHADOW, Nodes, outline_mesh, split_pose
 from workbench.app.ui.widgets import colors
-from workbench.inference.answer.posterior import Posterior
+from workbench.inference.answer.posterior import MAX_MODES, Posterior
 
 GHOST_OPACITY = 0.55
+LABELLED = MAX_MODES - 1  # an object's other modes that get a label, the most likely first: all but a range's
 HIDING_POINT_M = 0.012  # a hiding place's dot: about half the places' spacing, so neighbours stay apart
 LABEL_LIFT_M = 0.02  # a label sits this far above the ghost's highest outline point
 LABEL_GAP_M = 0.01  # and this far beyond its outline, on the side away from the other objects
@@ -46,9 +47,10 @@ def label_position(segments: np.ndarray, T: np.ndarray, away_from: np.ndarray) -
 @dataclass
 class ModesLayer:
     """Per object with other modes: one instanced outline (an instance per mode after the first) and a label per
-    mode ("mug · p = 0.31 turned over its x axis"); for an object the sensor sees none of, a dot at each place it
-    may hide in. ``ghosts[k]``: object k's outline handle, if it has other modes; ``hiding[k]``: its dots' handle,
-    if it is hidden; ``labels``: every label's handle; ``texts``: their texts, in the order drawn (for the tests)."""
+    mode ("mug · p = 0.31 turned over its x axis"; the most likely ``LABELLED``); for an object the sensor sees none
+    of, a dot at each place it may hide in. ``ghosts[k]``: object k's outline handle, if it has other modes;
+    ``hiding[k]``: its dots' handle, if it is hidden; ``labels``: every label's handle; ``texts``: their texts, in
+    the order drawn (for the tests)."""
 
     server: viser.ViserServer
     meshes: list[MeshData] = field(default_factory=list)
@@ -97,7 +99,9 @@ class ModesLayer:
                     batched_opacities=np.full(n, GHOST_OPACITY, np.float32),
                     lod="off", wireframe=True, visible=self.shown, **NO_SHADOW))
                 segments = vertices.reshape(-1, 2, 3)
-                for j, m in enumerate(others, start=1):
+                # The most likely few are labelled: an open range's headings, 20 degrees apart, are all modes, and
+                # a label each would stack a dozen around one mug; the Inspect tab lists them all.
+                for j, m in enumerate(others[:LABELLED], start=1):
                     text = f"{mesh.name} · {mode_label(o, m)}"
                     self.labels.append(add(scene.add_label(
                         f"/modes/{k}/label_{j}", text, position=label_position(segments, m.T, middle),
