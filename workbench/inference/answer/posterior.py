@@ -44,6 +44,10 @@ estimate's heading) rather than as a dozen modes: the turns whose scene as given
 temperatures of the estimate's, when they form one arc of at least three steps. The range's headings every
 ``RANGE_STEP_DEG`` (20 degrees: each heading within the right-pose tolerance of one) are also modes, scored as given
 and all listed, so that the estimate's probability is its share of the range.
+
+An object the sensor sees none of (hidden behind another) scores alike wherever it stays out of sight: its modes are
+at one place of that region, and the region is reported beside them (``hidden.hiding_places``,
+``ObjectPosterior.hiding``), its ``elsewhere`` the chance that the truth is not at the estimate's place.
 """
 
 from __future__ import annotations
@@ -68,7 +72,8 @@ from workbench.score.metrics import RIGHT_DEG, is_right
 # Log-units per e-fold of odds, fitted by benchmarks/calibrate_posterior.py (least negative log-likelihood of the
 # right modes) on 447 objects: the posterior's suite of 225 (ycbv-real-dev and generated kinect-like frames) and 222
 # of generated xtion frames (the posterior's categories, YCB-Video models lying free, the real-shape categories;
-# benchmarks/calibration/, docs/journal/2026-12.md, "Evidence alone"): 11.7, flat from 6 to 21. 15 keeps the open
+# benchmarks/calibration/, docs/journal/2026-12.md, "Evidence alone"): 11.7, flat from 6 to 21; 11, flat from 6 to
+# 30, with an open range's headings every RANGE_STEP_DEG ("An open range, mode by mode"). 15 keeps the open
 # range of headings (RANGE_GAP temperatures) where it was when the turn margin was paid in the probabilities.
 TEMPERATURE = 15.0
 YAW_STEP_DEG = 30.0
@@ -491,8 +496,7 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
     headings = {}
     for k, model in enumerate(problem.models):
         angles, at, distinct = yaw[k]
-        headings[k] = (angles, [given[at + i][1] for i in range(len(angles))], given_ll[at:at + len(angles)],
-                       distinct, loglik_before)
+        headings[k] = (angles, given_ll[at:at + len(angles)], distinct, loglik_before)
     centres = dict(enumerate(centres)) | dict(zip(kept, run(centre_call, [(samples[k].points, scene[k, 2, :3])
                                                                            for k in kept])))
     for k in kept:
@@ -500,14 +504,14 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
         turned = np.repeat(scene[None], len(poses), axis=0)
         turned[:, k] = poses
         distinct = np.array([not is_right(scene[k], T, problem.models[k].symmetries) for T in poses])
-        headings[k] = (angles, list(poses), score(turned), distinct, loglik)
+        headings[k] = (angles, score(turned), distinct, loglik)
         scored += len(turned)
     settled: dict[tuple[int, str], float] = {}
     for k, what, _, ll in held:
         settled[k, what] = max(ll, settled.get((k, what), -np.inf))
     ranges, fine = {}, []
     for k, model in enumerate(problem.models):
-        angles, poses, lls, distinct, base = headings[k]
+        angles, lls, distinct, base = headings[k]
         # How far the range reaches counts a heading settled above (one of its best few) as it settled, not only
         # as given: a generated mug with its handle hidden was open from the estimate to -30 degrees as given, and
         # -60 lost 167 so but only 9 settled, so no range was reported while three of its headings were modes. A
