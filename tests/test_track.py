@@ -179,3 +179,13 @@ def test_a_hidden_handle_keeps_its_modes_until_the_camera_sees_it(tmp_path):
     # Hidden: several modes, the truth among them, none sure (each view's gaps against the estimate as carried, not
     # as settled: against the settled one the top mode reached 0.75); shown: one mode above 0.9, the truth.
     assert seen == [True] * 5
+
+
+def test_a_hidden_object_keeps_its_hiding_region_while_it_stays_hidden(tmp_path):
+    """The box behind the box in front is unseen on every frame of the arc: each frame's line names its region, the
+    first frame's from the posterior sweep, the tracked ones' carried and scored again on their view."""
+    make_sequences(tmp_path / "seq", ["occluded"], 1, 3, seed=1, width=320, height=240, arc_deg=4.0,
+                   sensor="kinect-like")
+    results = _track(tmp_path / "seq", [0, 1, 2])
+    assert [r.status for r in results] == ["estimated", "tracked", "tracked"]
+    assert all("(hidden: one of" in r.line for r in results), [r.line for r in results]

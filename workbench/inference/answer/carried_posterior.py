@@ -15,8 +15,8 @@ Probabilities follow from these gaps as in ``posterior.object_modes``; a mode th
 ``posterior.MIN_PROBABILITY`` is gone. A mode that now beats the estimate by more than the turn margin replaces
 it (fitted to the depth by ``refine``; the estimate then becomes one of its modes), as settling's turns do: the
 estimate stays the most likely mode. An open range of headings is kept as far as the modes in it are. A hidden
-object's region (``posterior.ObjectPosterior.hiding``) is the first frame's only: later views carry its modes, not
-its places.
+object's region (``posterior.ObjectPosterior.hiding``) is carried by the tracking search, its places scored again
+on each view while the object stays unseen (``track_search``).
 """
 
 from __future__ import annotations

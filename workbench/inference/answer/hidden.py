@@ -83,13 +83,14 @@ def free_places(scene: np.ndarray, k: int, offsets: np.ndarray, solids: list[Sol
     return free
 
 
-def hiding_places(scene: np.ndarray, k: int, loglik: float, score, solids: list[Solid], open_gap: float
-                  ) -> tuple[np.ndarray, np.ndarray, int]:
+def hiding_places(scene: np.ndarray, k: int, loglik: float, score, solids: list[Solid], open_gap: float,
+                  offsets: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """The places where object k of ``scene`` (K, 4, 4), which the sensor does not see, can be as well: the level
-    grid about it (``level_offsets``) out of the other objects (``free_places``), scored as given (``score``: scenes
-    (N, K, 4, 4) -> log-likelihoods (N,)), those within ``open_gap`` log-units of ``loglik`` (the scene's) -> (places
-    (P, 3) m, table frame, the estimate's first; their gaps (P,) to ``loglik``; scenes scored)."""
-    offsets = level_offsets()
+    grid about it (``level_offsets``; or ``offsets`` (G, 2) m, the origin first: a region carried from an earlier
+    view) out of the other objects (``free_places``), scored as given (``score``: scenes (N, K, 4, 4) ->
+    log-likelihoods (N,)), those within ``open_gap`` log-units of ``loglik`` (the scene's) -> (places (P, 3) m, table
+    frame, the estimate's first; their gaps (P,) to ``loglik``; scenes scored)."""
+    offsets = level_offsets() if offsets is None else np.asarray(offsets, dtype=np.float64)
     free = free_places(scene, k, offsets, solids)
     free[0] = True  # the estimate's own place, wherever physics put it
     offsets = offsets[free]
