@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.inference.answer.hidden import TOLERANCE_CELLS
+from workbench.inference.answer.hidden import estimate_share
 from workbench.inference.answer.posterior import found_probability, probabilities
 from workbench.io import bop
 from workbench.score.calibration import ObjectModes, coverage, expected_calibration_error, reliability_png, top1
@@ -111,12 +111,12 @@ def modes_at(records: list[dict], temperature: float, elsewhere: tuple[float, fl
              ) -> list[ObjectModes]:
     """Each record's modes with probabilities at ``temperature``, scaled by the chance that the truth is among them
     (the logistic ``elsewhere`` (intercept, slope) in ``seen_through``) where given; a hidden object's then by the
-    chance that the truth lies within 2 cm of its estimate's place (``hidden.HidingRegion.estimate_share``)."""
+    chance that the truth lies within 2 cm of its estimate's place (``hidden.estimate_share``)."""
     out = []
     for r in records:
         p = probabilities(np.array(r["gaps"]), temperature)
         if elsewhere is not None and r.get("hiding_gaps"):  # a hidden object's elsewhere: the rest of its region
-            p = p * min(1.0, float(probabilities(np.array(r["hiding_gaps"]), temperature)[0]) * TOLERANCE_CELLS)
+            p = p * estimate_share(probabilities(np.array(r["hiding_gaps"]), temperature))
         elif elsewhere is not None:
             p = p * found_probability(r["seen_through"], elsewhere)
         order = np.argsort(-p, kind="stable")

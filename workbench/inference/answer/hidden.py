@@ -1,8 +1,8 @@
 """Where a hidden object can be: the places about its estimate where the camera would not see it either.
 
-An object the sensor sees none of (``scenepoints.unseen``: every camera-facing sample of it lies behind what the
-sensor sees, or out of view) scores the same wherever it stays out of sight: the likelihood is flat over a region
-of the table, and the estimate is one place of that region, chosen by the search's priors rather than by the depth.
+An object the sensor sees none of (``scenepoints.seen_counts`` both 0: every camera-facing sample of it lies behind
+what the sensor sees, or out of view) scores the same wherever it stays out of sight: the likelihood is flat over a
+region of the table, and the estimate is one place of that region, chosen by the search's priors, not by the depth.
 Its modes (turns and faces at that one place) say nothing of the region. So the posterior also reports the region:
 the object moved level, on a grid of ``SPACING`` out to ``REACH`` about its estimate, scored as given, the places
 that put it inside another object dropped (``assemble.inside_share``), and the places whose scene scores within the
@@ -44,16 +44,21 @@ class HidingRegion:
 
     @property
     def estimate_share(self) -> float:
-        """The chance that the truth lies within the right-pose tolerance (``metrics.RIGHT_CM``) of the estimate's
-        place: its place's probability times the tolerance disc's area in grid cells (``TOLERANCE_CELLS``), at most
-        1. The estimate's modes share it."""
-        return min(1.0, float(self.probabilities[0]) * TOLERANCE_CELLS)
+        """``estimate_share`` of the estimate's place: the chance that the truth lies within 2 cm of it."""
+        return estimate_share(self.probabilities)
 
     @property
     def extent_m(self) -> float:
         """The largest distance (m) between two places: how far apart the object's possible places lie."""
         d = self.places[:, None, :2] - self.places[None, :, :2]
         return float(np.sqrt((d ** 2).sum(axis=-1)).max())
+
+
+def estimate_share(probabilities: np.ndarray) -> float:
+    """The chance that the truth lies within the right-pose tolerance (``metrics.RIGHT_CM``) of the estimate's
+    place, from the region's place ``probabilities`` (P,), the estimate's first: its place's probability times the
+    tolerance disc's area in grid cells (``TOLERANCE_CELLS``), at most 1. The estimate's modes share it."""
+    return min(1.0, float(probabilities[0]) * TOLERANCE_CELLS)
 
 
 def level_offsets(spacing: float = SPACING, reach: float = REACH) -> np.ndarray:

@@ -30,7 +30,7 @@ under the generated sensors ``kinect-like`` and ``xtion`` (the one measured on t
 
 The modes are what the view cannot decide, given that the search found the object's basin; it can also miss it
 altogether (the object laid where the depth shows something else). Such an estimate often shows itself: the sensor
-sees through part of it (``scenepoints.object_badness``, ``seen_through``). The chance that the truth is among
+sees through part of it (``scenepoints.badness``, ``seen_through``). The chance that the truth is among
 none of the modes (``elsewhere``) is a logistic function of that share (``ELSEWHERE``, fitted by
 ``benchmarks/calibrate_posterior.py`` on the same frames). It is reported beside the modes, not folded into them:
 the modes' probabilities are conditional on the object being found and sum to 1. Folded in, it made the whole
@@ -64,7 +64,7 @@ from workbench.inference.answer.hidden import HidingRegion, hiding_places
 from workbench.inference.search.datadriven import elsewhere
 from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves.resting import RestingPoses, lowest_point
-from workbench.inference.search.scenepoints import object_badness, unseen
+from workbench.inference.search.scenepoints import badness, seen_counts
 from workbench.problem.problem import Problem
 from workbench.problem.scene import display_names
 from workbench.score.metrics import RIGHT_DEG, is_right
@@ -214,6 +214,16 @@ def hidden(o: ObjectPosterior, places: np.ndarray, gaps: np.ndarray, temperature
     region = HidingRegion(np.asarray(places, dtype=np.float64), probabilities(gaps, temperature),
                           np.asarray(gaps, dtype=np.float64))
     return replace(o, elsewhere=1.0 - region.estimate_share, hiding=region)
+
+
+def hide(o: ObjectPosterior, scene: np.ndarray, loglik: float, score: settle.Score, solids: list, temperature: float,
+         offsets: np.ndarray | None = None) -> tuple[ObjectPosterior, int]:
+    """``o``, object ``o.obj`` of ``scene`` (K, 4, 4; ``loglik`` as given), which the sensor sees none of, with its
+    hiding region (``hidden``): its places (``hidden.hiding_places``: the level grid, or ``offsets`` (G, 2) m about
+    it, the origin first) within the open gap (``RANGE_GAP`` temperatures) of the scene, scored with ``score``
+    -> (the object's posterior, scenes scored)."""
+    places, gaps, n = hiding_places(scene, o.obj, loglik, score, solids, RANGE_GAP * temperature, offsets)
+    return hidden(o, places, gaps, temperature), n
 
 
 def object_modes(estimate: np.ndarray, loglik: float, candidates: list[tuple[np.ndarray, float, str]],
@@ -533,7 +543,8 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
                     fine.append((k, T, a, turned))
     fine_ll = score(np.stack([f[3] for f in fine])) if fine else np.zeros(0)
     scored += len(fine)
-    objects, through, hid = [], object_badness(problem, scene, samples), unseen(problem, scene, samples)
+    through, on = seen_counts(problem, scene, samples)
+    objects, bad = [], badness(through, on)
     for k, model in enumerate(problem.models):
         candidates = [(T[k], ll, what) for j, what, T, ll in held if j == k]
         if k in kept:  # its pose before is now a candidate, its gaps are to its new pose
@@ -543,10 +554,9 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
             obj=k,
             modes=object_modes(scene[k], kept.get(k, loglik_before), candidates + headed, model.symmetries,
                                temperature, MAX_MODES + len(headed)),
-            position_spread_m=position_spread(projected, weights, scene[k], k), yaw_range_deg=ranges[k]), through[k]))
+            position_spread_m=position_spread(projected, weights, scene[k], k), yaw_range_deg=ranges[k]), bad[k]))
     # An object the sensor sees none of could be anywhere it stays unseen: its region of the table, as given.
-    for k in np.flatnonzero(hid):
-        places, gaps, n = hiding_places(scene, int(k), loglik, score, geometry.solids, open_gap)
-        objects[k] = hidden(objects[k], places, gaps, temperature)
+    for k in np.flatnonzero(through + on == 0):
+        objects[k], n = hide(objects[k], scene, loglik, score, geometry.solids, temperature)
         scored += n
     return Posterior(objects, temperature, time.perf_counter() - t0), scored, scene, loglik

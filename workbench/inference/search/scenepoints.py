@@ -152,20 +152,18 @@ def seen_counts(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]
     return through, on
 
 
-def object_badness(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
-    """How badly each object of ``scene`` (K, 4, 4) explains its part of the observation -> (K,) in [0, 1]: the
-    share of its camera-facing surface samples where the sensor sees through it among those it sees through or on;
-    1 for an object it sees nothing of (out of view, or hidden: ``unseen``)."""
-    through, on = seen_counts(problem, scene, samples)
+def badness(through: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """Per object, the share of its camera-facing surface samples seen ``through`` among those seen through or
+    ``on`` it (``seen_counts``, (K,) each) -> (K,) in [0, 1]; 1 for an object the sensor sees none of (out of view,
+    or hidden: both counts 0)."""
     total = through + on
     return np.where(total > 0, through / np.maximum(total, 1), 1.0)
 
 
-def unseen(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
-    """(K,) bool: the objects of ``scene`` (K, 4, 4) of which the sensor sees no camera-facing surface sample, on
-    the surface or through it: hidden behind what it sees, or out of view."""
-    through, on = seen_counts(problem, scene, samples)
-    return through + on == 0
+def object_badness(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
+    """How badly each object of ``scene`` (K, 4, 4) explains its part of the observation -> (K,) in [0, 1]
+    (``badness`` of its ``seen_counts``)."""
+    return badness(*seen_counts(problem, scene, samples))
 
 
 def _splat(problem: Problem, scene: np.ndarray, samples: list[ModelSamples], objects: list[int]) -> np.ndarray:

@@ -26,14 +26,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from workbench.inference.answer import carried_posterior, settle
-from workbench.inference.answer.hidden import hiding_places
-from workbench.inference.answer.posterior import RANGE_GAP, Posterior, doubted, hidden
+from workbench.inference.answer.posterior import Posterior, doubted, hide
 from workbench.inference.search import datadriven
 from workbench.inference.search.default_search import DefaultSearch
 from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves import gaussian
 from workbench.inference.search.moves.registry import MoveKind
-from workbench.inference.search.scenepoints import object_badness, observed_points, unseen
+from workbench.inference.search.scenepoints import badness, observed_points, seen_counts
 from workbench.inference.smc.filter import ParticleFilter, Settled, Started, Update
 from workbench.inference.smc.resampling import systematic_resample
 from workbench.problem.problem import Problem
@@ -198,15 +197,13 @@ class TrackSearch(DefaultSearch):
                 self.problem, scene, loglik, self.carried.posterior, score, filt.particles.projected,
                 filt.weights(), refine)
             geometry = self.geometry(filt)
-            through = object_badness(self.problem, scene, geometry.samples)
-            objects = [doubted(o, through[o.obj]) for o in posterior.objects]
+            through, on = seen_counts(self.problem, scene, geometry.samples)
+            bad = badness(through, on)
+            objects = [doubted(o, bad[o.obj]) for o in posterior.objects]
             # An object still hidden keeps its region, its places (about where it is now) scored on this view.
-            hid = unseen(self.problem, scene, geometry.samples)
             for o in self.carried.posterior.objects:
-                if o.hiding is not None and hid[o.obj]:
-                    offsets = o.hiding.places[:, :2] - o.hiding.places[0, :2]
-                    places, gaps, m = hiding_places(scene, o.obj, loglik, score, geometry.solids,
-                                                    RANGE_GAP * posterior.temperature, offsets)
-                    objects[o.obj] = hidden(objects[o.obj], places, gaps, posterior.temperature)
+                if o.hiding is not None and through[o.obj] + on[o.obj] == 0:
+                    objects[o.obj], m = hide(objects[o.obj], scene, loglik, score, geometry.solids,
+                                             posterior.temperature, o.hiding.places[:, :2] - o.hiding.places[0, :2])
                     n += m
         return Settled(scene, loglik, [], scored + n, replace(posterior, objects=objects))

@@ -36,9 +36,8 @@ def confidence_text(o: ObjectPosterior) -> str:
     "p = 0.84", "p = 1.00, heading open −60° … +90°", "p = 0.38, elsewhere 0.62", "p = 0.03, hidden: one of 37
     places"."""
     yaw = yaw_text(o)
-    doubt = f"elsewhere {o.elsewhere:.2f}" if o.elsewhere >= DOUBTFUL else ""
-    if o.hiding is not None:
-        doubt = f"hidden: one of {len(o.hiding.places)} places"
+    doubt = (f"hidden: one of {len(o.hiding.places)} places" if o.hiding is not None
+             else f"elsewhere {o.elsewhere:.2f}" if o.elsewhere >= DOUBTFUL else "")
     return ", ".join([f"p = {chance(o, o.modes[0]):.2f}", *(t for t in (yaw, doubt) if t)])
 
 
