@@ -577,6 +577,26 @@ def test_remembered_clusters_give_the_same_library_without_fitting_again(frame_a
     assert len(calls) == problem.n_objects
 
 
+def test_a_refit_takes_a_band_along_the_estimate_for_a_rim_and_a_cluster_left_alone_for_new(frame_and_problem,
+                                                                                           context):
+    """``datadriven.rims``: readings a few millimetres off an estimated object's surface (the band an object held
+    a little off leaves) are a rim of the estimate; an object's readings where the estimate put nothing are not,
+    nor are they when the estimate holds its object 3 cm off."""
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    scene = _truth(frame, problem)
+    s0, s1 = ctx.samples[0], ctx.samples[1]
+    band = (s0.points + 0.004 * s0.normals) @ scene[0, :3, :3].T + scene[0, :3, 3]
+    left = s1.points @ scene[1, :3, :3].T + scene[1, :3, 3]
+    away = scene.copy()
+    away[1, :2, 3] += 0.15  # the estimate put object 1 elsewhere: its readings are left alone
+    assert datadriven.rims([band, left], away, ctx.samples).tolist() == [True, False]
+    off = scene.copy()
+    off[0, :3, 3] += [0.03, 0.0, 0.0]
+    assert not datadriven.rims([band], off, ctx.samples)[0]
+    assert datadriven.rims([], scene, ctx.samples).shape == (0,)
+
+
 def test_a_fit_slid_along_its_length_is_slid_back_and_never_scores_less(frame_and_problem, context):
     """``datadriven.slide``: each box's true pose moved 1.5-2.5 cm along its own horizontal axes, where ICP's
     point-to-plane fit cannot tell (the faces it sees run along the slide), comes back within a step of the truth;

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from workbench.evaluation import run_here
 from workbench.geometry import (
@@ -66,6 +66,11 @@ FIT_POINTS = 200  # observed points per candidate fit: enough to rank candidates
 # under this many is the rim an estimate leaves beside an object it holds a few millimetres off, and fitting every
 # object to it costs as much as to a whole object's cluster (its starts do not shrink with it).
 REFIT_MIN_POINTS = 50
+# A refit's cluster with this share of its points within RIM_M of the estimate's own surfaces is a rim: the estimate
+# nearly explains it (an object held a few millimetres off leaves a band of readings beside and before it), and its
+# place is the estimate's to correct (ICP moves, settling), not a new place to fit every object to.
+RIM_M = 0.01
+RIM_SHARE = 0.9
 MIN_TOP = 0.015  # m; lower clusters are table unevenness or flat clutter (paper, cables)
 # m; a face may stand this much taller than the cluster's 95th-percentile height. The top of a bottle is a narrow
 # cap that few points reach: YCB-Video's upright mustard bottle (19.1 cm) shows a cluster 17 cm high, and with
@@ -309,6 +314,17 @@ def candidate_weights(scores: np.ndarray) -> np.ndarray:
     w = np.exp((scores - scores.max()) / max(0.5 * abs(scores.max()), 1.0))
     w = 0.7 * w / w.sum() + 0.3 / len(w)
     return w / w.sum()
+
+
+def rims(clusters: list[np.ndarray], scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
+    """Which ``clusters`` (list of (P_i, 3), table frame) are rims of ``scene`` (K, 4, 4): RIM_SHARE of their
+    points within RIM_M of some object's surface samples -> (len(clusters),) bool."""
+    if not clusters:
+        return np.zeros(0, dtype=bool)
+    surface = np.concatenate([s.points @ T[:3, :3].T + T[:3, 3] for s, T in zip(samples, scene)])
+    tree = cKDTree(surface)
+    return np.array([np.mean(tree.query(c, distance_upper_bound=RIM_M)[0] < RIM_M) >= RIM_SHARE for c in clusters],
+                    dtype=bool)
 
 
 def fitted_clusters(clusters: list[np.ndarray], n_objects: int) -> list[np.ndarray]:

@@ -310,15 +310,20 @@ class DefaultSearch:
 
     def refit_library(self, filt: ParticleFilter, scene: np.ndarray | None = None) -> None:
         """Candidates from the clusters of observed points the estimate (or ``scene`` (K, 4, 4), when given) does
-        not explain (all of them before the first estimate), merged with the earlier candidates."""
+        not explain (all of them before the first estimate), merged with the earlier candidates. A refit leaves out
+        clusters under ``REFIT_MIN_POINTS`` and the rims of the estimate (``datadriven.rims``)."""
         with filt.clock.stage("library"):
             self._refit_library(filt, scene)
 
     def _refit_library(self, filt: ParticleFilter, scene: np.ndarray | None) -> None:
         g = self.geometry(filt)
-        loose = unexplained(self.problem, g.points, filt.estimate if scene is None else scene, g.samples)
-        least = 0 if self.library is None else datadriven.REFIT_MIN_POINTS
-        groups = [c for c in clusters(g.points.points[loose]) if len(c) >= least]
+        scene = filt.estimate if scene is None else scene
+        loose = unexplained(self.problem, g.points, scene, g.samples)
+        groups = clusters(g.points.points[loose])
+        if self.library is not None:  # a refit: what the estimate leaves, less the small clusters and its rims
+            groups = [c for c in groups if len(c) >= datadriven.REFIT_MIN_POINTS]
+            if scene is not None:
+                groups = [c for c, rim in zip(groups, datadriven.rims(groups, scene, g.samples)) if not rim]
         fresh = datadriven.build_library(self.problem, groups, g, self._cluster_memo, partial(self._run, filt))
         self.library = fresh if self.library is None else self.library.merged(fresh)
         self.unexplained = fresh
