@@ -1,7 +1,7 @@
 """Where a hidden object can be: the places about its estimate where the camera would not see it either.
 
-An object the sensor sees none of (``scenepoints.seen_counts`` both 0: every camera-facing sample of it lies behind
-what the sensor sees, or out of view) scores the same wherever it stays out of sight: the likelihood is flat over a
+An object the sensor sees none of (``scenepoints.unseen``: every camera-facing sample of it lies behind what the
+sensor sees, or out of view) scores the same wherever it stays out of sight: the likelihood is flat over a
 region of the table, and the estimate is one place of that region, chosen by the search's priors, not by the depth.
 Its modes (turns and faces at that one place) say nothing of the region. So the posterior also reports the region:
 the object moved level, on a grid of ``SPACING`` out to ``REACH`` about its estimate, scored as given, the places

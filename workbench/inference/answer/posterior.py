@@ -64,7 +64,7 @@ from workbench.inference.answer.hidden import HidingRegion, hiding_places
 from workbench.inference.search.datadriven import elsewhere
 from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves.resting import RestingPoses, lowest_point
-from workbench.inference.search.scenepoints import badness, seen_counts
+from workbench.inference.search.scenepoints import badness, seen_counts, unseen
 from workbench.problem.problem import Problem
 from workbench.problem.scene import display_names
 from workbench.score.metrics import RIGHT_DEG, is_right
@@ -556,7 +556,7 @@ def sweep(problem: Problem, start: SweepStart, scorer: settle.Scorer, geometry: 
                                temperature, MAX_MODES + len(headed)),
             position_spread_m=position_spread(projected, weights, scene[k], k), yaw_range_deg=ranges[k]), bad[k]))
     # An object the sensor sees none of could be anywhere it stays unseen: its region of the table, as given.
-    for k in np.flatnonzero(through + on == 0):
+    for k in np.flatnonzero(unseen(through, on)):
         objects[k], n = hide(objects[k], scene, loglik, score, geometry.solids, temperature)
         scored += n
     return Posterior(objects, temperature, time.perf_counter() - t0), scored, scene, loglik

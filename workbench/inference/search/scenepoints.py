@@ -160,6 +160,12 @@ def badness(through: np.ndarray, on: np.ndarray) -> np.ndarray:
     return np.where(total > 0, through / np.maximum(total, 1), 1.0)
 
 
+def unseen(through: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """(K,) bool: the objects of which the sensor sees no camera-facing surface sample, on the surface or through
+    it (``seen_counts`` (K,) each, both 0): hidden behind what it sees, or out of view."""
+    return through + on == 0
+
+
 def object_badness(problem: Problem, scene: np.ndarray, samples: list[ModelSamples]) -> np.ndarray:
     """How badly each object of ``scene`` (K, 4, 4) explains its part of the observation -> (K,) in [0, 1]
     (``badness`` of its ``seen_counts``)."""

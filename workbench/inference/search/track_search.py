@@ -32,7 +32,7 @@ from workbench.inference.search.default_search import DefaultSearch
 from workbench.inference.search.geometry import SearchGeometry
 from workbench.inference.search.moves import gaussian
 from workbench.inference.search.moves.registry import MoveKind
-from workbench.inference.search.scenepoints import badness, observed_points, seen_counts
+from workbench.inference.search.scenepoints import badness, observed_points, seen_counts, unseen
 from workbench.inference.smc.filter import ParticleFilter, Settled, Started, Update
 from workbench.inference.smc.resampling import systematic_resample
 from workbench.problem.problem import Problem
@@ -198,11 +198,11 @@ class TrackSearch(DefaultSearch):
                 filt.weights(), refine)
             geometry = self.geometry(filt)
             through, on = seen_counts(self.problem, scene, geometry.samples)
-            bad = badness(through, on)
+            bad, hid = badness(through, on), unseen(through, on)
             objects = [doubted(o, bad[o.obj]) for o in posterior.objects]
             # An object still hidden keeps its region, its places (about where it is now) scored on this view.
             for o in self.carried.posterior.objects:
-                if o.hiding is not None and through[o.obj] + on[o.obj] == 0:
+                if o.hiding is not None and hid[o.obj]:
                     objects[o.obj], m = hide(objects[o.obj], scene, loglik, score, geometry.solids,
                                              posterior.temperature, o.hiding.places[:, :2] - o.hiding.places[0, :2])
                     n += m
