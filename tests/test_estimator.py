@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from workbench.errors import InputError
-from workbench.evaluation import LocalEvaluator, PoolEvaluator
+from workbench.evaluation import LocalEvaluator, PoolEvaluator, joined, split_calls
 from workbench.geometry import invert_pose
 from workbench.inference.config import EstimatorConfig
 from workbench.inference.estimator import Estimator
@@ -102,6 +102,17 @@ def test_submitted_batches_equal_their_evaluation_whichever_is_collected_first(f
     for got, want in zip((early, late), again):
         assert np.array_equal(got.projected, want.projected) and np.array_equal(got.loglik, want.loglik)
     assert len(late.loglik) == 1500 and np.isfinite(late.loglik).mean() > 0.9
+
+
+@pytest.mark.parametrize("n, parts", [(0, 2), (1, 2), (7, 3), (24, 2), (5, 8)])
+def test_calls_are_dealt_out_in_turn_and_their_results_come_back_in_call_order(n, parts):
+    """``split_calls`` deals call i to worker i mod parts (neighbouring calls, which cost alike, go to different
+    workers), never an empty chunk; ``joined`` puts the chunks' results back in call order."""
+    calls = [(i,) for i in range(n)]
+    chunks = split_calls(calls, parts)
+    assert len(chunks) == min(n, parts) and all(chunks)
+    assert all(c[0] % len(chunks) == w for w, chunk in enumerate(chunks) for c in chunk)
+    assert joined([[c[0] * 10 for c in chunk] for chunk in chunks]) == [i * 10 for i in range(n)]
 
 
 def test_map_runs_calls_on_the_workers_in_order_behind_a_pending_batch(frame_and_problem):

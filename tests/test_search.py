@@ -451,6 +451,34 @@ def test_an_object_sits_inside_itself_but_not_inside_its_neighbour(frame_and_pro
     assert assemble.conflicts(truth[[0]], a, moved, b)[0, 0]
 
 
+def test_remembered_clashes_answer_as_tested_ones_and_test_only_new_pairs(frame_and_problem, context, monkeypatch):
+    """``assemble.Clashes`` gives ``conflicts``' answers for candidates seen before and new ones alike, and tests a
+    pair of candidates once."""
+    from workbench.inference.answer import assemble
+
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    truth = _truth(frame, problem)
+    rng = np.random.default_rng(3)
+    Ta = np.repeat(truth[[0]], 6, axis=0)
+    Tb = np.repeat(truth[[1]], 5, axis=0)
+    Ta[:, :2, 3] += rng.normal(scale=0.03, size=(6, 2))
+    Tb[:, :2, 3] += rng.normal(scale=0.03, size=(5, 2))
+    Tb[0, :3, 3] = Ta[0, :3, 3]  # one pair surely inside one another
+    want = assemble.conflicts(Ta, ctx.solids[0], Tb, ctx.solids[1])
+    assert want.any() and not want.all()
+    tested = []
+    share = assemble.inside_share
+    monkeypatch.setattr(assemble, "inside_share", lambda T, a, U, b: tested.append(len(T)) or share(T, a, U, b))
+    clashes = assemble.Clashes(ctx.solids)
+    assert np.array_equal(clashes.between(0, Ta[:4], 1, Tb[:3]), want[:4, :3])
+    first = sum(tested)
+    assert np.array_equal(clashes.between(0, Ta, 1, Tb), want)  # four by three of these known already
+    second = sum(tested)
+    assert np.array_equal(clashes.between(0, Ta[::-1], 1, Tb), want[::-1])
+    assert first > 0 and second - first <= 2 * (6 * 5 - 4 * 3) and sum(tested) == second
+
+
 def test_a_thin_rod_can_rest_standing_as_well_as_lying():
     """compute_stable_poses lists a rod lying down once per facet of its hull; every side must stay in reach, the
     rarely landed standing one included (YCB-Video's large marker stands on its end)."""

@@ -25,6 +25,7 @@ from workbench.synth.sensor.model import DEFAULT_SENSOR, SENSOR_NAMES
 from workbench.track.config import TrackConfig
 
 DEMO_DATASET = Path(__file__).resolve().parent.parent / "assets" / "demo"
+ESTIMATOR_DEFAULTS = EstimatorConfig()
 TRACK_DEFAULTS = TrackConfig()
 LABEL_DEFAULTS = LabelConfig()
 # Upper bounds of the other counts, each with its reason (the estimator's own: inference.config).
@@ -36,8 +37,10 @@ MAX_SCENES = 100_000  # make-scenes, bench: scenes per category, and frames per 
 
 def _add_estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=METHODS, default="pipf", help="PI-PF or PI-MCPF (default: pipf)")
-    p.add_argument("--particles", type=int, default=200, help="particles N (paper: 1444; default 200)")
-    p.add_argument("--iterations", type=int, default=20, help="maximum iterations (default 20)")
+    p.add_argument("--particles", type=int, default=ESTIMATOR_DEFAULTS.particles,
+                   help=f"particles N (paper: 1444; default {ESTIMATOR_DEFAULTS.particles})")
+    p.add_argument("--iterations", type=int, default=ESTIMATOR_DEFAULTS.iterations,
+                   help=f"maximum iterations (default {ESTIMATOR_DEFAULTS.iterations})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--state", choices=STATES, default="6dof", help="6dof, or the paper's reduced x,y,z,yaw")
     p.add_argument("--proposals", choices=PROPOSALS, default="default",

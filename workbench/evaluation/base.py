@@ -180,13 +180,20 @@ def run_here(problem: Problem) -> Run:
 
 
 def split_calls(calls: list[tuple], parts: int) -> list[list[tuple]]:
-    """``calls`` in up to ``parts`` contiguous non-empty chunks, in order, as ``split_batch`` splits a batch."""
-    return [[calls[i] for i in idx] for idx in np.array_split(np.arange(len(calls)), parts) if len(idx)]
+    """``calls`` dealt out to up to ``parts`` workers, call i to worker i mod ``parts``, non-empty -> chunks.
+
+    Dealt, not cut into contiguous chunks: neighbouring calls cost alike (the library's fits of one cluster, object
+    after object), so contiguous chunks gave one worker the largest cluster's fits while the other idled. Each call
+    runs alone, so the results do not depend on which worker ran it."""
+    return [calls[i::parts] for i in range(min(parts, len(calls)))]
 
 
 def joined(parts: list[list]) -> list:
     """The results of ``split_calls``' chunks, back in one list in call order."""
-    return [r for part in parts for r in part]
+    out: list = [None] * sum(len(part) for part in parts)
+    for i, part in enumerate(parts):
+        out[i::len(parts)] = part
+    return out
 
 
 class WorkerCrashed(RuntimeError):

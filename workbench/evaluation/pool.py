@@ -229,7 +229,7 @@ class PoolEvaluator:
                                         Evaluation.concatenate))
 
     def map(self, fn: Callable, calls: list[tuple]) -> list:
-        """The calls split over the workers as a batch is; queued behind the batches submitted before."""
+        """The calls dealt out to the workers (``split_calls``); queued behind the batches submitted before."""
         chunks = split_calls(list(calls), len(self._conns))
         if not chunks:
             return []

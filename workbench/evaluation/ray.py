@@ -187,7 +187,7 @@ class RayEvaluator:
                                        for actor, (h, s) in zip(self._actors, chunks)])
 
     def map(self, fn, calls: list[tuple]) -> list:
-        """The calls split over the actors as a batch is (each actor runs them after the batches sent before)."""
+        """The calls dealt out to the actors (``split_calls``; each runs them after the batches sent before)."""
         chunks = split_calls(list(calls), len(self._actors))
         try:
             parts = self._ray.get([actor.map.remote(fn, chunk) for actor, chunk in zip(self._actors, chunks)])

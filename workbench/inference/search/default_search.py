@@ -133,7 +133,7 @@ class DefaultSearch:
     latest refit's candidates alone (``unexplained``: fitted where the estimate leaves points unexplained; polish
     tries them first; made and used within one step, so not saved), and caches: the per-object geometry, the
     leaning starts (``leaning_starts``), the candidates of each cluster already fitted, the bases found under each
-    top."""
+    top, which candidates sit inside one another."""
 
     def __init__(self, problem: Problem):
         self.problem = problem
@@ -143,6 +143,7 @@ class DefaultSearch:
         self._leaning: datadriven.Library | None = None
         self._cluster_memo: dict = {}  # candidates per cluster already fitted (datadriven.build_library)
         self._base_memo: dict = {}  # polish.stacked's bases found under each top so far
+        self._clashes: assemble.Clashes | None = None  # which candidates sit inside one another, tested so far
         self.fitted: set[tuple[tuple[int, tuple[float, ...]], ...]] = set()
         self.polished_at = -np.inf
         # What polish offered for the estimate as it stands (``offered_for``: ``polish_key``): the checksums of the
@@ -351,7 +352,9 @@ class DefaultSearch:
         renderer = DepthRenderer(self.problem.render_camera, [m.mesh for m in self.problem.models],
                                  self.problem.config.render)
         try:
-            return assemble.assemblies(self.problem, self.library, renderer, g.solids, base,
+            if self._clashes is None:
+                self._clashes = assemble.Clashes(g.solids)
+            return assemble.assemblies(self.problem, self.library, renderer, self._clashes, base,
                                        np.argsort(-g.radius, kind="stable"), floored=filt.floor_in,
                                        beam_width=beam_width)
         finally:
