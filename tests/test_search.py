@@ -414,8 +414,8 @@ def test_assembly_puts_each_object_on_its_own_place(frame_and_problem, context):
     library = datadriven.Library([np.stack([wrong[k], truth[k]]) for k in range(2)], [np.array([0.9, 0.1])] * 2)
     base = np.repeat(np.eye(4)[None], 2, axis=0)
     with DepthRenderer(problem.render_camera, [m.mesh for m in problem.models], problem.config.render) as r:
-        scenes = assemble.assemblies(problem, library, r, ctx.solids, base, np.array([0, 1]))
-        again = assemble.assemblies(problem, library, r, ctx.solids, base, np.array([0, 1]))
+        scenes = assemble.assemblies(problem, library, r, assemble.Clashes(ctx.solids), base, np.array([0, 1]))
+        again = assemble.assemblies(problem, library, r, assemble.Clashes(ctx.solids), base, np.array([0, 1]))
     assert scenes.shape[1:] == (2, 4, 4) and np.all(np.isfinite(scenes)) and np.array_equal(scenes, again)
     assert np.array_equal(scenes[0], truth)
     # Both on one place is not an assignment at all: each would sit inside the other.

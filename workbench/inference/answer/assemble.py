@@ -91,14 +91,15 @@ def candidate_depths(renderer: DepthRenderer, poses: np.ndarray, k: int) -> np.n
     return renderer.render(scenes, drawn)
 
 
-def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, solids: list[Solid] | Clashes,
+def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, clashes: Clashes,
                base: np.ndarray, order: np.ndarray, floored: bool = True, beam_width: int = BEAM) -> np.ndarray:
     """Up to ASSEMBLIES scenes (A, K, 4, 4), best first: ``base`` (K, 4, 4) with every object that has candidates
     put on one of them, no candidate inside another, by the likelihood of the candidates' joint depth (no
     physics). Objects are assigned in ``order`` (K,) (largest first: they constrain the most), keeping the
     ``beam_width`` best partial assignments after each; the objects not yet assigned are absent (the table shows
     there). ``floored``: false leaves the clutter floor out, as the filter does before ``ParticleFilter.floor_at``.
-    ``solids``: the objects' shapes, or a ``Clashes`` of them that a search keeps from one call to the next."""
+    ``clashes``: which candidates sit inside one another, of the objects' shapes (a search keeps one from call to
+    call)."""
     ks = [int(k) for k in order if library.has(int(k))]
     if not ks:
         return np.zeros((0,) + base.shape)
@@ -116,7 +117,6 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, soli
     observed = problem.observed.reshape(1, -1)[:, cover]
     background = problem.background.reshape(1, -1)[:, cover]
     segments = pieces[None, cover]
-    clashes = solids if isinstance(solids, Clashes) else Clashes(solids)
     clash = {(i, j): clashes.between(ks[i], poses[i], ks[j], poses[j]) for i in range(len(ks)) for j in range(i)}
     beam = [(np.zeros(0, int), np.zeros(len(cover), np.float32))]  # (candidate per assigned object, joint depth)
     for i in range(len(ks)):

@@ -147,21 +147,20 @@ def jitter(rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
 
 
 def crops(points: np.ndarray, centres: np.ndarray, radius: float) -> list[np.ndarray]:
-    """For each centre (S, 3), the indices of the points (P, 3) within ``radius`` of it horizontally, in their
-    original order -> S arrays (Q_s,) int; centres with the same x, y share one array (read it, do not write)."""
-    places, at = np.unique(centres[:, :2], axis=0, return_inverse=True)  # a library's starts share a few places
+    """For each centre (S, 2 or 3), the indices of the points (P, 3) within ``radius`` of it horizontally, in their
+    original order -> S arrays (Q_s,) int."""
     tree = cKDTree(points[:, :2])
-    found = [np.asarray(i, dtype=int) for i in tree.query_ball_point(places, radius, return_sorted=True)]
-    return [found[a] for a in at.ravel()]
+    return [np.asarray(i, dtype=int) for i in tree.query_ball_point(centres[:, :2], radius, return_sorted=True)]
 
 
 def near(cloud: ScenePoints, centres: np.ndarray, radius: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """For each centre (S, 3), the observed points of ``cloud`` within ``radius`` (m) of it horizontally and their
     normals, as ``icp_batch`` takes them -> (S arrays (Q_s, 3), S arrays (Q_s, 3)); centres at the same x, y share
     their arrays (read them, do not write)."""
-    crop = crops(cloud.points, centres, radius)
-    places = {id(i): (cloud.points[i], cloud.normals[i]) for i in crop}
-    return [places[id(i)][0] for i in crop], [places[id(i)][1] for i in crop]
+    places, at = np.unique(centres[:, :2], axis=0, return_inverse=True)  # a library's starts share a few places
+    crop = crops(cloud.points, places, radius)
+    points, normals = [cloud.points[i] for i in crop], [cloud.normals[i] for i in crop]
+    return [points[a] for a in at.ravel()], [normals[a] for a in at.ravel()]
 
 
 def refit(cloud: ScenePoints, samples: ModelSamples, reach: float, T: np.ndarray) -> np.ndarray:
