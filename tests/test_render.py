@@ -12,7 +12,7 @@ from workbench.errors import InputError
 from workbench.geometry import invert_pose, make_pose, pose_from_xyz_rpy
 from workbench.problem.scene import Camera
 from workbench.render.depth import BACKENDS, DepthRenderer, RenderConfig, render_depth, render_mesh
-from workbench.render.likelihood import LikelihoodConfig, scene_loglik, scene_terms
+from workbench.render.likelihood import ImageTerms, LikelihoodConfig, scene_loglik
 from workbench.render.shared import common_poses, draw_shared, drawn_loglik, render_shared
 
 pytestmark = pytest.mark.slow  # needs OpenGL
@@ -221,7 +221,7 @@ def test_shared_scenes_scored_by_their_own_pixels(meshes, floor):
         assert len(drawn.groups) == 3  # sharing the box, the ball, both (the common scene itself)
         incremental, gain = drawn_loglik(drawn, observed, background, config)
         composite = scene_loglik(observed, background, render_shared(r, scenes), config)
-        _, composite_gain = scene_terms(observed, background, render_shared(r, scenes), config)
+        _, composite_gain = ImageTerms.of(observed, background, config).scene(render_shared(r, scenes))
         plain = scene_loglik(observed, background, r.render(scenes), config)
     np.testing.assert_allclose(incremental, composite, rtol=0, atol=1e-6 * np.abs(composite).max())
     np.testing.assert_allclose(gain, composite_gain, rtol=0, atol=1e-6 * np.abs(composite).max())

@@ -422,6 +422,47 @@ def test_assembly_puts_each_object_on_its_own_place(frame_and_problem, context):
     assert not any(np.array_equal(s[0], wrong[0]) and np.array_equal(s[1], truth[1]) for s in scenes)
 
 
+@pytest.mark.parametrize("floored", [True, False])
+def test_the_beam_ranks_assemblies_as_their_joint_depth_scores(frame_and_problem, context, floored):
+    """With a beam wide enough to keep every assignment, the assemblies come best first by the likelihood of their
+    candidates' joint depth over the whole image (``pixel_loglik``), though the beam scores only the pixels each
+    candidate changes (``ImageTerms.drawn_over``, whose clutter-floor terms test_likelihood checks against the whole
+    image's)."""
+    from dataclasses import replace
+
+    from workbench.inference.answer import assemble
+    from workbench.render.depth import DepthRenderer
+    from workbench.render.likelihood import pixel_loglik
+
+    frame, _ = frame_and_problem
+    problem, ctx, _ = context
+    truth = _truth(frame, problem)
+    shifted, swapped = truth.copy(), truth.copy()
+    shifted[:, 0, 3] += 0.02
+    swapped[0, :2, 3], swapped[1, :2, 3] = truth[1, :2, 3], truth[0, :2, 3]
+    poses = [np.stack([truth[k], shifted[k], swapped[k]]) for k in range(2)]
+    library = datadriven.Library(poses, [np.full(3, 1 / 3)] * 2)
+    base = np.repeat(np.eye(4)[None], 2, axis=0)
+    config = problem.config.likelihood if floored else replace(problem.config.likelihood, clutter_floor=None)
+    with DepthRenderer(problem.render_camera, [m.mesh for m in problem.models], problem.config.render) as r:
+        scenes = assemble.assemblies(problem, library, r, assemble.Clashes(ctx.solids), base, np.array([0, 1]),
+                                     floored=floored, beam_width=100)
+        depths = [assemble.candidate_depths(r, poses[k], k) for k in range(2)]
+    clash = assemble.conflicts(poses[1], ctx.solids[1], poses[0], ctx.solids[0])
+    scored = []
+    for a in range(3):
+        for b in range(3):
+            if not clash[b, a]:
+                joint = np.where((depths[1][b] > 0) & ((depths[0][a] == 0) | (depths[1][b] < depths[0][a])),
+                                 depths[1][b], depths[0][a])
+                ll = pixel_loglik(problem.observed, problem.background, joint[None], config, problem.clutter)
+                scored.append((float(ll.sum(dtype=np.float64)), np.stack([poses[0][a], poses[1][b]])))
+    scored.sort(key=lambda s: -s[0])
+    assert len(scenes) == min(assemble.ASSEMBLIES, len(scored)) and len(scored) > 2
+    for got, (_, want) in zip(scenes, scored):
+        assert np.array_equal(got, want)
+
+
 def test_an_assembly_moving_three_objects_is_also_tried_with_each_kept_where_it_was():
     from workbench.inference.answer import assemble
 

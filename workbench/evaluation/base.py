@@ -28,7 +28,7 @@ STAGES = ("projection", "render", "likelihood")
 class Evaluation(Rows):
     """Results for B hypotheses: ``projected`` (B, K, 4, 4) resting poses, ``loglik`` (B,) (-inf where physics
     failed), ``status`` (B,) physics status codes, ``floor_gain`` (B,) the part of ``loglik`` the clutter floor
-    adds (``likelihood.scene_terms``; 0 where it is off or physics failed), ``timings`` seconds spent per stage
+    adds (``likelihood.ImageTerms.scene``; 0 where it is off or physics failed), ``timings`` seconds spent per stage
     (summed over workers). Indexing, concatenation and interleaving as for every ``particleset.Rows``."""
 
     projected: np.ndarray

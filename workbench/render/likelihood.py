@@ -21,7 +21,7 @@ else the table-plane depth, else nothing (a pixel no hypothesis explains: an out
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -225,36 +225,8 @@ def scene_loglik(
 
     Every hypothesis shares the empty-table term; only pixels covered by an object (a tenth of the region,
     typically) change it, so the cost follows the objects' area, not the image's."""
-    plain, floor = scene_terms(observed, background, rendered, config, segments)
+    plain, floor = ImageTerms.of(observed, background, config, segments).scene(rendered)
     return plain + floor
-
-
-def scene_terms(
-    observed: np.ndarray, background: np.ndarray, rendered: np.ndarray, config: LikelihoodConfig,
-    segments: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``scene_loglik`` in its two parts -> ((B,), (B,)) float64: the mixture's log-likelihood without the clutter
-    floor, and what the floor adds to it (zeros when it is off). The search weighs the second part in gradually
-    (``EstimatorConfig.floor_from``)."""
-    obs = observed.astype(np.float32).ravel()
-    bg = background.astype(np.float32).ravel()
-    valid = obs > 0
-    table_ll = np.where(valid, _loglik(obs, bg, config), 0.0)  # (P,)
-    flat = rendered.reshape(len(rendered), -1)
-    b, p = np.nonzero((flat > 0) & valid[None])
-    ll = _loglik(obs[p], flat[b, p], config)
-    out = float(table_ll.sum(dtype=np.float64)) + np.bincount(b, weights=ll - table_ll[p], minlength=len(rendered))
-    floor = np.zeros(len(rendered))
-    if config.floored:
-        segment = _segments(observed, background, config, segments).ravel()
-        sizes = np.bincount(segment[segment >= 0])
-        bare = np.where(valid & (segment >= 0), _raise(table_ll.astype(np.float32), config), 0.0)
-        claims, add = _drawn_terms(obs[p], flat[b, p], ll, table_ll[p], bare[p], config)
-        n, s = len(rendered), len(sizes)
-        covered = _per_piece(b, segment[p], np.ones(len(p)), n, s)  # p: the drawn pixels with a reading
-        floor = _unclaimed_gain(sizes, _per_piece(np.zeros_like(segment), segment, bare, 1, s)[0],
-                                _per_piece(b, segment[p], claims, n, s), covered, _per_piece(b, segment[p], add, n, s))
-    return out, floor
 
 
 def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.ndarray, own: np.ndarray,
@@ -264,42 +236,92 @@ def drawn_over_loglik(observed: np.ndarray, background: np.ndarray, base: np.nda
     composite is ``scene_loglik`` of ``base`` plus this. Only the pixels where ``own`` is the nearer surface are
     computed, which for one object moved in a scene of several is a fraction of the covered pixels (and, with the
     clutter floor, the pieces those pixels lie on)."""
-    plain, floor = drawn_over_terms(observed, background, base, own, config, segments)
+    plain, floor = ImageTerms.of(observed, background, config, segments).drawn_over(base, own)
     return plain + floor
 
 
-def drawn_over_terms(observed: np.ndarray, background: np.ndarray, base: np.ndarray, own: np.ndarray,
-                     config: LikelihoodConfig, segments: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``drawn_over_loglik`` in the two parts of ``scene_terms`` -> ((n,), (n,)) float64."""
-    obs = observed.astype(np.float32).ravel()
-    under = base.ravel()
-    flat = own.reshape(len(own), -1)
-    b, p = np.nonzero((flat > 0) & (obs > 0)[None] & ((under == 0)[None] | (flat < under[None])))
-    table = background.astype(np.float32).ravel()[p]
-    before = _loglik(obs[p], np.where(under[p] > 0, under[p], table), config)  # without ``own``
-    ll = _loglik(obs[p], flat[b, p], config)
-    out = np.bincount(b, weights=ll - before, minlength=len(own)).astype(np.float64)  # int64 when empty
-    floor = np.zeros(len(own))
-    if config.floored:
-        segment = _segments(observed, background, config, segments).ravel()
-        n, s = len(own), int(segment.max()) + 1
-        sizes = np.bincount(segment[segment >= 0], minlength=s)
+@dataclass(frozen=True)
+class ImageTerms:
+    """What every hypothesis scored against one observation shares, computed once for a batch of them rather
+    than at every call (a tracked frame's settling scores a dozen small batches, an assembly hundreds of drawn-over
+    candidates): per pixel (P,) the readings ``obs`` (float32 m, 0 = none), the table's depth ``table`` and the term
+    each reading scores with nothing drawn (``table_ll``, 0 where there is no reading; ``table_sum`` its sum);
+    with the clutter floor on, each pixel's clutter piece ``segment`` (-1: none), the pieces' ``sizes`` (S,), what
+    the floor adds to each bare reading of a piece (``bare``) and per piece (``bare_sum`` (S,))."""
+
+    config: LikelihoodConfig
+    obs: np.ndarray
+    table: np.ndarray
+    table_ll: np.ndarray
+    table_sum: float
+    segment: np.ndarray | None = None
+    sizes: np.ndarray | None = None
+    bare: np.ndarray | None = None
+    bare_sum: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig,
+           segments: np.ndarray | None = None) -> "ImageTerms":
+        """``observed``, ``background``: (H, W) m (or any shape, when ``segments`` of that shape is given and the
+        pixels hold every pixel of each clutter piece they touch); ``segments``: as ``pixel_loglik``."""
+        obs = observed.astype(np.float32).ravel()
+        table = background.astype(np.float32).ravel()
         valid = obs > 0
-        table_ll = _loglik(obs, background.astype(np.float32).ravel(), config)
+        table_ll = np.where(valid, _loglik(obs, table, config), 0.0)
+        terms = cls(config, obs, table, table_ll, float(table_ll.sum(dtype=np.float64)))
+        if not config.floored:
+            return terms
+        segment = _segments(observed, background, config, segments).ravel()
+        sizes = np.bincount(segment[segment >= 0])
         bare = np.where(valid & (segment >= 0), _raise(table_ll, config), 0.0)
-        q = np.nonzero((under > 0) & valid)[0]  # the base's drawn pixels
-        base_claims, base_add = np.zeros(len(obs)), np.zeros(len(obs))
-        base_claims[q], base_add[q] = _drawn_terms(obs[q], under[q], _loglik(obs[q], under[q], config),
-                                                   table_ll[q], bare[q], config)
-        zero = np.zeros(len(obs), np.int64)
-        claimed = _per_piece(zero, segment, base_claims, 1, s)
-        covered = _per_piece(zero, segment, (under > 0) & valid, 1, s)
-        change = _per_piece(zero, segment, base_add, 1, s)
-        bare_sum = _per_piece(zero, segment, bare, 1, s)[0]
-        claims, add = _drawn_terms(obs[p], flat[b, p], ll, table_ll[p], bare[p], config)
-        own_claimed = claimed + _per_piece(b, segment[p], claims - base_claims[p], n, s)
-        own_covered = covered + _per_piece(b, segment[p], under[p] == 0, n, s)  # newly drawn over
-        own_change = change + _per_piece(b, segment[p], add - base_add[p], n, s)
-        floor = (_unclaimed_gain(sizes, bare_sum, own_claimed, own_covered, own_change)
-                 - _unclaimed_gain(sizes, bare_sum, claimed, covered, change)[0])
-    return out, floor
+        bare_sum = _per_piece(np.zeros_like(segment), segment, bare, 1, len(sizes))[0]
+        return replace(terms, segment=segment, sizes=sizes, bare=bare, bare_sum=bare_sum)
+
+    def scene(self, rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``scene_loglik`` of each of ``rendered`` (B, ...) in its two parts -> ((B,), (B,)) float64: the
+        mixture's log-likelihood without the clutter floor, and what the floor adds to it (zeros when it is off).
+        The search weighs the second part in gradually (``EstimatorConfig.floor_from``)."""
+        obs, config = self.obs, self.config
+        flat = rendered.reshape(len(rendered), -1)
+        b, p = np.nonzero((flat > 0) & (obs > 0)[None])
+        ll = _loglik(obs[p], flat[b, p], config)
+        out = self.table_sum + np.bincount(b, weights=ll - self.table_ll[p], minlength=len(rendered))
+        floor = np.zeros(len(rendered))
+        if self.segment is not None:
+            segment, sizes = self.segment, self.sizes
+            claims, add = _drawn_terms(obs[p], flat[b, p], ll, self.table_ll[p], self.bare[p], config)
+            n, s = len(rendered), len(sizes)
+            covered = _per_piece(b, segment[p], np.ones(len(p)), n, s)  # p: the drawn pixels with a reading
+            floor = _unclaimed_gain(sizes, self.bare_sum, _per_piece(b, segment[p], claims, n, s), covered,
+                                    _per_piece(b, segment[p], add, n, s))
+        return out, floor
+
+    def drawn_over(self, base: np.ndarray, own: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``drawn_over_loglik`` of ``own`` (n, ...) over ``base`` in the two parts of ``scene`` -> ((n,), (n,))
+        float64."""
+        obs, config = self.obs, self.config
+        under = base.ravel()
+        flat = own.reshape(len(own), under.size)
+        b, p = np.nonzero((flat > 0) & (obs > 0)[None] & ((under == 0)[None] | (flat < under[None])))
+        before = _loglik(obs[p], np.where(under[p] > 0, under[p], self.table[p]), config)  # without ``own``
+        ll = _loglik(obs[p], flat[b, p], config)
+        out = np.bincount(b, weights=ll - before, minlength=len(own)).astype(np.float64)  # int64 when empty
+        floor = np.zeros(len(own))
+        if self.segment is not None:
+            segment, sizes, bare, table_ll = self.segment, self.sizes, self.bare, self.table_ll
+            n, s = len(own), len(sizes)
+            q = np.nonzero((under > 0) & (obs > 0))[0]  # the base's drawn pixels, the only ones its terms touch
+            base_claims, base_add = np.zeros(len(obs)), np.zeros(len(obs))
+            base_claims[q], base_add[q] = _drawn_terms(obs[q], under[q], _loglik(obs[q], under[q], config),
+                                                       table_ll[q], bare[q], config)
+            zero = np.zeros(len(q), np.int64)
+            claimed = _per_piece(zero, segment[q], base_claims[q], 1, s)
+            covered = _per_piece(zero, segment[q], np.ones(len(q)), 1, s)
+            change = _per_piece(zero, segment[q], base_add[q], 1, s)
+            claims, add = _drawn_terms(obs[p], flat[b, p], ll, table_ll[p], bare[p], config)
+            own_claimed = claimed + _per_piece(b, segment[p], claims - base_claims[p], n, s)
+            own_covered = covered + _per_piece(b, segment[p], under[p] == 0, n, s)  # newly drawn over
+            own_change = change + _per_piece(b, segment[p], add - base_add[p], n, s)
+            floor = (_unclaimed_gain(sizes, self.bare_sum, own_claimed, own_covered, own_change)
+                     - _unclaimed_gain(sizes, self.bare_sum, claimed, covered, change)[0])
+        return out, floor

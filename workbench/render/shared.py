@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.render.depth import DepthRenderer
-from workbench.render.likelihood import LikelihoodConfig, drawn_over_terms, scene_terms
+from workbench.render.likelihood import ImageTerms, LikelihoodConfig
 
 
 def common_poses(T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,24 +97,25 @@ def render_shared(renderer: DepthRenderer, T_world_obj: np.ndarray) -> np.ndarra
 def drawn_loglik(drawn: Drawn, observed: np.ndarray, background: np.ndarray, config: LikelihoodConfig,
                  segments: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``scene_loglik`` of each scene of ``drawn`` -> (B,) float64, in the batch's order, and the part of it the
-    clutter floor adds (B,) (``scene_terms``; zeros when the floor is off): each group's shared tile scored whole,
-    and each scene by how much its own objects change that (``drawn_over_terms``), which computes only their
-    pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums. A group that shares nothing
-    (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit. ``segments``:
-    the clutter pieces, as ``scene_loglik``."""
+    clutter floor adds (B,) (``ImageTerms.scene``; zeros when the floor is off): each group's shared tile scored
+    whole, and each scene by how much its own objects change that (``ImageTerms.drawn_over``), which computes only
+    their pixels. Equal to scoring ``render_shared``'s depth but for the order of the sums. A group that shares
+    nothing (a batch of projected particles) is scored as ``scene_loglik`` scores its tiles, bit for bit.
+    ``segments``: the clutter pieces, as ``scene_loglik``."""
     out, floor = np.empty(len(drawn.order)), np.empty(len(drawn.order))
+    terms = ImageTerms.of(observed, background, config, segments)
     shares = drawn.groups.any(axis=1)  # (G,)
     base, base_floor = np.zeros(len(shares)), np.zeros(len(shares))
     if shares.any():  # every sharing group's tile in one pass over the image's empty-table term
-        plain, gain = scene_terms(observed, background, drawn.shared[shares], config, segments)
+        plain, gain = terms.scene(drawn.shared[shares])
         base[shares], base_floor[shares] = plain + gain, gain
     for g in range(len(shares)):
         own = drawn.own[drawn.group(g)]
         if shares[g]:
-            plain, gain = drawn_over_terms(observed, background, drawn.shared[g], own, config, segments)
+            plain, gain = terms.drawn_over(drawn.shared[g], own)
             ll, gain = base[g] + (plain + gain), base_floor[g] + gain
         else:
-            plain, gain = scene_terms(observed, background, own, config, segments)
+            plain, gain = terms.scene(own)
             ll = plain + gain
         out[drawn.order[drawn.group(g)]] = ll
         floor[drawn.order[drawn.group(g)]] = gain

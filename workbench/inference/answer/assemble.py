@@ -24,7 +24,7 @@ from workbench.inference.search.datadriven import Library
 from workbench.inference.search.geometry import Solid
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
-from workbench.render.likelihood import pixel_loglik
+from workbench.render.likelihood import ImageTerms, pixel_loglik
 
 BEAM = 32  # partial assignments kept after each object
 WIDE_BEAM = 64  # ... when the search is stuck (32 lost the four objects of generated clutter frame 5)
@@ -57,11 +57,22 @@ class Clashes:
     def __init__(self, solids: list[Solid]):
         self.solids = solids
         self._ids: list[dict[bytes, int]] = [{} for _ in solids]  # per object: a candidate pose's bytes -> its id
-        self._known: dict[tuple[int, int, int, int], bool] = {}  # (k_a, id_a, k_b, id_b) -> whether they clash
+        # (k_a, k_b) -> (ids of a, ids of b) int8: 1 they clash, 0 they do not, -1 not tested yet
+        self._known: dict[tuple[int, int], np.ndarray] = {}
 
-    def _id(self, k: int, T: np.ndarray) -> list[int]:
+    def _id(self, k: int, T: np.ndarray) -> np.ndarray:
         ids = self._ids[k]
-        return [ids.setdefault(np.ascontiguousarray(t).tobytes(), len(ids)) for t in T]
+        return np.array([ids.setdefault(np.ascontiguousarray(t).tobytes(), len(ids)) for t in T], np.intp)
+
+    def _table(self, ka: int, kb: int) -> np.ndarray:
+        """The tested pairs of objects ka and kb, grown to every id given so far."""
+        shape = (len(self._ids[ka]), len(self._ids[kb]))
+        old = self._known.get((ka, kb), np.zeros((0, 0), np.int8))
+        if old.shape != shape:
+            grown = np.full(shape, -1, np.int8)
+            grown[: old.shape[0], : old.shape[1]] = old
+            self._known[(ka, kb)] = old = grown
+        return old
 
     def between(self, ka: int, Ta: np.ndarray, kb: int, Tb: np.ndarray) -> np.ndarray:
         """``conflicts`` of object ka's candidates ``Ta`` (A, 4, 4) with object kb's ``Tb`` (B, 4, 4) -> (A, B)
@@ -70,15 +81,14 @@ class Clashes:
         out = np.zeros((len(Ta), len(Tb)), bool)
         gap = np.linalg.norm(Ta[:, None, :3, 3] - Tb[None, :, :3, 3], axis=-1)
         i, j = np.nonzero(gap < a.radius + b.radius)
-        ida, idb = self._id(ka, Ta), self._id(kb, Tb)
-        keys = [(ka, ida[x], kb, idb[y]) for x, y in zip(i, j)]
-        new = np.array([key not in self._known for key in keys], bool)
+        ida, idb = self._id(ka, Ta)[i], self._id(kb, Tb)[j]
+        known = self._table(ka, kb)
+        new = known[ida, idb] < 0
         if new.any():
             ni, nj = i[new], j[new]
             clash = (inside_share(Ta[ni], a, Tb[nj], b) > INSIDE) | (inside_share(Tb[nj], b, Ta[ni], a) > INSIDE)
-            for key, c in zip((k for k, n in zip(keys, new) if n), clash):
-                self._known[key] = bool(c)
-        out[i, j] = [self._known[key] for key in keys]
+            known[ida[new], idb[new]] = clash
+        out[i, j] = known[ida, idb] == 1
         return out
 
 
@@ -117,31 +127,38 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, clas
     observed = problem.observed.reshape(1, -1)[:, cover]
     background = problem.background.reshape(1, -1)[:, cover]
     segments = pieces[None, cover]
+    terms = ImageTerms.of(observed, background, config, segments)
     clash = {(i, j): clashes.between(ks[i], poses[i], ks[j], poses[j]) for i in range(len(ks)) for j in range(i)}
-    beam = [(np.zeros(0, int), np.zeros(len(cover), np.float32))]  # (candidate per assigned object, joint depth)
+    empty = np.zeros((1, 1, len(cover)), np.float32)
+    beam = [(np.zeros(0, int), empty[0, 0],  # (candidate per assigned object, joint depth, its log-likelihood)
+             float(pixel_loglik(observed, background, empty, config, segments)[0, 0].sum(dtype=np.float64)))]
     for i in range(len(ks)):
-        grown = []
-        for chosen, joint in beam:
+        grown = []  # (log-likelihood, its beam entry, the candidate added)
+        for b, (chosen, joint, loglik) in enumerate(beam):
             ok = np.ones(len(poses[i]), bool)
             for j, c in enumerate(chosen):
                 ok &= ~clash[(i, j)][:, c]
-            d = depths[i][ok]
-            nearer = (d > 0) & ((joint == 0) | (d < joint))
-            merged = np.where(nearer, d, joint)  # (n_ok, P)
-            score = pixel_loglik(observed, background, merged[:, None], config, segments)[:, 0].sum(axis=1,
-                                                                                             dtype=np.float64)
-            grown += [(float(sc), np.append(chosen, c), m) for sc, c, m in zip(score, np.nonzero(ok)[0], merged)]
+            # A candidate changes the joint depth only where it is nearer: only those pixels (and, with the floor,
+            # the pieces they lie on) are scored again, not every covered pixel of every candidate.
+            plain, floor = terms.drawn_over(joint, depths[i][ok])
+            grown += [(loglik + float(g), b, c) for g, c in zip(plain + floor, np.nonzero(ok)[0])]
         if not grown:  # every candidate sits inside an assigned object: no consistent assignment from here
             return np.zeros((0,) + base.shape)
         grown.sort(key=lambda g: -g[0])  # stable: ties keep the earlier state and candidate
-        beam = [(c, m) for _, c, m in grown[:beam_width]]
+        beam = [(np.append(beam[b][0], c), _drawn_over(beam[b][1], depths[i][c]), loglik)
+                for loglik, b, c in grown[:beam_width]]
     out = []
-    for chosen, _ in beam[:ASSEMBLIES]:
+    for chosen, _, _ in beam[:ASSEMBLIES]:
         scene = base.copy()
         for i, c in enumerate(chosen):
             scene[ks[i]] = poses[i][c]
         out.append(scene)
     return np.array(out)
+
+
+def _drawn_over(joint: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """The joint depth (P,) with a candidate's ``depth`` (P,) drawn over it: the nearer surface per pixel, 0 = none."""
+    return np.where((depth > 0) & ((joint == 0) | (depth < joint)), depth, joint)
 
 
 def moved(scene: np.ndarray, base: np.ndarray) -> list[int]:
