@@ -149,3 +149,62 @@ def test_label_pose_fields_pass_on_what_reads_well_and_leave_a_field_being_typed
     finally:
         ui.stop()
         server.stop()
+
+
+def test_a_pose_field_typed_as_the_server_wrote_it_is_sent_again_once_the_typing_pauses():
+    """A new frame's labels written to the x field and a keystroke crossing them: the browser may show the written
+    value while the server holds the typed one. The held value goes to the browser again after the typing pauses;
+    a field the server had not written since is left to the browser."""
+    import time
+
+    import numpy as np
+    import viser
+    from viser._messages import GuiUpdateMessage
+
+    from workbench.app.ui.labelling.controls import build_label_tab
+    from workbench.app.ui.labelling.pose_fields import PoseFields
+    from workbench.app.ui.ui_thread import UiThread
+    from workbench.app.ui.widgets.numeric import REVERT_S
+    from workbench.geometry import make_pose
+
+    server, ui, quiet, reporter, typed = viser.ViserServer(port=0, verbose=False), UiThread(), Quiet(), \
+        FakeReporter(), []
+    sent: list[tuple[str, object]] = []
+    interface = server.gui._websock_interface
+    queue = interface.queue_message
+
+    def recording(message):  # the real queue, its messages to the browser also listed here
+        if isinstance(message, GuiUpdateMessage) and "value" in message.updates:
+            sent.append((message.uuid, message.updates["value"]))
+        queue(message)
+
+    interface.queue_message = recording
+    try:
+        tab = build_label_tab(server.gui)
+        fields = ui.call(PoseFields, tab, ui, quiet, reporter, lambda i, v: typed.append((i, v)))
+        x, y = (h._impl.uuid for h in tab.position[:2])
+
+        def show(xyz):
+            def quietly():
+                with quiet:
+                    fields.show(make_pose(np.eye(3), xyz))
+            ui.call(quietly)
+
+        show([0.01, 0.02, 0.03])  # the new frame's labels, written to every field
+        assert (x, "1.00") in sent
+        tab.position[0].value = "-2"  # keystrokes sent before the browser had the write
+        tab.position[0].value = "-2.01"
+        sent.clear()  # setting the values here sent them, as the browser's keystrokes would not
+        time.sleep(REVERT_S / 2)
+        assert ui.call(lambda: sent) == []  # not while the typing may go on
+        assert ui.wait_until(lambda: (x, "-2.01") in sent, 5 * REVERT_S), sent
+        assert typed == [(0, -2.0), (0, -2.01)]
+        # Typed again with no write in between: the browser already shows what it sent.
+        tab.position[0].value = "-2.5"
+        sent.clear()  # setting the value here sent it, as the browser's keystroke would not
+        time.sleep(2 * REVERT_S)
+        assert ui.call(lambda: sent) == [] and typed[-1] == (0, -2.5)
+        assert tab.position[1].value == "2.00" and (y, "2.00") not in sent
+    finally:
+        ui.stop()
+        server.stop()

@@ -9,8 +9,8 @@ from typing import Callable
 import numpy as np
 
 from workbench.app.ui.labelling.controls import ANGLE_RULES, POSITION_RULES, LabelTab
-from workbench.app.ui.ui_thread import UiThread
-from workbench.app.ui.widgets.numeric import Refusals, resend
+from workbench.app.ui.ui_thread import Later, UiThread
+from workbench.app.ui.widgets.numeric import REVERT_S, Refusals, resend
 from workbench.app.ui.widgets.quiet import Quiet
 from workbench.errors import InputError
 from workbench.geometry import matrix_to_euler
@@ -25,7 +25,11 @@ class PoseFields:
     def __init__(self, tab: LabelTab, ui: UiThread, quiet: Quiet, reporter,
                  on_typed: Callable[[int, float], None]):
         self.handles = (*tab.position, *tab.angles)
-        self.quiet, self.on_typed = quiet, on_typed
+        self.ui, self.quiet, self.on_typed = ui, quiet, on_typed
+        # Fields the server wrote since the browser last sent them, and the resends due once the typing pauses
+        # (``typed``).
+        self.written: set[int] = set()
+        self.resyncs: dict[int, Later] = {}
         # The pose shown, to the last bit: the fields show it rounded, and an angle typed into one field keeps the
         # other two angles as they were, not as rounded.
         self.values = np.zeros(6)
@@ -47,11 +51,12 @@ class PoseFields:
         browser after the user's typing reached the server: the server then holds what was typed while the browser
         shows the older value, which no later equal write would correct."""
         self.values = np.concatenate([T[:3, 3] * 100.0, np.degrees(matrix_to_euler(T[:3, :3]))])
-        for rule, h, v in zip(RULES, self.handles, self.values):
+        for i, (rule, h, v) in enumerate(zip(RULES, self.handles, self.values)):
             if rule.label in self.refusals.refused:
                 continue
             if not rule.shows(h.value, v):
                 h.value = rule.show(v)
+                self.written.add(i)
             elif confirmed:
                 resend(h)
 
@@ -63,9 +68,19 @@ class PoseFields:
 
     def typed(self, i: int) -> None:
         """Field ``i`` was typed: every field of the six is read (one refused earlier may still be), the refused
-        ones are shown, and field ``i``'s value, if it reads well, goes to ``on_typed``."""
+        ones are shown, and field ``i``'s value, if it reads well, goes to ``on_typed``.
+
+        Where the server wrote field ``i`` since the browser last sent it (a new frame's labels, the run's estimate),
+        the write and this keystroke may have crossed: the browser then shows the written value while the server
+        holds the typed one, and a plain edit gets no answer from the engine to correct it (``show``'s
+        ``confirmed``). So the value held is sent again once the typing pauses (REVERT_S after the last keystroke;
+        sooner would fight the typing). Otherwise the field goes on showing the other value, and the next edit is typed
+        from it."""
         if self.quiet.active:
             return  # the server showing a pose, not the user typing
+        pending = self.resyncs.pop(i, None)
+        if pending is not None:
+            pending.cancel()
         errors, value = {}, None
         for j, (rule, h) in enumerate(zip(RULES, self.handles)):
             try:
@@ -75,11 +90,19 @@ class PoseFields:
             else:
                 value = v if j == i else value
         self.refusals.refuse(errors)
+        if value is not None and (i in self.written or pending is not None):
+            self.written.discard(i)
+            self.resyncs[i] = self.ui.later(REVERT_S, lambda: self._resync(i))
         if value is not None:
             self.on_typed(i, value)
 
+    def _resync(self, i: int) -> None:
+        self.resyncs.pop(i, None)
+        resend(self.handles[i])
+
     def restore(self, labels: tuple[str, ...]) -> None:
         """Put the pose shown back into the fields labelled ``labels`` (``Refusals`` calls this inside ``Quiet``)."""
-        for rule, h, v in zip(RULES, self.handles, self.values):
+        for i, (rule, h, v) in enumerate(zip(RULES, self.handles, self.values)):
             if rule.label in labels:
                 h.value = rule.show(v)
+                self.written.add(i)
