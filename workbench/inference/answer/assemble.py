@@ -24,7 +24,8 @@ from workbench.inference.search.datadriven import Library
 from workbench.inference.search.geometry import Solid
 from workbench.problem.problem import Problem
 from workbench.render.depth import DepthRenderer
-from workbench.render.likelihood import ImageTerms, pixel_loglik
+from workbench.render.likelihood import ImageTerms
+from workbench.render.shared import keep_nearer
 
 BEAM = 32  # partial assignments kept after each object
 WIDE_BEAM = 64  # ... when the search is stuck (32 lost the four objects of generated clutter frame 5)
@@ -129,9 +130,9 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, clas
     segments = pieces[None, cover]
     terms = ImageTerms.of(observed, background, config, segments)
     clash = {(i, j): clashes.between(ks[i], poses[i], ks[j], poses[j]) for i in range(len(ks)) for j in range(i)}
-    empty = np.zeros((1, 1, len(cover)), np.float32)
-    beam = [(np.zeros(0, int), empty[0, 0],  # (candidate per assigned object, joint depth, its log-likelihood)
-             float(pixel_loglik(observed, background, empty, config, segments)[0, 0].sum(dtype=np.float64)))]
+    empty = np.zeros((1, len(cover)), np.float32)
+    beam = [(np.zeros(0, int), empty[0],  # (candidate per assigned object, joint depth, its log-likelihood)
+             float(np.sum(terms.scene(empty))))]
     for i in range(len(ks)):
         grown = []  # (log-likelihood, its beam entry, the candidate added)
         for b, (chosen, joint, loglik) in enumerate(beam):
@@ -157,8 +158,11 @@ def assemblies(problem: Problem, library: Library, renderer: DepthRenderer, clas
 
 
 def _drawn_over(joint: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """The joint depth (P,) with a candidate's ``depth`` (P,) drawn over it: the nearer surface per pixel, 0 = none."""
-    return np.where((depth > 0) & ((joint == 0) | (depth < joint)), depth, joint)
+    """The joint depth (P,) float32 with a candidate's ``depth`` (P,) float32 drawn over it: the nearer surface per
+    pixel, 0 = none (``keep_nearer``), as a new array."""
+    out = depth[None].copy()
+    keep_nearer(out, joint)
+    return out[0]
 
 
 def moved(scene: np.ndarray, base: np.ndarray) -> list[int]:
